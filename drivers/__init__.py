@@ -1,0 +1,1 @@
+"""Hardware interfaces and real device drivers: stage, pattern display, camera."""

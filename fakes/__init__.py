@@ -1,0 +1,1 @@
+"""Fake hardware: Zaber controller model, fake bench world, fake camera, fake LCD."""

@@ -1,0 +1,1 @@
+"""LTC measurement station: configs, patterns, acquisition runs, LTC reconstruction, lens derivation, CLI."""

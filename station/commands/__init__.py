@@ -1,0 +1,1 @@
+"""Subcommands of the ``ltc`` command line, one module each."""

@@ -1,0 +1,117 @@
+"""The LTC store (zarr v3): per depth and camera pixel, a P x P window of LTC weights.
+
+Layout (ARCHITECTURE.md, issue 3):
+
+* ``ltc[depth, row, col, P, P]`` float32, each pixel's LTC normalised to sum 1 (NaN where
+  the pixel has no signal); window element ``[r, s]`` is LCD pixel
+  ``(origin_col + s, origin_row + r)``.
+* ``origin[depth, row, col, 2]`` int32, LCD (column, row) of window element ``[0, 0]``.
+* ``gain[depth, row, col]`` float32, response to full white (ADU above black).
+* ``noise[depth, row, col]`` float32, estimated std of one LTC weight.
+* attributes: ``depths_mm``, ``pitch_mm``, ``period``, ``lcd_size`` (w, h),
+  ``camera_size`` (w, h), ``format`` and ``format_version``, plus anything the writer adds.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+import zarr
+
+FORMAT = "ltc-store"
+FORMAT_VERSION = 1
+ARRAYS = ("ltc", "origin", "gain", "noise")
+
+
+class LtcStoreError(ValueError):
+    """The LTC store is missing, malformed or of another format; the message names the path."""
+
+
+def create_ltc_store(
+    path: str | Path,
+    *,
+    depths_mm: list[float],
+    camera_size: tuple[int, int],
+    period: int,
+    pitch_mm: float,
+    lcd_size: tuple[int, int],
+    tile_px: int = 64,
+    attrs: dict | None = None,
+) -> zarr.Group:
+    """Create an empty LTC store; refuses to overwrite an existing path."""
+    path = Path(path)
+    if path.exists():
+        raise LtcStoreError(f"{path}: already exists; refusing to overwrite an LTC store")
+    w, h = camera_size
+    d = len(depths_mm)
+    g = zarr.open_group(str(path), mode="w-", zarr_format=3)
+    t = (1, min(tile_px, h), min(tile_px, w))
+    g.create_array("ltc", shape=(d, h, w, period, period), chunks=t + (period, period),
+                   dtype="float32", fill_value=np.nan)
+    g.create_array("origin", shape=(d, h, w, 2), chunks=t + (2,), dtype="int32", fill_value=0)
+    g.create_array("gain", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan)
+    g.create_array("noise", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan)
+    g.attrs.update(
+        {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "depths_mm": [float(z) for z in depths_mm],
+            "camera_size": [int(w), int(h)],
+            "period": int(period),
+            "pitch_mm": float(pitch_mm),
+            "lcd_size": [int(v) for v in lcd_size],
+            **(attrs or {}),
+        }
+    )
+    return g
+
+
+def open_ltc_store(path: str | Path, mode: str = "r") -> zarr.Group:
+    """Open and validate an LTC store."""
+    path = Path(path)
+    if not path.exists():
+        raise LtcStoreError(f"{path}: no such LTC store")
+    try:
+        g = zarr.open_group(str(path), mode=mode)
+    except (FileNotFoundError, ValueError, KeyError) as exc:
+        raise LtcStoreError(f"{path}: not a zarr group ({exc})") from exc
+    if g.attrs.get("format") != FORMAT:
+        raise LtcStoreError(f"{path}: attribute 'format' is {g.attrs.get('format')!r}, "
+                            f"expected {FORMAT!r}")
+    missing = [a for a in ARRAYS if a not in g]
+    if missing:
+        raise LtcStoreError(f"{path}: missing array(s) {missing}")
+    return g
+
+
+def windows_from_sparse(
+    m: sp.csr_array,
+    lcd_size: tuple[int, int],
+    period: int,
+    origin: np.ndarray,
+) -> np.ndarray:
+    """Cut P x P windows out of per-pixel sparse LTC rows.
+
+    m : (n, lcd_h*lcd_w) sparse, rows are pixels; origin : (n, 2) int LCD (col, row) of each
+    window's element [0, 0]. Returns (n, P, P) float64 (weights outside the LCD are 0).
+    """
+    lw, lh = lcd_size
+    m = sp.csr_array(m)
+    origin = np.asarray(origin, dtype=np.int64).reshape(-1, 2)
+    out = np.zeros((m.shape[0], period, period))
+    counts = np.diff(m.indptr)
+    rows = np.repeat(np.arange(m.shape[0]), counts)
+    col, row = m.indices % lw, m.indices // lw
+    s = col - origin[rows, 0]
+    r = row - origin[rows, 1]
+    ok = (s >= 0) & (s < period) & (r >= 0) & (r < period)
+    np.add.at(out, (rows[ok], r[ok], s[ok]), m.data[ok])
+    return out
+
+
+def centred_origins(centres_xy: np.ndarray, period: int) -> np.ndarray:
+    """Window origins (n, 2) int that centre a P x P window on LCD points (n, 2) (x, y)."""
+    c = np.asarray(centres_xy, dtype=np.float64).reshape(-1, 2)
+    return (np.floor(c + 0.5) - period // 2).astype(np.int32)
