@@ -1,0 +1,163 @@
+"""The fake camera: what the bench camera sees of the fake LCD from the stage's current
+position, through the exact per-pixel LTC, with a physical noise model.
+
+Signal chain per pixel: electrons ``e = white_e_per_ms * exposure_ms * (h . L)`` with
+``h`` the true (unnormalised) LTC and ``L`` the LCD luminance in [0, 1]; Poisson shot noise;
+clipping at the full well; Gaussian read noise (electrons); ``ADU = black_level + gain * e``
+rounded to integers and clipped to the bit depth.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from drivers.camera import CameraTimeout
+from drivers.interfaces import Camera, Frame
+from fakes.bench import FakeBench
+from fakes.lcd import FakeLCD
+
+
+class NoiseModel(BaseModel):
+    """Sensor response and noise of the fake camera."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    enabled: bool = Field(True, description="False: noise-free, unquantised-in-electrons camera")
+    full_well_e: float = Field(10000.0, gt=0, description="full-well capacity, electrons")
+    read_noise_e: float = Field(5.0, ge=0, description="read noise std, electrons")
+    bit_depth: int = Field(12, description="ADC bits: 8, 10, 12 or 16")
+    black_level_adu: float = Field(16.0, ge=0, description="offset added to every pixel, ADU")
+    white_fraction: float = Field(
+        0.85, gt=0, description="full white at the reference exposure fills this fraction of "
+        "the full well for a pixel with transmittance 1"
+    )
+    reference_exposure_ms: float = Field(20.0, gt=0, description="reference exposure, ms")
+
+    @property
+    def gain_adu_per_e(self) -> float:
+        """Conversion gain: the full well maps to full scale above the black level."""
+        return (2**self.bit_depth - 1 - self.black_level_adu) / self.full_well_e
+
+    def electrons_per_ms_white(self) -> float:
+        """Signal rate for full white and transmittance 1, electrons per ms."""
+        return self.white_fraction * self.full_well_e / self.reference_exposure_ms
+
+    def mean_adu(self, electrons: np.ndarray) -> np.ndarray:
+        """Expected ADU for expected electrons (no saturation)."""
+        return self.black_level_adu + self.gain_adu_per_e * np.asarray(electrons)
+
+    def variance_adu(self, electrons: np.ndarray) -> np.ndarray:
+        """Expected ADU variance: shot + read noise, plus uniform quantisation (1/12)."""
+        g = self.gain_adu_per_e
+        return g**2 * (np.asarray(electrons) + self.read_noise_e**2) + 1.0 / 12.0
+
+
+@dataclass
+class CameraFaults:
+    """Switches a test sets at any time; each counts down per capture."""
+
+    timeout: int = 0  # the next n captures raise CameraTimeout after the timeout
+    drop: int = 0  # the next n frames are lost: the frame counter skips them
+    stale: int = 0  # the next n captures return the previous frame again
+
+
+class FakeCamera(Camera):
+    """Renders the fake LCD through the bench's true LTC at the stage's current position."""
+
+    def __init__(
+        self,
+        bench: FakeBench,
+        lcd: FakeLCD,
+        stage_position_mm: Callable[[], float],
+        noise: NoiseModel | None = None,
+        *,
+        exposure_ms: float | None = None,
+        seed: int | None = 0,
+        timeout_s: float = 2.0,
+    ) -> None:
+        if lcd.size != bench.config.lcd_size:
+            raise ValueError(
+                f"FakeCamera: display size {lcd.size} differs from bench lcd_size "
+                f"{bench.config.lcd_size}"
+            )
+        self.bench = bench
+        self.lcd = lcd
+        self.noise = noise or NoiseModel()
+        self._position = stage_position_mm
+        self._exposure_ms = exposure_ms or self.noise.reference_exposure_ms
+        self.rng = np.random.default_rng(seed)
+        self.timeout_s = timeout_s
+        self.faults = CameraFaults()
+        self._frame_id = -1
+        self._last: Frame | None = None
+
+    @property
+    def exposure_ms(self) -> float:
+        return self._exposure_ms
+
+    @exposure_ms.setter
+    def exposure_ms(self, value: float) -> None:
+        if not value > 0:
+            raise ValueError(f"FakeCamera: exposure_ms must be > 0, got {value}")
+        self._exposure_ms = float(value)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.bench.config.camera_size
+
+    @property
+    def bit_depth(self) -> int:
+        return self.noise.bit_depth
+
+    def expected_electrons(self, z_mm: float | None = None) -> np.ndarray:
+        """Noise-free electrons (H, W) for what is on the LCD now, at ``z_mm`` (default: now)."""
+        z = self._position() if z_mm is None else z_mm
+        m = self.bench.true_ltc(z)
+        rate = self.noise.electrons_per_ms_white() * self._exposure_ms
+        w, h = self.size
+        return (rate * (m @ self.lcd.luminance().ravel().astype(np.float64))).reshape(h, w)
+
+    def _digitise(self, electrons: np.ndarray) -> np.ndarray:
+        n = self.noise
+        e = electrons
+        if n.enabled:
+            e = self.rng.poisson(np.maximum(e, 0)).astype(np.float64)
+        e = np.minimum(e, n.full_well_e)
+        if n.enabled and n.read_noise_e > 0:
+            e = e + self.rng.normal(0.0, n.read_noise_e, e.shape)
+        adu = np.rint(n.black_level_adu + n.gain_adu_per_e * e)
+        adu = np.clip(adu, 0, 2**n.bit_depth - 1)
+        return adu.astype(np.uint8 if n.bit_depth <= 8 else np.uint16)
+
+    def capture(self, timeout: float | None = None) -> Frame:
+        """One frame of what the camera sees now."""
+        timeout = self.timeout_s if timeout is None else timeout
+        f = self.faults
+        if f.timeout > 0:
+            f.timeout -= 1
+            time.sleep(timeout)
+            raise CameraTimeout(f"FakeCamera: no frame within {timeout:.3f} s (fault switch)")
+        if f.stale > 0 and self._last is not None:
+            f.stale -= 1
+            return self._last
+        if f.drop > 0:
+            self._frame_id += f.drop
+            f.drop = 0
+        z = self._position()
+        self._frame_id += 1
+        frame = Frame(
+            image=self._digitise(self.expected_electrons(z)),
+            timestamp=time.monotonic(),
+            exposure_ms=self._exposure_ms,
+            frame_id=self._frame_id,
+            meta={"stage_mm": z},
+        )
+        self._last = frame
+        return frame
+
+    def close(self) -> None:
+        self._last = None

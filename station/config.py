@@ -1,0 +1,147 @@
+"""Station configuration: pydantic models read from TOML, with errors naming file and field."""
+
+from __future__ import annotations
+
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+
+class ConfigError(ValueError):
+    """A config file is missing, unreadable or invalid; the message names file and field."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class StageConfig(_Strict):
+    """Zaber stage on a serial port."""
+
+    port: str = Field("/dev/ttyUSB0", description="serial device path or pyserial URL")
+    baudrate: int = Field(115200, description="serial speed, baud")
+    address: int = Field(1, ge=1, le=99, description="Zaber device address")
+    axis: int = Field(1, ge=1, le=9, description="Zaber axis number")
+    microstep_um: float = Field(0.047625, gt=0, description="microstep size, um")
+    travel_mm: tuple[float, float] = Field(
+        (0.0, 300.0), description="allowed travel (low, high), mm; low keeps the camera off the LCD"
+    )
+    tolerance_um: float = Field(2.0, gt=0, description="position tolerance of a finished move, um")
+    timeout_s: float = Field(1.0, gt=0, description="deadline for one command's reply, s")
+    settle_s: float = Field(0.2, ge=0, description="wait after every finished move, s")
+
+    @model_validator(mode="after")
+    def _travel_ordered(self) -> "StageConfig":
+        lo, hi = self.travel_mm
+        if not lo < hi:
+            raise ValueError(f"travel_mm must be (low, high) with low < high, got {self.travel_mm}")
+        return self
+
+
+class DisplayConfig(_Strict):
+    """The pattern LCD."""
+
+    monitor: int = Field(1, ge=0, description="GLFW monitor index of the LCD")
+    lut_path: str | None = Field(None, description="inverse response LUT file (from `ltc gamma`)")
+    refresh_hz: float = Field(60.0, gt=0, description="display refresh rate, Hz")
+    latency_frames: int = Field(2, ge=0, description="refreshes to wait after show before capture")
+    frame_code: bool = Field(True, description="draw a camera-readable frame code in a corner")
+    frame_code_block_px: int = Field(16, ge=1, description="frame code block edge, LCD pixels")
+    pitch_mm: float = Field(0.2715, gt=0, description="LCD pixel pitch, mm")
+
+
+class CameraConfig(_Strict):
+    """The camera under test."""
+
+    source: int | str = Field(0, description="OpenCV device index, path or URL")
+    exposure_ms: float = Field(33.333, gt=0, description="exposure, ms (a multiple of the refresh period)")
+    gain: float | None = Field(None, description="camera gain in backend units; None leaves it")
+    timeout_s: float = Field(2.0, gt=0, description="capture deadline, s")
+    saturation_fraction: float = Field(
+        0.98, gt=0, le=1, description="pixels at or above this fraction of full scale count as saturated"
+    )
+
+
+class PatternConfig(_Strict):
+    """Fourier single-pixel-imaging patterns (OPTICS.md section 5)."""
+
+    period: int = Field(24, ge=4, description="pattern period P, LCD pixels")
+    steps: Literal[3, 4] = Field(4, description="phase steps per frequency")
+    offset: float = Field(0.5, gt=0, lt=1, description="pattern mean a, fraction of white")
+    amplitude: float = Field(0.5, gt=0, le=0.5, description="pattern amplitude b, fraction of white")
+
+    @model_validator(mode="after")
+    def _in_range(self) -> "PatternConfig":
+        if self.offset - self.amplitude < -1e-12 or self.offset + self.amplitude > 1 + 1e-12:
+            raise ValueError(
+                f"offset +- amplitude must stay within [0, 1], got {self.offset} +- {self.amplitude}"
+            )
+        return self
+
+
+class StationConfig(_Strict):
+    """The whole station: hardware, depths, patterns. ``fake`` holds the fake bench's settings
+    (validated by the fake backend) and is used only with ``backend = "fake"``."""
+
+    backend: Literal["fake", "real"] = Field(description="'fake' (software bench) or 'real'")
+    depths_mm: list[float] = Field(min_length=1, description="stage readings to measure at, mm")
+    stage: StageConfig = StageConfig()
+    display: DisplayConfig = DisplayConfig()
+    camera: CameraConfig = CameraConfig()
+    patterns: PatternConfig = PatternConfig()
+    fake: dict[str, Any] = Field(default_factory=dict, description="fake bench settings")
+
+    @model_validator(mode="after")
+    def _depths_in_travel(self) -> "StationConfig":
+        lo, hi = self.stage.travel_mm
+        for i, z in enumerate(self.depths_mm):
+            if z < 0:
+                raise ValueError(f"depths_mm[{i}] = {z} is negative; depths are stage readings >= 0")
+            if not lo <= z <= hi:
+                raise ValueError(
+                    f"depths_mm[{i}] = {z} is outside stage.travel_mm {self.stage.travel_mm}"
+                )
+        return self
+
+
+def _format_errors(source: str, exc: ValidationError) -> str:
+    lines = [f"{source}: invalid station config"]
+    for err in exc.errors():
+        field = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        lines.append(f"  {field}: {err['msg']}")
+    return "\n".join(lines)
+
+
+def parse_config(text: str, source: str = "<config>") -> StationConfig:
+    """Parse TOML text into a validated config; errors name ``source`` and the field."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
+    try:
+        return StationConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc)) from exc
+
+
+def load_config(path: str | Path) -> StationConfig:
+    """Read and validate a station config file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read config: {exc.strerror}") from exc
+    return parse_config(text, str(path))
+
+
+def example_text(kind: Literal["fake", "real"]) -> str:
+    """The commented example config shipped with the package."""
+    return resources.files("station").joinpath("examples", f"{kind}.toml").read_text("utf-8")
+
+
+def example_config(kind: Literal["fake", "real"] = "fake") -> StationConfig:
+    """The example config, validated."""
+    return parse_config(example_text(kind), f"station/examples/{kind}.toml")
