@@ -1,0 +1,531 @@
+"""Zaber ASCII stage driver for one axis on a serial port, and the typed stage errors.
+
+Millimetres in the API; microsteps exist only inside this module (``microstep_um`` from config).
+Every error message names the port, the command sent and the reply received (or
+"no reply within X s").
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import serial
+
+from drivers.interfaces import DeviceError, Stage
+from drivers.zaber_protocol import (
+    Reply,
+    ZaberChecksumError,
+    ZaberFormatError,
+    format_command,
+    parse_reply,
+)
+
+__all__ = [
+    "Stage",
+    "StageConnectionLost",
+    "StageError",
+    "StageFault",
+    "StageLimitError",
+    "StageNotHomed",
+    "StageProtocolError",
+    "StageRejected",
+    "StageTimeout",
+    "ZaberStage",
+]
+
+SPEED_UNIT = 1.6384  # Zaber maxspeed value per microstep/s
+ACCEL_UNIT = 1.6384 / 10000  # Zaber accel value per microstep/s^2
+READ_SLICE_S = 0.01  # port read timeout; the line reader loops until its own deadline
+MAX_LINE = 1024  # bytes without a newline handed on as one (garbled) line
+NOT_HOMED = ("WR", "WH")
+FAULT_NAMES = {"FS": "stalled", "FE": "limit error", "FD": "driver disabled",
+               "FQ": "encoder error", "FF": "critical fault"}
+
+
+class StageError(DeviceError):
+    """Any stage failure."""
+
+
+class StageRejected(StageError):
+    """The device answered RJ; ``reason`` is its reason (BADDATA, BADCOMMAND, PARKED, ...)."""
+
+    def __init__(self, message: str, reason: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+class StageFault(StageError):
+    """The device reports an ``F*`` fault; ``warning`` is the flag (FS, FE, ...)."""
+
+    def __init__(self, message: str, warning: str) -> None:
+        super().__init__(message)
+        self.warning = warning
+
+
+class StageTimeout(StageError):
+    """A move or homing did not finish in time, or made no progress; the axis was stopped."""
+
+
+class StageLimitError(StageError):
+    """Target refused on the host, before sending: outside the travel or not representable."""
+
+
+class StageNotHomed(StageError):
+    """The stage has no reference position (home() it first), or homing did not give one."""
+
+
+class StageConnectionLost(StageError):
+    """The port failed or a reply never came. After a lost reply to a motion command,
+    ``position_mm`` and ``busy`` hold the device state queried afterwards (None if unknown)."""
+
+    def __init__(self, message: str, position_mm: float | None = None, busy: bool | None = None):
+        super().__init__(message)
+        self.position_mm = position_mm
+        self.busy = busy
+
+
+class StageProtocolError(StageError):
+    """A reply that is garbled, fails its checksum, does not match the command, or is not Zaber."""
+
+
+class SerialLike(Protocol):
+    """What the driver needs of a port object (pyserial's ``Serial`` has it all)."""
+
+    timeout: float | None
+
+    def write(self, data: bytes) -> int | None: ...
+    def read(self, size: int = 1) -> bytes: ...
+    def close(self) -> None: ...
+
+
+class _LineReader:
+    """Reads ``\\n``-terminated lines with a hard deadline, whatever the port's own timeout."""
+
+    def __init__(self, port: SerialLike) -> None:
+        self.port = port
+        self._buf = bytearray()
+
+    def read_line(self, deadline: float) -> bytes | None:
+        """The next line (terminator included), or None when ``deadline`` (monotonic s) passes.
+        More than MAX_LINE bytes without a newline come back as one line. Port errors propagate."""
+        while True:
+            end = self._buf.find(b"\n")
+            if end >= 0 or len(self._buf) >= MAX_LINE:
+                size = end + 1 if end >= 0 else MAX_LINE
+                line = bytes(self._buf[:size])
+                del self._buf[:size]
+                return line
+            if time.monotonic() >= deadline:
+                return None
+            waiting = getattr(self.port, "in_waiting", 0)
+            self._buf += self.port.read(max(1, min(waiting, MAX_LINE)))
+
+
+class _ReplyLost(Exception):
+    """Internal: no reply came (``reason`` says why); ``port_ok`` when the port can be used."""
+
+    def __init__(self, reason: str, port_ok: bool) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.port_ok = port_ok
+
+
+@dataclass(frozen=True)
+class _Exchange:
+    """One command line sent and the reply line that answered it."""
+
+    sent: str
+    text: str
+    reply: Reply
+
+
+class ZaberStage(Stage):
+    """One axis of a Zaber device speaking the ASCII protocol.
+
+    ``port`` is a device path or any URL ``serial.serial_for_url`` opens, or an open serial-like
+    object (then it is never re-opened). Travel limits are the intersection of ``travel_mm``
+    and the device's ``limit.min``/``limit.max``, checked before any byte is sent; targets are
+    never clipped. A move is done when two consecutive polls say IDLE, within ``tolerance_um``
+    of the target, with no ``F*`` fault; then (and after homing) the driver sleeps ``settle_s``.
+
+    Deadlines: every command waits at most ``timeout_s`` for its reply. A move waits at most
+    |distance|/speed + 2*speed/accel + ``margin_s`` (speed and accel read from the device) or
+    the ``timeout`` given to ``move_to``, and at most ``no_progress_s`` without the position
+    changing; on either, or on any error once the axis moves, the driver sends ``stop`` and
+    raises. So a call returns within its move deadline + 2 * ``timeout_s`` (+ ``settle_s``).
+
+    Lost connection policy: when the port fails, it is re-opened (ports given by name only).
+    A command is re-sent only when writing it failed. When the reply to ``home`` or
+    ``move abs`` is lost, the command is not re-sent: the driver queries position and status
+    and raises StageConnectionLost carrying them (``position_mm``, ``busy``), without stopping
+    the axis; the caller decides (wait with move_to to the same target, stop(), or give up).
+    """
+
+    def __init__(
+        self,
+        port: str | SerialLike,
+        *,
+        baudrate: int = 115200,
+        address: int = 1,
+        axis: int = 1,
+        microstep_um: float,
+        travel_mm: tuple[float, float],
+        tolerance_um: float = 1.0,
+        timeout_s: float = 1.0,
+        settle_s: float = 0.0,
+        poll_s: float = 0.02,
+        margin_s: float = 1.0,
+        no_progress_s: float = 1.0,
+        checksum: bool = True,
+    ) -> None:
+        checks = {
+            "microstep_um must be > 0": microstep_um > 0,
+            "tolerance_um must be > 0": tolerance_um > 0,
+            "timeout_s, poll_s and no_progress_s must be > 0":
+                min(timeout_s, poll_s, no_progress_s) > 0,
+            "settle_s and margin_s must be >= 0": min(settle_s, margin_s) >= 0,
+            "travel_mm must be (low, high) with low < high": travel_mm[0] < travel_mm[1],
+        }
+        for message, ok in checks.items():
+            if not ok:
+                raise ValueError(f"ZaberStage: {message}")
+        self.address, self.axis, self.baudrate = address, axis, baudrate
+        self.microstep_um, self.tolerance_um = microstep_um, tolerance_um
+        self.travel_mm = (float(travel_mm[0]), float(travel_mm[1]))
+        self.timeout_s, self.settle_s, self.poll_s = timeout_s, settle_s, poll_s
+        self.margin_s, self.no_progress_s, self.checksum = margin_s, no_progress_s, checksum
+        self._lock = threading.RLock()
+        self._msg_id = 0
+        self._closed = False
+        self._url = port if isinstance(port, str) else None
+        self.port_name = self._url or str(getattr(port, "port", None) or type(port).__name__)
+        self._port: SerialLike = self._open() if isinstance(port, str) else port
+        self._port.timeout = READ_SLICE_S
+        self._reader = _LineReader(self._port)
+        ready = False
+        try:
+            self._identify()
+            ready = True
+        finally:
+            if not ready:
+                self.close()
+
+    # ----- opening -------------------------------------------------------------------------
+    def _open(self) -> SerialLike:
+        try:
+            port = serial.serial_for_url(self._url, baudrate=self.baudrate, timeout=READ_SLICE_S)
+            port.reset_input_buffer()
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise StageConnectionLost(f"{self.port_name}: cannot open the port: {exc}") from exc
+        return port
+
+    def _identify(self) -> None:
+        """Check the port speaks Zaber; read identity, limits, speed and acceleration."""
+        self.device_id = self._get_int("deviceid", axis=0)
+        self.firmware_version = self._command("get version", axis=0).reply.data
+        self.axis_count = self._get_int("system.axiscount", axis=0)
+        low, high = self._get_int("limit.min"), self._get_int("limit.max")
+        self.device_limits_mm = (self._mm(low), self._mm(high))
+        self.speed_steps_s = self._get_int("maxspeed") / SPEED_UNIT
+        self.accel_steps_s2 = self._get_int("accel") / ACCEL_UNIT
+        if self.speed_steps_s <= 0 or self.accel_steps_s2 <= 0:
+            raise StageProtocolError(
+                f"{self.port_name}: sent 'get maxspeed' and 'get accel', got "
+                f"{self.speed_steps_s * SPEED_UNIT:g} and {self.accel_steps_s2 * ACCEL_UNIT:g}: "
+                "the device cannot move, so no move timeout can be computed"
+            )
+        self._limits = (max(self.travel_mm[0], self.device_limits_mm[0]),
+                        min(self.travel_mm[1], self.device_limits_mm[1]))
+        if self._limits[0] > self._limits[1]:
+            raise StageLimitError(
+                f"{self.port_name}: configured travel {self.travel_mm} mm does not overlap the "
+                f"device limits {self.device_limits_mm} mm (sent 'get limit.min'/'get limit.max', "
+                f"got {low}/{high} microsteps)"
+            )
+
+    # ----- transport -----------------------------------------------------------------------
+    def _reopen(self) -> None:
+        """Re-open a port given by name; raise StageConnectionLost when that is impossible."""
+        if self._url is None:
+            raise StageConnectionLost(
+                f"{self.port_name}: a port object passed in cannot be re-opened")
+        try:
+            self._port.close()
+        except (serial.SerialException, OSError):
+            pass  # the old port is dead either way; opening a new one is what matters
+        self._port = self._open()
+        self._reader = _LineReader(self._port)
+
+    def _send(self, line: str) -> None:
+        """Write ``line``; if the write fails, re-open and write it once more."""
+        data = (line + "\n").encode("ascii")
+        try:
+            self._port.write(data)
+            return
+        except (serial.SerialException, OSError) as exc:
+            first = exc
+        try:
+            self._reopen()
+        except StageConnectionLost as exc:
+            raise StageConnectionLost(
+                f"{self.port_name}: sent {line!r}: write failed ({first}); re-open failed: {exc}"
+            ) from first
+        try:
+            self._port.write(data)
+        except (serial.SerialException, OSError) as exc:
+            raise StageConnectionLost(
+                f"{self.port_name}: sent {line!r}: write failed ({first}), and again after "
+                f"re-opening ({exc})"
+            ) from exc
+
+    def _receive(self, line: str, msg_id: int, axis: int) -> _Exchange:
+        """Read lines until the reply to ``line`` (matching message id) or the deadline."""
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            try:
+                raw = self._reader.read_line(deadline)
+            except (serial.SerialException, OSError) as exc:
+                try:
+                    self._reopen()
+                except StageConnectionLost as reopen_error:
+                    raise _ReplyLost(f"port failed while waiting for the reply ({exc}); "
+                                     f"re-open failed: {reopen_error}", port_ok=False) from exc
+                raise _ReplyLost(f"port failed while waiting for the reply ({exc}); re-opened",
+                                 port_ok=True) from exc
+            if raw is None:
+                raise _ReplyLost(f"no reply within {self.timeout_s:g} s", port_ok=True)
+            try:
+                text = raw.decode("ascii").strip()
+            except UnicodeDecodeError:
+                raise self._protocol_error(line, raw, "garbled reply (not ASCII)") from None
+            if not text or text[0] in "#!":
+                continue  # blank, info or alert line: not a reply
+            try:
+                reply = parse_reply(text)
+            except ZaberChecksumError:
+                raise self._protocol_error(line, text, "reply fails its checksum") from None
+            except ZaberFormatError:
+                what = ("garbled reply" if text[0] == "@"
+                        else "not a Zaber ASCII reply (wrong port or baud rate?)")
+                raise self._protocol_error(line, text, what) from None
+            if reply.msg_id is None:
+                raise self._protocol_error(line, text, "reply carries no message id")
+            if reply.msg_id != msg_id:
+                continue  # a late reply to an earlier command
+            if (reply.address, reply.axis) != (self.address, axis):
+                raise self._protocol_error(
+                    line, text, f"reply from device {reply.address} axis {reply.axis}, "
+                    f"expected device {self.address} axis {axis}")
+            return _Exchange(line, text, reply)
+
+    def _protocol_error(self, line: str, got: str | bytes, what: str) -> StageProtocolError:
+        return StageProtocolError(f"{self.port_name}: sent {line!r}, got {got!r}: {what}")
+
+    def _transact(self, text: str, axis: int | None = None, motion: bool = False) -> _Exchange:
+        """Send one command and return its reply, under the lock (write plus read)."""
+        axis = self.axis if axis is None else axis
+        with self._lock:
+            self._msg_id = (self._msg_id + 1) % 100
+            line = format_command(text, address=self.address, axis=axis, msg_id=self._msg_id,
+                                  checksum=self.checksum)
+            if self._closed:
+                raise StageConnectionLost(f"{self.port_name}: stage is closed; not sent: {line!r}")
+            self._send(line)
+            try:
+                return self._receive(line, self._msg_id, axis)
+            except _ReplyLost as lost:
+                if not motion:
+                    raise StageConnectionLost(
+                        f"{self.port_name}: sent {line!r}: {lost.reason}") from None
+                raise self._reply_lost_after_motion(line, lost) from None
+
+    def _reply_lost_after_motion(self, line: str, lost: _ReplyLost) -> StageConnectionLost:
+        position = busy = None
+        state = "device state unknown"
+        if lost.port_ok:
+            try:
+                ex = self._transact("get pos")
+                position, busy = self._mm(self._int_data(ex)), ex.reply.busy
+                state = (f"then sent {ex.sent!r}, got {ex.text!r}: device {ex.reply.status} at "
+                         f"{position:.6g} mm, warning {ex.reply.warning}")
+            except StageError as exc:
+                state = f"the state query failed too ({exc})"
+        return StageConnectionLost(
+            f"{self.port_name}: sent {line!r}: {lost.reason}; the motion command was not re-sent "
+            f"and may or may not be under way; {state}",
+            position_mm=position,
+            busy=busy,
+        )
+
+    # ----- commands ------------------------------------------------------------------------
+    def _command(self, text: str, axis: int | None = None, motion: bool = False) -> _Exchange:
+        """Send ``text``; raise StageNotHomed/StageRejected on RJ, StageFault on motion + F*."""
+        ex = self._transact(text, axis, motion)
+        if ex.reply.rejected:
+            if motion and ex.reply.warning in NOT_HOMED:
+                raise StageNotHomed(f"{self.port_name}: sent {ex.sent!r}, got {ex.text!r}: "
+                                    "the stage has no reference position; call home() first")
+            raise StageRejected(f"{self.port_name}: sent {ex.sent!r}, got {ex.text!r}: "
+                                f"rejected ({ex.reply.data})", ex.reply.data)
+        if motion:
+            self._raise_if_fault(ex)
+        return ex
+
+    def _int_data(self, ex: _Exchange) -> int:
+        try:
+            return int(ex.reply.data)
+        except ValueError:
+            raise self._protocol_error(ex.sent, ex.text, "expected an integer") from None
+
+    def _get_int(self, setting: str, axis: int | None = None) -> int:
+        return self._int_data(self._command(f"get {setting}", axis))
+
+    def _raise_if_fault(self, ex: _Exchange) -> None:
+        if ex.reply.fault:
+            name = FAULT_NAMES.get(ex.reply.warning, "fault")
+            stopped = self._stop_quietly()
+            raise StageFault(f"{self.port_name}: sent {ex.sent!r}, got {ex.text!r}: "
+                             f"{ex.reply.warning} {name}; {stopped}", ex.reply.warning)
+
+    def _stop_quietly(self) -> str:
+        """Stop the axis after an error; say how that went (a failed stop never hides the error)."""
+        try:
+            self._transact("stop")
+        except StageError as exc:
+            return f"stopping the axis failed too ({exc})"
+        return "axis stopped"
+
+    def _mm(self, steps: int | float) -> float:
+        return steps * self.microstep_um / 1000.0
+
+    def _target_steps(self, z_mm: float) -> int:
+        """Microsteps for ``z_mm``; raise StageLimitError (nothing sent) when not allowed."""
+        low, high = self._limits
+        if not (math.isfinite(z_mm) and low <= z_mm <= high):
+            raise StageLimitError(f"{self.port_name}: target {z_mm} mm is outside the allowed "
+                                  f"travel [{low:g}, {high:g}] mm; nothing sent")
+        steps = round(z_mm * 1000.0 / self.microstep_um)
+        error_um = abs(steps * self.microstep_um - z_mm * 1000.0)
+        if error_um > self.tolerance_um:
+            raise StageLimitError(
+                f"{self.port_name}: target {z_mm} mm is not representable: the nearest microstep "
+                f"({steps}) is {error_um:.3g} um away, tolerance {self.tolerance_um:g} um; "
+                "nothing sent")
+        return steps
+
+    def _motion_time(self, distance_steps: float) -> float:
+        """Move deadline (s): |distance|/speed + 2*speed/accel + margin."""
+        return (abs(distance_steps) / self.speed_steps_s
+                + 2 * self.speed_steps_s / self.accel_steps_s2 + self.margin_s)
+
+    def _wait(self, target: int | None, duration: float, started_by: str) -> int:
+        """Poll until done (see class docstring); return the position in microsteps.
+        ``target`` None (homing): done when IDLE without fault on two consecutive polls."""
+        start = time.monotonic()
+        idle_polls, last_pos, last_change = 0, None, start
+        while True:
+            try:
+                ex = self._command("get pos")
+                pos = self._int_data(ex)
+            except StageError as exc:
+                exc.args = (f"{exc}; {self._stop_quietly()}",)
+                raise
+            self._raise_if_fault(ex)
+            at_target = target is None or abs(pos - target) * self.microstep_um <= self.tolerance_um
+            idle_polls = idle_polls + 1 if (at_target and not ex.reply.busy) else 0
+            if idle_polls >= 2:
+                return pos
+            now = time.monotonic()
+            if pos != last_pos:
+                last_pos, last_change = pos, now
+            goal = "home" if target is None else f"{self._mm(target):.6g} mm"
+            problem = None
+            if now - last_change > self.no_progress_s:
+                problem = f"no progress for {self.no_progress_s:g} s"
+            elif now - start > duration:
+                problem = (f"not done within {duration:.3g} s "
+                           "(raise the timeout, or check maxspeed/accel)")
+            if problem:
+                stopped = self._stop_quietly()
+                raise StageTimeout(
+                    f"{self.port_name}: {started_by!r} {problem}: last sent {ex.sent!r}, got "
+                    f"{ex.text!r} (device {ex.reply.status} at {self._mm(pos):.6g} mm, "
+                    f"target {goal}); {stopped}")
+            time.sleep(self.poll_s)
+
+    # ----- Stage interface -----------------------------------------------------------------
+    def home(self) -> None:
+        """Home the axis and wait; raise StageNotHomed if the device is still not referenced."""
+        ex = self._command("home", motion=True)
+        low, high = self.device_limits_mm
+        self._wait(None, self._motion_time((high - low) * 1000.0 / self.microstep_um), ex.sent)
+        check = self._command("get limit.home.triggered")
+        if check.reply.data != "1":
+            raise StageNotHomed(f"{self.port_name}: homing ended but sent {check.sent!r}, "
+                                f"got {check.text!r}: no reference position")
+        time.sleep(self.settle_s)
+
+    def move_to(self, z_mm: float, timeout: float | None = None) -> float:
+        """Move to ``z_mm`` (mm), wait until done and settled; return the measured position (mm).
+        ``timeout`` (s) replaces the computed move deadline."""
+        target = self._target_steps(z_mm)
+        before = self._command("get pos")
+        pos, r = self._int_data(before), before.reply
+        if pos == target and not r.busy and not r.fault and r.warning not in NOT_HOMED:
+            return self._mm(pos)  # zero-length move: done at once
+        ex = self._command(f"move abs {target}", motion=True)
+        duration = self._motion_time(target - pos) if timeout is None else timeout
+        final = self._wait(target, duration, ex.sent)
+        time.sleep(self.settle_s)
+        return self._mm(final)
+
+    @property
+    def position_mm(self) -> float:
+        """Measured position (mm), valid while moving."""
+        return self._mm(self._get_int("pos"))
+
+    @property
+    def limits_mm(self) -> tuple[float, float]:
+        """Allowed travel (low, high) in mm: configured travel ∩ device limits."""
+        return self._limits
+
+    @property
+    def is_homed(self) -> bool:
+        return self._get_int("limit.home.triggered") == 1
+
+    def stop(self) -> None:
+        """Decelerate to a stop now (returns once the device accepted the command)."""
+        self._command("stop")
+
+    def close(self) -> None:
+        """Close the port; idempotent."""
+        with self._lock:
+            if not self._closed:
+                self._closed = True
+                self._port.close()
+
+    def describe(self) -> dict[str, Any]:
+        """Identity and settings for run metadata (mm, s, um)."""
+        return {
+            "type": type(self).__name__,
+            "port": self.port_name,
+            "address": self.address,
+            "axis": self.axis,
+            "device_id": self.device_id,
+            "firmware_version": self.firmware_version,
+            "axis_count": self.axis_count,
+            "device_limits_mm": self.device_limits_mm,
+            "travel_mm": self.travel_mm,
+            "limits_mm": self._limits,
+            "microstep_um": self.microstep_um,
+            "tolerance_um": self.tolerance_um,
+            "maxspeed_mm_s": self._mm(self.speed_steps_s),
+            "accel_mm_s2": self._mm(self.accel_steps_s2),
+            "timeout_s": self.timeout_s,
+            "settle_s": self.settle_s,
+            "checksum": self.checksum,
+        }
