@@ -1,4 +1,4 @@
-"""Zaber ASCII stage driver for one axis on a serial port, and the typed stage errors.
+"""Zaber ASCII stage driver for one axis on a serial port (errors in ``drivers.stage_errors``).
 
 Millimetres in the API; microsteps exist only inside this module (``microstep_um`` from config).
 Every error message names the port, the command sent and the reply received (or
@@ -11,11 +11,22 @@ import math
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import serial
 
-from drivers.interfaces import DeviceError, Stage
+from drivers.interfaces import Stage
+from drivers.serial_lines import LineReader, SerialLike
+from drivers.stage_errors import (
+    StageConnectionLost,
+    StageError,
+    StageFault,
+    StageLimitError,
+    StageNotHomed,
+    StageProtocolError,
+    StageRejected,
+    StageTimeout,
+)
 from drivers.zaber_protocol import (
     Reply,
     ZaberChecksumError,
@@ -40,89 +51,9 @@ __all__ = [
 SPEED_UNIT = 1.6384  # Zaber maxspeed value per microstep/s
 ACCEL_UNIT = 1.6384 / 10000  # Zaber accel value per microstep/s^2
 READ_SLICE_S = 0.01  # port read timeout; the line reader loops until its own deadline
-MAX_LINE = 1024  # bytes without a newline handed on as one (garbled) line
 NOT_HOMED = ("WR", "WH")
 FAULT_NAMES = {"FS": "stalled", "FE": "limit error", "FD": "driver disabled",
                "FQ": "encoder error", "FF": "critical fault"}
-
-
-class StageError(DeviceError):
-    """Any stage failure."""
-
-
-class StageRejected(StageError):
-    """The device answered RJ; ``reason`` is its reason (BADDATA, BADCOMMAND, PARKED, ...)."""
-
-    def __init__(self, message: str, reason: str) -> None:
-        super().__init__(message)
-        self.reason = reason
-
-
-class StageFault(StageError):
-    """The device reports an ``F*`` fault; ``warning`` is the flag (FS, FE, ...)."""
-
-    def __init__(self, message: str, warning: str) -> None:
-        super().__init__(message)
-        self.warning = warning
-
-
-class StageTimeout(StageError):
-    """A move or homing did not finish in time, or made no progress; the axis was stopped."""
-
-
-class StageLimitError(StageError):
-    """Target refused on the host, before sending: outside the travel or not representable."""
-
-
-class StageNotHomed(StageError):
-    """The stage has no reference position (home() it first), or homing did not give one."""
-
-
-class StageConnectionLost(StageError):
-    """The port failed or a reply never came. After a lost reply to a motion command,
-    ``position_mm`` and ``busy`` hold the device state queried afterwards (None if unknown)."""
-
-    def __init__(self, message: str, position_mm: float | None = None, busy: bool | None = None):
-        super().__init__(message)
-        self.position_mm = position_mm
-        self.busy = busy
-
-
-class StageProtocolError(StageError):
-    """A reply that is garbled, fails its checksum, does not match the command, or is not Zaber."""
-
-
-class SerialLike(Protocol):
-    """What the driver needs of a port object (pyserial's ``Serial`` has it all)."""
-
-    timeout: float | None
-
-    def write(self, data: bytes) -> int | None: ...
-    def read(self, size: int = 1) -> bytes: ...
-    def close(self) -> None: ...
-
-
-class _LineReader:
-    """Reads ``\\n``-terminated lines with a hard deadline, whatever the port's own timeout."""
-
-    def __init__(self, port: SerialLike) -> None:
-        self.port = port
-        self._buf = bytearray()
-
-    def read_line(self, deadline: float) -> bytes | None:
-        """The next line (terminator included), or None when ``deadline`` (monotonic s) passes.
-        More than MAX_LINE bytes without a newline come back as one line. Port errors propagate."""
-        while True:
-            end = self._buf.find(b"\n")
-            if end >= 0 or len(self._buf) >= MAX_LINE:
-                size = end + 1 if end >= 0 else MAX_LINE
-                line = bytes(self._buf[:size])
-                del self._buf[:size]
-                return line
-            if time.monotonic() >= deadline:
-                return None
-            waiting = getattr(self.port, "in_waiting", 0)
-            self._buf += self.port.read(max(1, min(waiting, MAX_LINE)))
 
 
 class _ReplyLost(Exception):
@@ -205,7 +136,7 @@ class ZaberStage(Stage):
         self.port_name = self._url or str(getattr(port, "port", None) or type(port).__name__)
         self._port: SerialLike = self._open() if isinstance(port, str) else port
         self._port.timeout = READ_SLICE_S
-        self._reader = _LineReader(self._port)
+        self._reader = LineReader(self._port)
         ready = False
         try:
             self._identify()
@@ -258,7 +189,7 @@ class ZaberStage(Stage):
         except (serial.SerialException, OSError):
             pass  # the old port is dead either way; opening a new one is what matters
         self._port = self._open()
-        self._reader = _LineReader(self._port)
+        self._reader = LineReader(self._port)
 
     def _send(self, line: str) -> None:
         """Write ``line``; if the write fails, re-open and write it once more."""
