@@ -1,0 +1,222 @@
+"""sim.render and ``ltc render``: projector and camera response, gather, blur disk, writers, CLI."""
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import zarr
+
+from sim.fringe_patterns import PhaseShiftSet
+from sim.lens import AberratedLens, PinholeLens
+from sim.phase import wrapped_phase
+from sim.render import (
+    CameraResponse,
+    ProjectorResponse,
+    RenderSettings,
+    camera_response,
+    gather,
+    pattern_columns,
+    project_patterns,
+    render,
+    render_views,
+    write_png,
+    write_zarr,
+)
+from sim.rig import DeviceCalibration, small_rig
+from sim.scene import PlaneObject, Pose, Scene, SphereObject
+from sim.trace import trace_camera
+from station.cli import main
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "sphere_scene.toml"
+EXACT = RenderSettings(projector=ProjectorResponse(input_bits=None),
+                       camera=CameraResponse(exposure_e=10000.0, bit_depth=16, quantize=False))
+
+
+def _device(name, size, f):
+    K = [[f, 0, (size[0] - 1) / 2], [0, f, (size[1] - 1) / 2], [0, 0, 1]]
+    return DeviceCalibration(name=name, K=K, dist=np.zeros(5), R=np.eye(3), T=np.zeros(3), size=size)
+
+
+def _plane(z=600.0, albedo=1.0):
+    return Scene(objects=[PlaneObject(size_mm=(3000.0, 3000.0), albedo=albedo, pose=Pose(t=[0, 0, z]))]
+                 ).trace_geometry()
+
+
+def test_projector_response():
+    p = np.array([[[0.0, 0.301, 0.5, 1.0]]], np.float32)
+    out = project_patterns(p, ProjectorResponse(input_bits=None, gamma=2.2, black_level=0.1))
+    np.testing.assert_allclose(out, 0.1 + 0.9 * p.astype(np.float64) ** 2.2, rtol=1e-6)
+    q = project_patterns(p, ProjectorResponse(input_bits=8))
+    np.testing.assert_allclose(q, [[[0.0, 77 / 255, 128 / 255, 1.0]]], rtol=1e-6)
+    dot = np.zeros((1, 41, 41), np.float32)
+    dot[0, 20, 20] = 1.0
+    b = project_patterns(dot, ProjectorResponse(input_bits=None, defocus_sigma_px=1.5))[0]
+    x = np.arange(41) - 20
+    assert b.sum() == pytest.approx(1.0, rel=1e-5)
+    assert (b.sum(0) * x**2).sum() == pytest.approx(1.5**2, rel=0.01)  # variance along u
+    with pytest.raises(ValueError, match=r"pattern images must be \(n, H, W\)"):
+        project_patterns(np.zeros((4, 4)), ProjectorResponse())
+    with pytest.raises(ValueError, match=r"pattern values must lie in \[0, 1\]"):
+        project_patterns(np.full((1, 2, 2), 1.5), ProjectorResponse())
+
+
+def test_gather_reproduces_linear_patterns():
+    rig = small_rig(0.05, distortion=True)
+    cam, proj = rig.cameras[0], rig.projector
+    geom = Scene(objects=[PlaneObject(size_mm=(3000.0, 3000.0), pose=Pose(t=[0, 0, 30.0]))]).trace_geometry()
+    tr = trace_camera(geom, cam, proj, PinholeLens())
+    pw, ph = proj.size
+    u, v = np.meshgrid(np.arange(pw, dtype=np.float32), np.arange(ph, dtype=np.float32))
+    pats = np.stack([u / (pw - 1), v / (ph - 1), np.ones_like(u)])
+    rad = gather(tr, pattern_columns(pats))
+    uv = tr.proj_uv[:, 0].astype(np.float64)
+    ok = (uv[:, 0] >= 0) & (uv[:, 0] <= pw - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= ph - 1) & (rad[:, 2] > 0)
+    assert ok.sum() > 1000
+    np.testing.assert_allclose(rad[ok, 2], tr.weight[ok, 0], rtol=1e-6)
+    np.testing.assert_allclose(rad[ok, 0] / rad[ok, 2], uv[ok, 0] / (pw - 1), atol=1e-5)
+    np.testing.assert_allclose(rad[ok, 1] / rad[ok, 2], uv[ok, 1] / (ph - 1), atol=1e-5)
+    with pytest.raises(ValueError, match=r"patterns have 12 pixels, the projector 96 x 54"):
+        gather(tr, np.zeros((12, 1), np.float32))
+
+
+def test_rendered_fringes_decode_to_the_true_projector_coordinate():
+    rig = small_rig(0.05)
+    geom = Scene(objects=[SphereObject(), PlaneObject(pose=Pose(t=[0, 0, 60.0]))]).trace_geometry()
+    tr = trace_camera(geom, rig.cameras[1], rig.projector, PinholeLens())
+    ps = PhaseShiftSet(periods_px=[16.0], steps=4)
+    imgs = render(tr, ps.images(rig.projector.size), EXACT)
+    assert imgs.shape == (4, 108, 205) and imgs.dtype == np.float32
+    lit = tr.lit_map()
+    truth = tr.projector_map()[..., 0]
+    inner = lit & (truth > 0) & (truth < rig.projector.size[0] - 1)
+    assert inner.sum() > 2000
+    phase = wrapped_phase(imgs).phase
+    err = np.angle(np.exp(1j * (phase - 2 * np.pi * truth / 16.0)))[inner] * 16.0 / (2 * np.pi)
+    assert np.abs(err).max() < 0.01  # projector px; bilinear interpolation of the fringes
+    assert np.all(imgs[:, ~lit] == 0)
+
+
+@pytest.mark.parametrize("z", [300.0, 600.0])
+def test_thin_lens_blur_disk_matches_geometry(z):
+    """One bright projector pixel on a plane in front of or behind the focus at 400 mm."""
+    cam, proj = _device("cam", (45, 45), 1000.0), _device("proj", (64, 64), 500.0)
+    lens = AberratedLens(pupil_diameter_mm=20.0, focus_distance_mm=400.0, samples=64)
+    tr = trace_camera(_plane(z), cam, proj, lens)
+    dot = np.zeros((1, 64, 64), np.float32)
+    dot[0, 32, 32] = 1.0
+    img = gather(tr, pattern_columns(project_patterns(dot, EXACT.projector)))[:, 0].reshape(45, 45)
+    assert img[0].max() == img[-1].max() == img[:, 0].max() == img[:, -1].max() == 0  # all inside
+    y, x = np.mgrid[:45, :45]
+    m = img.sum()
+    cx, cy = (img * x).sum() / m, (img * y).sum() / m
+    r2 = (img * ((x - cx) ** 2 + (y - cy) ** 2)).sum() / m
+    # the bright pixel is a bilinear tent of half-width one projector pixel = 2 camera pixels
+    # (coaxial, f 500 vs 1000 px): variance 2^2 / 6 per axis; a uniform disk of radius R has
+    # <r^2> = R^2 / 2 (and so has the Vogel-spiral aperture sampling, exactly)
+    diameter = 2 * np.sqrt(2 * (r2 - 2 * 2.0**2 / 6))
+    expected = 20.0 * abs(z - 400.0) / 400.0 * 1000.0 / z  # mm in object space -> px at depth z
+    assert diameter == pytest.approx(expected, rel=0.02)
+
+
+def test_camera_response_exact_chain():
+    rad = np.array([0.0, 0.5, 2.0, -0.1])
+    cam8 = CameraResponse(exposure_e=8000.0, full_well_e=10000.0)
+    np.testing.assert_array_equal(camera_response(rad, cam8), np.array([0, 102, 255, 0], np.uint8))
+    cam12 = CameraResponse(exposure_e=8000.0, bit_depth=12, black_level_dn=10.0, gain=0.5)
+    out = camera_response(rad, cam12)
+    assert out.dtype == np.uint16
+    np.testing.assert_array_equal(out, [10, round(4000 * 0.5 * 4095 / 10000 + 10), 2058, 10])
+
+
+def test_camera_noise_statistics():
+    cam = CameraResponse(exposure_e=10000.0, full_well_e=20000.0, bit_depth=16, quantize=False,
+                         shot_noise=True, read_noise_e=20.0)
+    rng = np.random.default_rng(7)
+    dn = camera_response(np.full(400_000, 0.25), cam, rng).astype(np.float64)
+    k = cam.dn_per_e
+    assert dn.mean() == pytest.approx(2500 * k, rel=2e-3)
+    assert dn.var() == pytest.approx((2500 + 20.0**2) * k**2, rel=0.02)
+    with pytest.raises(ValueError, match="rng is required when shot_noise or read_noise_e is on"):
+        camera_response(np.zeros(3), cam)
+
+
+@pytest.mark.parametrize("bits, dtype, top", [(8, np.uint8, 255), (12, np.uint16, 4095), (16, np.uint16, 65535)])
+def test_png_round_trip(tmp_path, bits, dtype, top):
+    img = (np.arange(12 * 7).reshape(7, 12) * (top // 83)).astype(dtype)
+    img[0, 0] = top
+    write_png(tmp_path / "a.png", img, bits)
+    back = cv2.imread(str(tmp_path / "a.png"), cv2.IMREAD_UNCHANGED)
+    assert back.dtype == dtype
+    np.testing.assert_array_equal(back, img)
+
+
+def test_png_errors(tmp_path):
+    with pytest.raises(ValueError, match="bit_depth must be 8, 12 or 16, got 10"):
+        write_png(tmp_path / "a.png", np.zeros((2, 2), np.uint16), 10)
+    with pytest.raises(ValueError, match=r"expected a 2-D uint16 image with values < 2\^12"):
+        write_png(tmp_path / "a.png", np.full((2, 2), 5000, np.uint16), 12)
+    with pytest.raises(ValueError, match=r"expected a 2-D uint8 image"):
+        write_png(tmp_path / "a.png", np.zeros((2, 2), np.uint16), 8)
+    with pytest.raises(OSError, match="could not write"):
+        write_png(tmp_path / "no_dir" / "a.png", np.zeros((2, 2), np.uint8), 8)
+
+
+def _small_views(**kw):
+    rig = small_rig(0.03)
+    geom = Scene(objects=[SphereObject(), PlaneObject(pose=Pose(t=[0, 0, 60.0]))]).trace_geometry()
+    pats = PhaseShiftSet(periods_px=[8.0], steps=3).images(rig.projector.size)
+    return rig, geom, pats, render_views(geom, rig, [PinholeLens(), PinholeLens()], pats, RenderSettings(),
+                                         **kw)
+
+
+def test_render_views_and_zarr_round_trip(tmp_path):
+    rig, geom, pats, res = _small_views()
+    assert [c.name for c in res.cameras] == ["left", "right"]
+    for c, cam in zip(res.cameras, rig.cameras):
+        tr = trace_camera(geom, cam, rig.projector, PinholeLens())
+        np.testing.assert_array_equal(c.images, render(tr, pats, RenderSettings()))
+        np.testing.assert_array_equal(c.depth, tr.depth_map())
+        assert c.n_rays == cam.width * cam.height and set(c.timings) == {"trace_s", "gather_s", "response_s"}
+    write_zarr(tmp_path / "r.zarr", res, {"note": "x"}, radiance=True)
+    root = zarr.open_group(str(tmp_path / "r.zarr"), mode="r")
+    assert root.attrs["note"] == "x" and root["camera_1"].attrs["name"] == "right"
+    c = res.cameras[1]
+    for key in ("images", "radiance", "depth", "projector_map", "lit", "object_id"):
+        np.testing.assert_array_equal(root[f"camera_1/{key}"][...], getattr(c, key))
+
+
+def test_render_views_errors():
+    rig, geom, pats, _ = _small_views()
+    with pytest.raises(ValueError, match="scene: 1 lenses for 2 cameras"):
+        render_views(geom, rig, [PinholeLens()], pats, RenderSettings())
+    with pytest.raises(ValueError, match=r"scene: pattern images are \(3, 5, 5\), the projector is 58 x 32"):
+        render_views(geom, rig, [PinholeLens()] * 2, np.zeros((3, 5, 5)), RenderSettings())
+
+
+def test_cli_renders_the_example(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["render", str(EXAMPLE), "--out", str(out), "--json", "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary == json.loads((out / "summary.json").read_text())
+    assert summary["images"] == 12 and summary["bit_depth"] == 12
+    root = zarr.open_group(str(out / "render.zarr"), mode="r")
+    assert len(root.attrs["patterns"]) == 12
+    for i, cam in enumerate(summary["cameras"]):
+        pngs = sorted((out / f"camera_{i}").glob("pattern_*.png"))
+        assert len(pngs) == 12
+        img = cv2.imread(str(pngs[0]), cv2.IMREAD_UNCHANGED)
+        assert img.dtype == np.uint16 and 0 < img.max() <= 4095
+        np.testing.assert_array_equal(img, root[f"camera_{i}/images"][0])
+        depth = root[f"camera_{i}/depth"][...]
+        assert np.nanmin(depth) == pytest.approx(cam["depth_mm"][0])
+        assert 0.1 < cam["lit_fraction"] < cam["seen_fraction"] <= 1
+
+
+def test_cli_reports_bad_scenes(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('rig = "missing.yaml"\n')
+    assert main(["render", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "ltc render: error:" in err and "bad.toml" in err and not (tmp_path / "o").exists()
