@@ -1,0 +1,211 @@
+"""Sphere metrology on point clouds: sphere fit, sphere detection, ball-bar length.
+
+Sphere fit: algebraic least squares for the start, then geometric least squares on the radial
+residuals ``|p - c| - r`` (scipy), with iterative outlier rejection at ``k`` robust standard
+deviations (1.4826 MAD). The sphere fitting error is reported as RMS and peak-to-valley of the
+radial residuals of the inliers. Lengths in mm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
+
+MAD_TO_SIGMA = 1.4826
+RANSAC_POINTS = 4000  # sphere detection samples and scores on a random subset this large
+
+
+@dataclass(frozen=True)
+class SphereFit:
+    """A fitted sphere.
+
+    centre : (3,) mm; radius : mm; rms, pv : RMS and peak-to-valley of the inliers' radial
+    residuals, mm; inliers : (n,) bool over the points given to the fit.
+    """
+
+    centre: np.ndarray
+    radius: float
+    rms: float
+    pv: float
+    inliers: np.ndarray
+
+    @property
+    def diameter(self) -> float:
+        return 2.0 * self.radius
+
+    def as_dict(self) -> dict:
+        return {
+            "centre_mm": [float(x) for x in self.centre],
+            "diameter_mm": float(self.diameter),
+            "fit_rms_mm": float(self.rms),
+            "fit_pv_mm": float(self.pv),
+            "points": int(self.inliers.size),
+            "inliers": int(self.inliers.sum()),
+        }
+
+
+def _as_points(points: np.ndarray, name: str, minimum: int) -> np.ndarray:
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name} must be an (n, 3) array of points, got shape {p.shape}")
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if len(p) < minimum:
+        raise ValueError(f"{name} has {len(p)} finite points, at least {minimum} are needed")
+    return p
+
+
+def fit_sphere_algebraic(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Linear least-squares sphere ``|p|^2 = 2 c.p + (r^2 - |c|^2)``: ``(centre (3,), radius)``.
+
+    points : (n, 3) mm, n >= 4, not coplanar.
+    """
+    p = _as_points(points, "points", 4)
+    m = p.mean(axis=0)
+    q = p - m
+    a = np.concatenate([2.0 * q, np.ones((len(q), 1))], axis=1)
+    sol, _, rank, _ = np.linalg.lstsq(a, np.sum(q * q, axis=1), rcond=None)
+    if rank < 4:
+        raise ValueError("points are degenerate (coplanar or collinear): no unique sphere")
+    c = sol[:3]
+    return c + m, float(np.sqrt(sol[3] + c @ c))
+
+
+def _refine(p: np.ndarray, c0: np.ndarray, r0: float) -> tuple[np.ndarray, float]:
+    m = p.mean(axis=0)
+    q = p - m
+
+    def res(x: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(q - x[:3], axis=1) - x[3]
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        d = q - x[:3]
+        n = np.linalg.norm(d, axis=1, keepdims=True)
+        return np.concatenate([-d / n, -np.ones((len(q), 1))], axis=1)
+
+    sol = least_squares(res, np.r_[c0 - m, r0], jac=jac, method="lm", xtol=1e-15, ftol=1e-15)
+    return sol.x[:3] + m, float(sol.x[3])
+
+
+def fit_sphere(
+    points: np.ndarray, reject_sigma: float | None = 3.0, max_rounds: int = 10
+) -> SphereFit:
+    """Geometric least-squares sphere with outlier rejection.
+
+    points : (n, 3) mm. reject_sigma : points whose radial residual is further than this many
+    robust standard deviations from the median are dropped and the fit repeated until the
+    inlier set is stable (None keeps every point). Returns a ``SphereFit`` whose ``inliers``
+    index the finite rows of ``points``.
+    """
+    p = _as_points(points, "points", 4)
+    c, r = fit_sphere_algebraic(p)
+    inl = np.ones(len(p), dtype=bool)
+    for _ in range(max_rounds):
+        c, r = _refine(p[inl], c, r)
+        d = np.linalg.norm(p - c, axis=1) - r
+        if reject_sigma is None:
+            break
+        med = np.median(d[inl])
+        sigma = MAD_TO_SIGMA * np.median(np.abs(d[inl] - med))
+        new = np.abs(d - med) <= max(reject_sigma * sigma, 1e-12)
+        if new.sum() < 4:
+            raise ValueError("outlier rejection left fewer than 4 points: no sphere in the data")
+        if np.array_equal(new, inl):
+            break
+        inl = new
+    d = np.linalg.norm(p[inl] - c, axis=1) - r
+    return SphereFit(c, r, float(np.sqrt(np.mean(d * d))), float(np.ptp(d)), inl)
+
+
+def _sphere_through_4(p4: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Spheres through point quadruples (m, 4, 3): centres (m, 3), radii (m,) (NaN if flat)."""
+    q = p4 - p4[:, :1]
+    a = 2.0 * q[:, 1:]
+    b = np.sum(q[:, 1:] ** 2, axis=2)
+    det = np.linalg.det(a)
+    ok = np.abs(det) > 1e-9 * np.maximum(np.abs(a).max(axis=(1, 2)), 1e-300) ** 3
+    a[~ok] = np.eye(3)
+    c = np.linalg.solve(a, b[..., None])[..., 0]
+    r = np.where(ok, np.linalg.norm(c, axis=1), np.nan)
+    return c + p4[:, 0], r
+
+
+def find_spheres(
+    points: np.ndarray,
+    count: int,
+    radius_mm: float,
+    radius_tolerance: float = 0.1,
+    inlier_mm: float = 0.2,
+    iterations: int = 400,
+    rng: np.random.Generator | None = None,
+) -> list[SphereFit]:
+    """Detect ``count`` spheres of about ``radius_mm`` in a cloud (RANSAC, then ``fit_sphere``).
+
+    RANSAC runs on a random subset of ``RANSAC_POINTS`` points. Samples are drawn from a seed point and its neighbours within ``2 radius_mm``; a candidate is
+    kept when its radius is within ``radius_tolerance`` (relative) of ``radius_mm``; its score is
+    the number of points within ``inlier_mm`` of its surface. The best candidate's points within
+    ``max(5 inlier_mm, 0.1 radius_mm)`` of its surface go to ``fit_sphere`` (which trims the
+    outliers); then every point inside that shell is removed before the next search.
+    """
+    p = _as_points(points, "points", 4 * count)
+    if radius_mm <= 0:
+        raise ValueError(f"radius_mm must be > 0, got {radius_mm}")
+    rng = np.random.default_rng(0) if rng is None else rng
+    found: list[SphereFit] = []
+    remaining = p
+    for k in range(count):
+        if len(remaining) < 4:
+            raise ValueError(f"only {len(found)} of {count} spheres found: points ran out")
+        sub = remaining[rng.choice(len(remaining), size=min(len(remaining), RANSAC_POINTS), replace=False)]
+        tree = cKDTree(sub)
+        seeds = rng.integers(0, len(sub), size=iterations)
+        quads = np.empty((iterations, 4, 3))
+        valid = np.zeros(iterations, dtype=bool)
+        for i, nb in enumerate(tree.query_ball_point(sub[seeds], 2.0 * radius_mm)):
+            if len(nb) >= 4:
+                quads[i] = sub[rng.choice(nb, size=4, replace=False)]
+                valid[i] = True
+        c, r = _sphere_through_4(quads[valid])
+        good = np.abs(r - radius_mm) <= radius_tolerance * radius_mm
+        c, r = c[good], r[good]
+        if len(r) == 0:
+            raise ValueError(
+                f"sphere {k + 1} of {count}: no candidate sphere of radius {radius_mm:g} mm "
+                f"(+-{100 * radius_tolerance:g}%) in the points"
+            )
+        dist = np.linalg.norm(sub[None, :, :] - c[:, None, :], axis=2)
+        score = np.sum(np.abs(dist - r[:, None]) <= inlier_mm, axis=1)
+        best = int(np.argmax(score))
+        wide = max(5.0 * inlier_mm, 0.1 * radius_mm)  # noisy points too; fit_sphere trims
+        shell = np.abs(np.linalg.norm(remaining - c[best], axis=1) - r[best]) <= wide
+        fit = fit_sphere(remaining[shell])
+        found.append(fit)
+        near = np.linalg.norm(remaining - fit.centre, axis=1) <= fit.radius + wide
+        remaining = remaining[~near]
+    return found
+
+
+@dataclass(frozen=True)
+class BallBar:
+    """Two fitted spheres and the distance between their centres (mm)."""
+
+    spheres: tuple[SphereFit, SphereFit]
+    length: float
+
+    def as_dict(self) -> dict:
+        return {
+            "length_mm": float(self.length),
+            "spheres": [s.as_dict() for s in self.spheres],
+        }
+
+
+def measure_ball_bar(
+    points: np.ndarray, radius_mm: float, inlier_mm: float = 0.2, rng: np.random.Generator | None = None
+) -> BallBar:
+    """Find the two balls of a ball bar (nominal radius ``radius_mm``) and their centre distance."""
+    a, b = find_spheres(points, 2, radius_mm, inlier_mm=inlier_mm, rng=rng)
+    if a.centre[0] > b.centre[0]:
+        a, b = b, a
+    return BallBar((a, b), float(np.linalg.norm(a.centre - b.centre)))
