@@ -89,11 +89,19 @@ class FakeCamera(Camera):
         self.noise = noise or NoiseModel()
         self._position = stage_position_mm
         self._exposure_ms = exposure_ms or self.noise.reference_exposure_ms
+        self.seed = seed
         self.rng = np.random.default_rng(seed)
         self.timeout_s = timeout_s
         self.faults = CameraFaults()
         self._frame_id = -1
         self._last: Frame | None = None
+
+    def reseed(self, key: tuple[int, ...]) -> None:
+        """Restart the noise from ``(seed, *key)`` (non-negative ints): the same key gives the
+        same noise, so a frame taken again (after an interruption, or a retry), keyed by what it
+        shows (e.g. depth and pattern), is identical. No effect when ``seed`` is None."""
+        if self.seed is not None:
+            self.rng = np.random.default_rng([self.seed, *key])
 
     @property
     def exposure_ms(self) -> float:

@@ -9,6 +9,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from drivers.frame_code import FrameCodeLayout
+
 
 class ConfigError(ValueError):
     """A config file is missing, unreadable or invalid; the message names file and field."""
@@ -34,7 +36,7 @@ class StageConfig(_Strict):
     settle_s: float = Field(0.2, ge=0, description="wait after every finished move, s")
 
     @model_validator(mode="after")
-    def _travel_ordered(self) -> "StageConfig":
+    def _travel_ordered(self) -> StageConfig:
         lo, hi = self.travel_mm
         if not lo < hi:
             raise ValueError(f"travel_mm must be (low, high) with low < high, got {self.travel_mm}")
@@ -48,8 +50,12 @@ class DisplayConfig(_Strict):
     lut_path: str | None = Field(None, description="inverse response LUT file (from `ltc gamma`)")
     refresh_hz: float = Field(60.0, gt=0, description="display refresh rate, Hz")
     latency_frames: int = Field(2, ge=0, description="refreshes to wait after show before capture")
-    frame_code: bool = Field(True, description="draw a camera-readable frame code in a corner")
-    frame_code_block_px: int = Field(16, ge=1, description="frame code block edge, LCD pixels")
+    frame_code: bool = Field(
+        False, description="the display driver draws its own strip frame code in the LCD's top-left "
+        "corner (for a camera that sees that corner sharply); the acquisition's own check code "
+        "is [frame_check]"
+    )
+    frame_code_block_px: int = Field(16, ge=1, description="strip frame code block edge, LCD pixels")
     pitch_mm: float = Field(0.2715, gt=0, description="LCD pixel pitch, mm")
 
 
@@ -63,6 +69,10 @@ class CameraConfig(_Strict):
     saturation_fraction: float = Field(
         0.98, gt=0, le=1, description="pixels at or above this fraction of full scale count as saturated"
     )
+    principal_point_px: tuple[float, float] | None = Field(
+        None, description="principal point (u, v), pixels, from a calibration; None: the image "
+        "centre (`ltc align` measures tilt against it)"
+    )
 
 
 class PatternConfig(_Strict):
@@ -74,12 +84,62 @@ class PatternConfig(_Strict):
     amplitude: float = Field(0.5, gt=0, le=0.5, description="pattern amplitude b, fraction of white")
 
     @model_validator(mode="after")
-    def _in_range(self) -> "PatternConfig":
+    def _in_range(self) -> PatternConfig:
         if self.offset - self.amplitude < -1e-12 or self.offset + self.amplitude > 1 + 1e-12:
             raise ValueError(
                 f"offset +- amplitude must stay within [0, 1], got {self.offset} +- {self.amplitude}"
             )
         return self
+
+
+class FrameCheckConfig(_Strict):
+    """A small code the acquisition draws into every pattern and reads back through the lens to
+    prove which pattern each frame shows. It is calibrated at every depth (a capture of every
+    code value), so it reads through any blur; camera pixels that see it are masked out of
+    the LTC (``code_mask`` in the run store)."""
+
+    enabled: bool = Field(True, description="draw and verify the check code")
+    bits: int = Field(3, ge=1, le=6, description="code bits: the pattern index modulo 2**bits")
+    block_px: int = Field(
+        16, ge=1, description="block edge, LCD pixels; larger than the LTC at the most defocused depth"
+    )
+    columns: int = Field(0, ge=0, description="blocks per row; 0 puts all bits in one row")
+    origin_px: tuple[int, int] | None = Field(
+        None, description="LCD (x, y) of the code's top-left pixel; None: one block right of and "
+        "below the LCD centre. It must be in the camera's view at every depth (`ltc align` shows)"
+    )
+    leak_max: float = Field(
+        0.2, gt=0, lt=1, description="pixels read the code only where the pattern adds at most "
+        "this fraction of the code's response"
+    )
+    pollution: float = Field(
+        0.005, gt=0, lt=1, description="pixels whose response to the code exceeds this fraction "
+        "of their response to white are masked out of the LTC"
+    )
+    min_margin: float = Field(
+        0.25, ge=0, lt=0.5, description="a frame must lie within 0.5 - min_margin of the way to "
+        "the nearest other code value, else it is re-captured"
+    )
+
+    def layout(self, lcd_size: tuple[int, int]) -> FrameCodeLayout:
+        """The code's layout on an LCD of (width, height) pixels."""
+        w, h = lcd_size
+        origin = self.origin_px or (w // 2 + self.block_px, h // 2 + self.block_px)
+        return FrameCodeLayout(bits=self.bits, block_px=self.block_px, style="blocks",
+                               columns=self.columns, origin=tuple(origin))
+
+
+class AcquireConfig(_Strict):
+    """How an acquisition run handles trouble."""
+
+    max_retries: int = Field(
+        3, ge=0, description="re-captures of one frame (camera timeout, stale frame, wrong or "
+        "unreadable check code) before the run stops"
+    )
+    saturation_warn_fraction: float = Field(
+        0.001, ge=0, le=1, description="log a warning when more than this fraction of a frame's "
+        "pixels is saturated (camera.saturation_fraction)"
+    )
 
 
 class StationConfig(_Strict):
@@ -92,10 +152,12 @@ class StationConfig(_Strict):
     display: DisplayConfig = DisplayConfig()
     camera: CameraConfig = CameraConfig()
     patterns: PatternConfig = PatternConfig()
+    frame_check: FrameCheckConfig = FrameCheckConfig()
+    acquire: AcquireConfig = AcquireConfig()
     fake: dict[str, Any] = Field(default_factory=dict, description="fake bench settings")
 
     @model_validator(mode="after")
-    def _depths_in_travel(self) -> "StationConfig":
+    def _depths_in_travel(self) -> StationConfig:
         lo, hi = self.stage.travel_mm
         for i, z in enumerate(self.depths_mm):
             if z < 0:

@@ -8,6 +8,8 @@ Layout (ARCHITECTURE.md, issue 3):
 * ``origin[depth, row, col, 2]`` int32, LCD (column, row) of window element ``[0, 0]``.
 * ``gain[depth, row, col]`` float32, response to full white (ADU above black).
 * ``noise[depth, row, col]`` float32, estimated std of one LTC weight.
+* ``lcd_xy[depth, row, col, 2]`` float32, LCD (x, y) the pixel looks at, decoded from the
+  localisation patterns (NaN where unknown).
 * attributes: ``depths_mm``, ``pitch_mm``, ``period``, ``lcd_size`` (w, h),
   ``camera_size`` (w, h), ``format`` and ``format_version``, plus anything the writer adds.
 """
@@ -23,6 +25,7 @@ import zarr
 FORMAT = "ltc-store"
 FORMAT_VERSION = 1
 ARRAYS = ("ltc", "origin", "gain", "noise")
+OPTIONAL_ARRAYS = ("lcd_xy",)
 
 
 class LtcStoreError(ValueError):
@@ -53,6 +56,8 @@ def create_ltc_store(
     g.create_array("origin", shape=(d, h, w, 2), chunks=t + (2,), dtype="int32", fill_value=0)
     g.create_array("gain", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan)
     g.create_array("noise", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan)
+    g.create_array("lcd_xy", shape=(d, h, w, 2), chunks=t + (2,), dtype="float32",
+                   fill_value=np.nan)
     g.attrs.update(
         {
             "format": FORMAT,
@@ -84,6 +89,24 @@ def open_ltc_store(path: str | Path, mode: str = "r") -> zarr.Group:
     if missing:
         raise LtcStoreError(f"{path}: missing array(s) {missing}")
     return g
+
+
+def write_ltc_tile(
+    group: zarr.Group, depth: int, row0: int, col0: int, **arrays: np.ndarray
+) -> None:
+    """Write one tile of camera pixels into an LTC store at ``[depth, row0:, col0:]``.
+
+    arrays : by name (``ltc`` (th, tw, P, P), ``origin`` (th, tw, 2), ``gain`` and ``noise``
+    (th, tw), ``lcd_xy`` (th, tw, 2)); each is cast to the stored dtype. A tile aligned with
+    the store's chunks rewrites whole chunks only.
+    """
+    for name, value in arrays.items():
+        if name not in ARRAYS + OPTIONAL_ARRAYS:
+            raise LtcStoreError(f"{group.store}: no LTC store array named {name!r}; "
+                                f"expected one of {ARRAYS + OPTIONAL_ARRAYS}")
+        arr = group[name]
+        v = np.asarray(value)
+        arr[depth, row0 : row0 + v.shape[0], col0 : col0 + v.shape[1]] = v.astype(arr.dtype)
 
 
 def windows_from_sparse(
