@@ -324,7 +324,7 @@ def acquire(
                                "choose a new --out")
     t0 = time.perf_counter()
     with _hardware(config, hw) as devices:
-        store = _check_and_create(config, devices, out, store, record)
+        store = _check_and_create(config, devices, out, store, record, lut)
         engine = Acquisition(config, devices, store, lut)
         todo = plan_events(store.done())
         status = "failed"
@@ -394,7 +394,7 @@ def _open_for_resume(out: Path, record: dict) -> RunStore:
 
 
 def _check_and_create(config: StationConfig, hw: Hardware, out: Path, store: RunStore | None,
-                      record: dict) -> RunStore:
+                      record: dict, lut: np.ndarray | None) -> RunStore:
     """Check the config against the opened devices (before anything moves); create the store."""
     lcd_size = tuple(hw.display.size)
     plan = pattern_plan(config, lcd_size)
@@ -411,10 +411,7 @@ def _check_and_create(config: StationConfig, hw: Hardware, out: Path, store: Run
         store = RunStore.create(
             out, config=record, plan=plan, depths_mm=config.depths_mm,
             camera_size=hw.camera.size, bit_depth=hw.camera.bit_depth, lcd_size=lcd_size,
-            lcd_pitch_mm=config.display.pitch_mm, start_time=_now())
-        w, h = hw.camera.size
-        store.group.create_array(CODE_MASK, shape=(len(config.depths_mm), h, w),
-                                 chunks=(1, h, w), dtype="bool", fill_value=False)
+            lcd_pitch_mm=config.display.pitch_mm, display_lut=lut, start_time=_now())
         layout = config.frame_check.layout(lcd_size) if config.frame_check.enabled else None
         store.group.attrs.update({
             "frame_check": None if layout is None else {

@@ -173,7 +173,8 @@ def run_align(config: StationConfig, *, hw: Hardware | None = None,
     if not hw.stage.is_homed:
         hw.stage.home()
     cam_w, cam_h = hw.camera.size
-    pp = np.array(config.camera.principal_point_px or ((cam_w - 1) / 2, (cam_h - 1) / 2))
+    k = config.camera.matrix
+    pp = np.array((k[0][2], k[1][2]) if k else ((cam_w - 1) / 2, (cam_h - 1) / 2))
     lcd_c = np.array([(w - 1) / 2, (h - 1) / 2])
     code = None
     if config.frame_check.enabled:

@@ -69,9 +69,11 @@ class CameraConfig(_Strict):
     saturation_fraction: float = Field(
         0.98, gt=0, le=1, description="pixels at or above this fraction of full scale count as saturated"
     )
-    principal_point_px: tuple[float, float] | None = Field(
-        None, description="principal point (u, v), pixels, from a calibration; None: the image "
-        "centre (`ltc align` measures tilt against it)"
+    matrix: tuple[tuple[float, float, float], tuple[float, float, float],
+                  tuple[float, float, float]] | None = Field(
+        None, description="camera matrix K (3x3, pixels) from a calibration, e.g. the FPP rig's; "
+        "`ltc lens` places the optical centre with it and `ltc align` takes the principal point "
+        "from it. None: unknown (principal point at the image centre)"
     )
 
 

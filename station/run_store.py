@@ -176,6 +176,9 @@ class RunStore:
         # small arrays: one chunk per depth, rewritten whole (atomically) at every frame
         g.create_array("done", shape=(d, n), chunks=(1, n), dtype="bool", fill_value=False,
                        compressors=None)
+        # camera pixels that see the acquisition's check code, per depth (excluded from LTC)
+        g.create_array("code_mask", shape=(d, h, w), chunks=(1, h, w), dtype="bool",
+                       fill_value=False)
         for name, dt in META_ARRAYS.items():
             fill = np.nan if dt == "float64" else _INT_FILL
             g.create_array(name, shape=(d, n), chunks=(1, n), dtype=dt, fill_value=fill,
@@ -315,6 +318,13 @@ class RunStore:
         self._done[depth, pattern] = True
 
     # ---- reading ----------------------------------------------------------------------------
+    def code_mask(self, depth: int) -> np.ndarray:
+        """(rows, cols) bool: camera pixels that saw the check code at this depth (no LTC)."""
+        if "code_mask" not in self.group:  # stores written before the mask existed
+            h, w = self.camera_size[1], self.camera_size[0]
+            return np.zeros((h, w), bool)
+        return np.asarray(self.group["code_mask"][depth])
+
     def read_meta(self, depth: int) -> dict[str, np.ndarray]:
         """Per-frame metadata of one depth: name -> (patterns,) array (fill where not done)."""
         self._check_index(depth, 0)

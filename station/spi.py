@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -326,6 +326,7 @@ def reconstruct(
         out_path, depths_mm=store.depths_mm, camera_size=store.camera_size, period=p,
         pitch_mm=store.lcd_pitch_mm, lcd_size=store.lcd_size, tile_px=t,
         attrs={"run_store": str(store.path), "pattern_set": plan.model_dump(mode="json"),
+               "camera_matrix": store.config.get("camera", {}).get("matrix"),
                "software": software_versions(),
                "created": _dt.datetime.now(_dt.timezone.utc).isoformat()},
     )
@@ -335,6 +336,7 @@ def reconstruct(
               disable=None if progress else True) as bar:
         for di in range(store.n_depths):
             stats: dict[str, list] = {"valid": [], "gain": [], "noise": [], "edge": []}
+            code_mask = store.code_mask(di)
             for tile in store.iter_tiles(di, t):
                 _, th, tw = tile.frames.shape
                 flat = tile.frames.reshape(len(plan), th * tw)
@@ -343,6 +345,8 @@ def reconstruct(
                          for i in range(0, th * tw, PIXELS_PER_BLOCK)]
                 blk = LtcBlock(*(np.concatenate([getattr(q, fld.name) for q in parts])
                                  for fld in fields(LtcBlock)))
+                seen_code = code_mask[tile.row0 : tile.row0 + th, tile.col0 : tile.col0 + tw]
+                blk = _exclude(blk, seen_code.ravel())
                 write_ltc_tile(
                     out, di, tile.row0, tile.col0,
                     ltc=blk.ltc.reshape(th, tw, p, p), origin=blk.origin.reshape(th, tw, 2),
@@ -371,6 +375,16 @@ def reconstruct(
         "patterns_per_depth": len(plan), "tile_px": t, "depths": per_depth,
         "seconds": seconds, "pixels_per_second": store.n_depths * w * h / max(seconds, 1e-9),
     }
+
+
+def _exclude(blk: LtcBlock, mask: np.ndarray) -> LtcBlock:
+    """The block with the pixels in ``mask`` (n,) bool made invalid (LTC NaN, origin 0)."""
+    if not mask.any():
+        return blk
+    ltc, origin, valid = blk.ltc.copy(), blk.origin.copy(), blk.valid & ~mask
+    ltc[mask] = np.nan
+    origin[mask] = 0
+    return replace(blk, ltc=ltc, origin=origin, valid=valid)
 
 
 def _median(values: list[float]) -> float | None:

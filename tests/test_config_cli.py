@@ -45,7 +45,7 @@ def test_fake_example_check_code_sits_in_the_lcd_and_real_defaults_next_to_the_c
     layout = real.frame_check.layout((3840, 2160))
     assert (layout.bits, layout.block_px, layout.style) == (3, 16, "blocks")
     assert frame_code_rect(layout, (3840, 2160)) == (1936, 1096, 48, 16)
-    assert real.acquire.max_retries == 3 and real.camera.principal_point_px is None
+    assert real.acquire.max_retries == 3 and real.camera.matrix is None
 
 
 @pytest.mark.parametrize(("section", "line", "message"), [
@@ -53,7 +53,7 @@ def test_fake_example_check_code_sits_in_the_lcd_and_real_defaults_next_to_the_c
     ("[frame_check]", "origin_px = [1, 2, 3]", r"frame_check\.origin_px: Tuple should have at most 2"),
     ("[frame_check]", "bits = 0", r"frame_check\.bits: Input should be greater than or equal to 1"),
     ("[acquire]", "max_retries = -1", r"acquire\.max_retries: Input should be greater than or equal to 0"),
-    ("[camera]", "principal_point_px = [1.0]", r"camera\.principal_point_px\.1: Field required"),
+    ("[camera]", "matrix = [[1.0, 0.0]]", r"camera\.matrix\.0\.2: Field required"),
 ])
 def test_new_sections_are_validated(section, line, message):
     text = example_text("fake")

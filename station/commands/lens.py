@@ -115,7 +115,7 @@ def format_report(r: dict) -> str:
          f"{r['pixels_few_depths']}, outlier removed {r['pixels_outlier_removed']}, bad fit "
          f"{r['pixels_bad_fit']}"),
         (f"lens model      {r['samples']} samples x {r['nodes'][0]}x{r['nodes'][1]} nodes "
-         f"({r['nodes_filled']} filled) -> {r['out']}"),
+         f"({r['nodes_filled']} filled from a neighbour) -> {r['out']}"),
     ]
     lines += [f"note            {n}" for n in r["notes"]]
     lines += [f"figure          {f}" for f in r["figures"]]
