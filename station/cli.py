@@ -29,13 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(f"station.commands.{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"station.commands.{name}":
-                raise
-            continue
-        module.register(sub)
+        importlib.import_module(f"station.commands.{name}").register(sub)
     return parser
 
 
