@@ -47,6 +47,19 @@ def frame_code_layout(config: StationConfig) -> FrameCodeLayout | None:
     return FrameCodeLayout(block_px=d.frame_code_block_px) if d.frame_code else None
 
 
+def fake_truth(config: dict) -> dict | None:
+    """Ground truth of a fake-bench run from its stored config (None for a real bench):
+    the true optical centre in the station frame (mm) and focus distance (mm)."""
+    if config.get("backend") != "fake":
+        return None
+    from fakes.bench import FakeBench
+    from fakes.hardware import parse_fake_settings
+
+    bench = FakeBench(parse_fake_settings(config.get("fake", {})).bench_config())
+    return {"optical_centre_mm": bench.optical_centre_station_mm().tolist(),
+            "focus_distance_mm": bench.config.focus_distance_mm}
+
+
 @contextlib.contextmanager
 def open_hardware(config: StationConfig, *, lut: np.ndarray | None = None) -> Iterator[Hardware]:
     """Open stage, display and camera; close all of them on exit, whatever happened."""

@@ -327,6 +327,7 @@ def reconstruct(
         pitch_mm=store.lcd_pitch_mm, lcd_size=store.lcd_size, tile_px=t,
         attrs={"run_store": str(store.path), "pattern_set": plan.model_dump(mode="json"),
                "camera_matrix": store.config.get("camera", {}).get("matrix"),
+               "config": store.config,
                "software": software_versions(),
                "created": _dt.datetime.now(_dt.timezone.utc).isoformat()},
     )

@@ -1,6 +1,7 @@
 """Acquisition runs on the fake bench: the check code, retries, durability (SIGKILL + resume),
 refusals before anything moves, teardown, and `ltc acquire` + `ltc reconstruct` end to end."""
 
+import json
 import os
 import re
 import signal
@@ -520,6 +521,13 @@ def test_fake_example_acquire_and_reconstruct_recover_the_true_ltc(tmp_path, cap
                      f"{100 * mask.mean():.1f} %), centroid p95 full window {full:.3f} px, "
                      f"region r={region} {near:.3f} px")
         assert near <= 0.1 and near < full
+    # the whole station: the lens derived from this run against the fake bench's truth
+    assert main(["lens", str(ltc), "--out", str(tmp_path / "lens.npz"), "--json"]) == 0
+    lens = json.loads(capsys.readouterr().out)
+    truth = lens["fake_truth"]
+    np.testing.assert_allclose(truth["optical_centre_mm"], bench.optical_centre_station_mm())
+    assert truth["optical_centre_error_norm_mm"] < 0.5
+    lines.append(f"optical centre error {truth['optical_centre_error_norm_mm']:.3f} mm")
     with capsys.disabled():
         print(f"\nfake example end to end: acquire {t1 - t0:.1f} s, reconstruct {t2 - t1:.1f} s\n  "
               + "\n  ".join(lines))
