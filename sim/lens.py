@@ -14,6 +14,7 @@ scanner renders with the same class, so there is one implementation.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Protocol
 
 import numpy as np
@@ -26,7 +27,8 @@ GOLDEN_ANGLE_RAD = np.pi * (3.0 - np.sqrt(5.0))
 class RayBundle:
     """Rays of n pixels, K samples each, in the camera frame.
 
-    origins : (n, K, 3) float64, mm, on the aperture plane z = 0.
+    origins : (n, K, 3) float64, mm, on the aperture plane z = 0 (may be a read-only
+        broadcast view where every pixel shares its aperture samples).
     directions : (n, K, 3) float64, unit vectors, z > 0.
     weights : (n, K) float64; per pixel they sum to the relative transmittance
         (1 for an unvignetted pixel); blocked samples have weight 0.
@@ -47,10 +49,18 @@ def sunflower_disk(n: int) -> np.ndarray:
     """``n`` equal-area points covering the unit disk evenly (Vogel spiral), (n, 2) float64."""
     if n < 1:
         raise ValueError(f"sunflower_disk needs n >= 1 samples, got {n}")
+    return _sunflower(n).copy()
+
+
+@lru_cache(maxsize=16)
+def _sunflower(n: int) -> np.ndarray:
+    """``sunflower_disk(n)``, computed once: a read-only array."""
     k = np.arange(n, dtype=np.float64)
     r = np.sqrt((k + 0.5) / n)
     t = k * GOLDEN_ANGLE_RAD
-    return np.stack([r * np.cos(t), r * np.sin(t)], axis=1)
+    disk = np.stack([r * np.cos(t), r * np.sin(t)], axis=1)
+    disk.flags.writeable = False
+    return disk
 
 
 def hit_plane(bundle_origins: np.ndarray, directions: np.ndarray, z_mm: float) -> np.ndarray:
@@ -59,16 +69,30 @@ def hit_plane(bundle_origins: np.ndarray, directions: np.ndarray, z_mm: float) -
     return bundle_origins[..., :2] + t[..., None] * directions[..., :2]
 
 
-def _rays_through_focus(
-    aperture_xy_mm: np.ndarray, aim_mm: np.ndarray, weights: np.ndarray
-) -> RayBundle:
-    """Bundle from aperture points (n, K, 2) aimed at points (n, K, 3)."""
-    n, k = aperture_xy_mm.shape[:2]
-    origins = np.zeros((n, k, 3))
-    origins[..., :2] = aperture_xy_mm
-    d = aim_mm - origins
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    return RayBundle(origins, d, weights)
+def _aimed_directions(xy_n: np.ndarray, pupil: np.ndarray, z_aim: np.ndarray,
+                      coma: np.ndarray, out: np.ndarray) -> None:
+    """Unit directions (n, K, 3) into ``out`` of rays from the aperture points ``pupil`` (K, 2)
+    mm (z = 0) through the aim points ``(x z_k + c_k x, y z_k + c_k y, z_k)`` of pixels with
+    normalised coordinates ``xy_n`` (n, 2), for per-sample aim depths ``z_aim`` and lateral
+    factors ``coma`` (K,): ``sim.trace_kernels.aimed_directions``, a compiled loop (imported
+    here on first use, so importing this module does not load numba)."""
+    from sim.trace_kernels import aimed_directions
+
+    aimed_directions(xy_n, pupil, z_aim, coma, out)
+
+
+def _shared_origins(pupil_xy_mm: np.ndarray, n: int) -> np.ndarray:
+    """Origins (n, K, 3) of aperture points (K, 2) shared by n pixels: a read-only view."""
+    o = np.zeros((len(pupil_xy_mm), 3))
+    o[:, :2] = pupil_xy_mm
+    return _repeated(o, n)
+
+
+def _repeated(a: np.ndarray, n: int) -> np.ndarray:
+    """``a`` (contiguous) n times along a new first axis: a read-only view (stride 0)."""
+    view = np.ndarray((n,) + a.shape, a.dtype, a, strides=(0,) + a.strides)
+    view.flags.writeable = False
+    return view
 
 
 class PinholeLens(BaseModel):
@@ -78,12 +102,11 @@ class PinholeLens(BaseModel):
     kind: str = Field("pinhole", pattern="^pinhole$")
 
     def bundle(self, xy_n: np.ndarray, uv: np.ndarray | None = None) -> RayBundle:
-        xy_n = np.asarray(xy_n, dtype=np.float64).reshape(-1, 2)
+        xy_n = np.ascontiguousarray(xy_n, dtype=np.float64).reshape(-1, 2)
         n = len(xy_n)
-        origins = np.zeros((n, 1, 3))
-        d = np.concatenate([xy_n, np.ones((n, 1))], axis=1)
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        return RayBundle(origins, d[:, None, :], np.ones((n, 1)))
+        d = np.empty((n, 1, 3))
+        _aimed_directions(xy_n, np.zeros((1, 2)), np.ones(1), np.zeros(1), d)
+        return RayBundle(_shared_origins(np.zeros((1, 2)), n), d, np.ones((n, 1)))
 
 
 class AberratedLens(BaseModel):
@@ -127,30 +150,72 @@ class AberratedLens(BaseModel):
         return 0.5 * self.pupil_diameter_mm
 
     def transmission(self, xy_n: np.ndarray, pupil_xy_mm: np.ndarray) -> np.ndarray:
-        """1 where a pupil point (n, K, 2) mm passes the field-shifted clipping circle, else 0."""
-        centre = self.vignetting_shift_mm * np.asarray(xy_n)[:, None, :]
+        """1 where a pupil point (n, K, 2) mm passes the field-shifted clipping circle, else 0.
+        ``pupil_xy_mm`` may also be (K, 2), the same points for every pixel."""
+        xy_n = np.asarray(xy_n, dtype=np.float64).reshape(-1, 2)
+        pupil = np.asarray(pupil_xy_mm, dtype=np.float64)
         r_clip = self.vignetting_radius_ratio * self.pupil_radius_mm
-        inside = np.sum((pupil_xy_mm - centre) ** 2, axis=-1) <= r_clip**2
+        shape = (len(xy_n),) + pupil.shape[-2:-1]
+        if self.vignetting_shift_mm == 0 and pupil.ndim == 2:  # the same for every pixel
+            inside = np.sum(pupil**2, axis=-1) <= r_clip**2
+            return np.broadcast_to(inside.astype(np.float64), shape).copy()
+        cx = self.vignetting_shift_mm * xy_n[:, 0, None]
+        cy = self.vignetting_shift_mm * xy_n[:, 1, None]
+        ex, ey = pupil[..., 0] - cx, pupil[..., 1] - cy
+        inside = ex * ex + ey * ey <= r_clip**2
         return inside.astype(np.float64)
 
     def bundle_from_pupil(
         self, xy_n: np.ndarray, unit_disk: np.ndarray
     ) -> RayBundle:
         """Bundle through the given unit-disk pupil samples (K, 2) with equal area weights."""
-        xy_n = np.asarray(xy_n, dtype=np.float64).reshape(-1, 2)
-        n, k = len(xy_n), len(unit_disk)
-        rho2 = np.sum(unit_disk**2, axis=1)  # (K,) in units of rho_max^2
-        pupil = np.broadcast_to(unit_disk * self.pupil_radius_mm, (n, k, 2))
-        z_aim = self.focus_distance_mm + self.spherical_mm * rho2  # (K,)
-        aim = np.empty((n, k, 3))
-        aim[..., :2] = xy_n[:, None, :] * z_aim[None, :, None]
-        aim[..., :2] += self.coma_mm * rho2[None, :, None] * xy_n[:, None, :]
-        aim[..., 2] = z_aim[None, :]
-        weights = self.transmission(xy_n, pupil) / k
-        return _rays_through_focus(pupil, aim, weights)
+        xy_n = np.ascontiguousarray(xy_n, dtype=np.float64).reshape(-1, 2)
+        pupil, origins, z_aim, coma, w = _pupil_rule(self, np.asarray(unit_disk, dtype=np.float64))
+        n, k = len(xy_n), len(pupil)
+        d = np.empty((n, k, 3))
+        _aimed_directions(xy_n, pupil, z_aim, coma, d)
+        if w is None:  # vignetting moves with the field
+            w = self.transmission(xy_n, pupil) / k
+        else:
+            w = np.repeat(w[None], n, axis=0)
+        return RayBundle(_repeated(origins, n), d, w)
 
     def bundle(self, xy_n: np.ndarray, uv: np.ndarray | None = None) -> RayBundle:
-        return self.bundle_from_pupil(xy_n, sunflower_disk(self.samples))
+        return self.bundle_from_pupil(xy_n, _sunflower(self.samples))
+
+
+def _pupil_rule(lens: AberratedLens, unit_disk: np.ndarray) -> tuple:
+    """What does not depend on the pixel, for unit-disk samples (K, 2): aperture points (K, 2)
+    mm and as ray origins (K, 3), aim depths ``z_f + spherical rho^2`` (K,), coma factors
+    ``coma rho^2`` (K,), and the weights (K,) ``transmission / K`` when the clipping circle
+    does not move with the field (else None). Cached for the lens's own samples
+    (``_sunflower``)."""
+    if unit_disk is _sunflower(lens.samples):
+        return _own_pupil_rule(lens)
+    return _compute_pupil_rule(lens, unit_disk)
+
+
+@lru_cache(maxsize=16)
+def _own_pupil_rule(lens: AberratedLens) -> tuple:
+    """``_pupil_rule`` of the lens's own samples, computed once per lens."""
+    return _compute_pupil_rule(lens, _sunflower(lens.samples))
+
+
+def _compute_pupil_rule(lens: AberratedLens, unit_disk: np.ndarray) -> tuple:
+    """``_pupil_rule``, computed (arrays made read-only: they may be cached)."""
+    rho2 = np.sum(unit_disk**2, axis=1)  # (K,) in units of rho_max^2
+    pupil = np.ascontiguousarray(unit_disk * lens.pupil_radius_mm)
+    z_aim = lens.focus_distance_mm + lens.spherical_mm * rho2
+    w = None
+    if lens.vignetting_shift_mm == 0:
+        w = lens.transmission(np.zeros((1, 2)), pupil)[0] / len(pupil)
+    origins = np.zeros((len(pupil), 3))
+    origins[:, :2] = pupil
+    out = (pupil, origins, z_aim, lens.coma_mm * rho2, w)
+    for a in out:
+        if a is not None:
+            a.flags.writeable = False
+    return out
 
 
 class GaussianLens(BaseModel):
@@ -165,14 +230,15 @@ class GaussianLens(BaseModel):
     extent_sigmas: float = Field(3.0, gt=0, description="samples cover this many sigmas")
 
     def bundle(self, xy_n: np.ndarray, uv: np.ndarray | None = None) -> RayBundle:
-        xy_n = np.asarray(xy_n, dtype=np.float64).reshape(-1, 2)
+        xy_n = np.ascontiguousarray(xy_n, dtype=np.float64).reshape(-1, 2)
         n = len(xy_n)
-        disk = sunflower_disk(self.samples) * self.extent_sigmas
+        disk = _sunflower(self.samples) * self.extent_sigmas
         w = np.exp(-0.5 * np.sum(disk**2, axis=1))
         w /= w.sum()
         disk = disk / np.sqrt(0.5 * np.sum(w[:, None] * disk**2))  # per-axis variance 1 exactly
-        pupil = np.broadcast_to(disk * self.sigma_mm, (n, self.samples, 2))
-        aim = np.empty((n, self.samples, 3))
-        aim[..., :2] = xy_n[:, None, :] * self.focus_distance_mm
-        aim[..., 2] = self.focus_distance_mm
-        return _rays_through_focus(pupil, aim, np.broadcast_to(w, (n, self.samples)).copy())
+        pupil = np.ascontiguousarray(disk * self.sigma_mm)
+        d = np.empty((n, self.samples, 3))
+        _aimed_directions(xy_n, pupil, np.full(self.samples, self.focus_distance_mm),
+                          np.zeros(self.samples), d)
+        return RayBundle(_shared_origins(pupil, n), d,
+                         np.broadcast_to(w, (n, self.samples)).copy())

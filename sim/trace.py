@@ -9,8 +9,11 @@ the weight ``w_k * albedo * (N . L) * V`` (0 for misses, shadows and points outs
 projector image), plus truth maps of the chief ray (the ray through the centre of the aperture).
 It depends on the scene pose and the lens only, so any number of patterns render from it.
 
-Work is split into chunks of rays traced on a thread pool (embreex, OpenCV and most numpy
-loops release the GIL), so every core is used.
+Work is split into chunks of rays traced on a thread pool, so every core is used: per chunk,
+the world rays, then Embree's first hits, then one compiled pass per ray (``sim.trace_kernels``:
+float64 refinement, shading, projector coordinates, the shadow rays), then Embree's occlusion
+queries, then the transport is written. Embree and the compiled passes release the GIL, so the
+threads overlap them.
 """
 
 from __future__ import annotations
@@ -20,17 +23,19 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 from tqdm import tqdm
 
+from sim import trace_kernels as kern
 from sim.lens import LensModel, PinholeLens
 from sim.rig import DeviceCalibration
 
 SHADOW_OFFSET_MM = 1e-3  # shadow rays start this far off the surface, along its normal
-CHUNK_RAYS = 1 << 15  # rays per work item
+CHUNK_RAYS = 1 << 15  # rays per work item (a pinhole's: half; smaller or larger is slower)
 PROJECTOR_GUARD = 1.2  # distortion is trusted up to this multiple of the image's largest radius
 
 
@@ -78,16 +83,6 @@ class TraceGeometry:
         return n / np.where(norm > 0, norm, 1.0)
 
     @cached_property
-    def face_normals_soa(self) -> np.ndarray:
-        """(3, F) copy of ``face_normals``."""
-        return np.ascontiguousarray(self.face_normals.T)
-
-    @cached_property
-    def face_shading_soa(self) -> np.ndarray:
-        """(3, F) copy of ``face_shading``."""
-        return np.ascontiguousarray(self.face_shading.T)
-
-    @cached_property
     def face_offset(self) -> np.ndarray:
         """(F,) plane offsets ``n . v0`` of the faces, mm."""
         return np.einsum("ij,ij->i", self.face_normals, self.vertices[self.faces[:, 0]])
@@ -103,6 +98,25 @@ class TraceGeometry:
     def face_shading(self) -> np.ndarray:
         """(F, 3) shading normal of faces whose vertex normals agree (their common normal)."""
         return self.vertex_normals[self.faces[:, 0]].astype(np.float64)
+
+    @cached_property
+    def face_table(self) -> np.ndarray:
+        """(F, 10) float64, per face what shading reads, in one row: geometric normal (3),
+        plane offset, shading normal (3), albedo, object, and the kind of face: -1 flat, -2
+        smooth (``face_smooth``), or the index of its exact sphere."""
+        kind = np.where(self.face_sphere >= 0, self.face_sphere,
+                        np.where(self.face_smooth, -2, -1))
+        return np.ascontiguousarray(np.column_stack(
+            [self.face_normals, self.face_offset, self.face_shading, self.face_albedo,
+             self.face_object, kind]), dtype=np.float64)
+
+    @cached_property
+    def kernel_arrays(self) -> tuple:
+        """The arrays ``trace_kernels`` shading reads, contiguous and typed: ``face_table``,
+        faces (F, 3) int64, vertex normals (V, 3) and spheres (S, 4) float64."""
+        return (self.face_table, np.ascontiguousarray(self.faces, dtype=np.int64),
+                np.ascontiguousarray(self.vertex_normals, dtype=np.float64),
+                np.ascontiguousarray(self.spheres, dtype=np.float64).reshape(-1, 4))
 
     @cached_property
     def embree(self) -> rtcore_scene.EmbreeScene:
@@ -162,16 +176,6 @@ class Transport:
         return self._map(self.object_id, -1)
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Dot products of (3, m) column stacks (structure of arrays: contiguous rows are fast)."""
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _affine(M: np.ndarray, x: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``M x + t`` for points (3, m)."""
-    return np.stack([M[i, 0] * x[0] + M[i, 1] * x[1] + M[i, 2] * x[2] + t[i] for i in range(3)])
-
-
 @dataclass(frozen=True)
 class _Projector:
     """The projector's pinhole model, vectorised: ``K``, OpenCV ``dist``, world-to-device R, T."""
@@ -195,52 +199,40 @@ class _Projector:
         return cls(dev.K_array, dev.dist_array, dev.R_array, dev.T_array, dev.centre_world,
                    dev.size, r2 * PROJECTOR_GUARD**2)
 
+    @cached_property
+    def model(self) -> tuple:
+        """The projector tuple ``P`` of ``sim.trace_kernels`` (29 floats)."""
+        K, w, h = self.K, *self.size
+        return tuple(float(x) for x in (*self.R.ravel(), *self.T, K[0, 0], K[0, 1], K[0, 2],
+                                        K[1, 1], K[1, 2], *self.dist, bool(np.any(self.dist)),
+                                        w, h, self.guard_r2, *self.centre))
+
     def coordinates(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Projector pixels ``(u, v)``, each (m,), of world points (3, m); NaN outside the image.
 
-        The OpenCV model of ``sim.projection.project_points`` in plain numpy (cv2.projectPoints
-        costs ~0.8 us a point); points beyond ``PROJECTOR_GUARD`` times the image's largest
-        normalised radius are outside (so the distortion polynomial never folds back)."""
-        xp, yp, z = _affine(self.R, x, self.T)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            iz = 1.0 / z
-        xn, yn = xp * iz, yp * iz
-        r2 = xn * xn + yn * yn
-        k1, k2, p1, p2, k3 = self.dist
-        if np.any(self.dist):
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            xy2 = 2.0 * xn * yn
-            xd = xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn)
-            yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2
-        else:
-            xd, yd = xn, yn
-        u = self.K[0, 0] * xd + self.K[0, 1] * yd + self.K[0, 2]
-        v = self.K[1, 1] * yd + self.K[1, 2]
-        w, h = self.size
-        with np.errstate(invalid="ignore"):
-            out = (z <= 0) | ~(r2 <= self.guard_r2)
-            out |= (u < -0.5) | (u > w - 0.5) | (v < -0.5) | (v > h - 0.5)
-        u[out] = np.nan
-        v[out] = np.nan
+        The OpenCV model of ``sim.projection.project_points``, compiled
+        (``trace_kernels.projector_uv``; cv2.projectPoints costs ~0.8 us a point); points beyond
+        ``PROJECTOR_GUARD`` times the image's largest normalised radius are outside (so the
+        distortion polynomial never folds back)."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        u, v = np.empty(x.shape[1]), np.empty(x.shape[1])
+        kern.projector_coordinates(x, self.model, u, v)
         return u, v
 
 
-def _refine_spheres(geom: TraceGeometry, sph: np.ndarray, o: np.ndarray, d: np.ndarray,
-                    t: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Move hits on sphere faces onto the exact sphere (t (h,), normals n (3, h) in place);
-    returns the indices refined. o, d: (3, h)."""
-    on = np.flatnonzero(sph >= 0)
-    if len(on) == 0:
-        return on
-    c, r = geom.spheres[sph[on], :3].T, geom.spheres[sph[on], 3]
-    oc = o[:, on] - c
-    b = _dot(oc, d[:, on])
-    disc = b * b - (_dot(oc, oc) - r * r)
-    ok = disc >= 0
-    idx = on[ok]
-    t[idx] = -b[ok] - np.sqrt(disc[ok])
-    n[:, idx] = (o[:, idx] + t[idx] * d[:, idx] - c[:, ok]) / r[ok]
-    return idx
+def _shadow_buffers(m: int) -> tuple[np.ndarray, ...]:
+    """Room for up to m shadow rays: origins, directions (m, 3) float32, far (m,) float32,
+    and what each belongs to (m,) int64."""
+    return (np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32),
+            np.empty(m, np.int64))
+
+
+def _occluded(geom: TraceGeometry, so: np.ndarray, sd: np.ndarray, far: np.ndarray,
+              s: int) -> np.ndarray:
+    """Embree occlusion of the first s shadow rays: -1 where nothing is in the way."""
+    if s == 0:
+        return np.empty(0, np.int32)
+    return geom.embree.run(so[:s], sd[:s], dists=far[:s], query="OCCLUDED")
 
 
 def trace_rays(geom: TraceGeometry, proj: _Projector, o: np.ndarray, d: np.ndarray) -> dict:
@@ -249,54 +241,17 @@ def trace_rays(geom: TraceGeometry, proj: _Projector, o: np.ndarray, d: np.ndarr
     Returns ``point`` (3, m) hit points (NaN for misses), ``u``, ``v`` (m,) projector
     coordinates, ``shade`` (m,) albedo x N.L x V, ``lit`` (m,) bool, ``object`` (m,) int32.
     """
-    m = o.shape[1]
-    res = geom.embree.run(np.ascontiguousarray(o.T, dtype=np.float32),
-                          np.ascontiguousarray(d.T, dtype=np.float32), output=1)
-    prim = res["primID"]
-    hit = np.flatnonzero(prim >= 0)
-    out = {"point": np.full((3, m), np.nan), "u": np.full(m, np.nan), "v": np.full(m, np.nan),
-               "shade": np.zeros(m), "lit": np.zeros(m, bool), "object": np.full(m, -1, np.int32)}
-    if len(hit) == 0:
-        return out
-    f = prim[hit]
-    oh, dh = np.take(o, hit, axis=1), np.take(d, hit, axis=1)
-    n_g = np.take(geom.face_normals_soa, f, axis=1)
-    t_embree = res["tfar"][hit].astype(np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (np.take(geom.face_offset, f) - _dot(n_g, oh)) / _dot(n_g, dh)
-    bad = ~(np.abs(t - t_embree) <= 1e-4 * t_embree + 1e-3)  # degenerate or grazing: keep Embree's
-    t[bad] = t_embree[bad]
-    n_s = np.take(geom.face_shading_soa, f, axis=1)
-    smooth = np.flatnonzero(np.take(geom.face_smooth, f))
-    if len(smooth):  # interpolate vertex normals with Embree's barycentrics
-        vn = np.take(geom.vertex_normals, geom.faces[f[smooth]], axis=0)  # (s, 3, 3)
-        bu, bv = res["u"][hit[smooth], None], res["v"][hit[smooth], None]
-        ns = (1.0 - bu - bv) * vn[:, 0] + bu * vn[:, 1] + bv * vn[:, 2]
-        n_s[:, smooth] = (ns / np.linalg.norm(ns, axis=1, keepdims=True)).T
-    on = _refine_spheres(geom, np.take(geom.face_sphere, f), oh, dh, t, n_s)
-    n_g[:, on] = n_s[:, on]
-    x = oh + t * dh
-    n_g *= np.where(_dot(n_g, dh) > 0, -1.0, 1.0)  # two-sided: face the camera
-    n_s *= np.where(_dot(n_s, n_g) < 0, -1.0, 1.0)  # shading normal on the same side
-    L = proj.centre[:, None] - x
-    dist = np.sqrt(_dot(L, L))
-    L /= dist
-    cos = _dot(n_s, L)
-    u, v = proj.coordinates(x)
-    ci = np.flatnonzero((_dot(n_g, L) > 0) & (cos > 0) & ~np.isnan(u))
-    lit = np.zeros(len(hit), bool)
-    if len(ci):
-        so = np.take(x, ci, axis=1) + SHADOW_OFFSET_MM * np.take(n_g, ci, axis=1)
-        far = (dist[ci] - 2 * SHADOW_OFFSET_MM).astype(np.float32)
-        occ = geom.embree.run(np.ascontiguousarray(so.T, dtype=np.float32),
-                              np.ascontiguousarray(np.take(L, ci, axis=1).T, dtype=np.float32),
-                              dists=far, query="OCCLUDED")
-        lit[ci[occ == -1]] = True
-    out["point"][:, hit] = x
-    out["u"][hit], out["v"][hit], out["lit"][hit] = u, v, lit
-    out["shade"][hit] = np.where(lit, np.take(geom.face_albedo, f) * cos, 0.0)
-    out["object"][hit] = np.take(geom.face_object, f)
-    return out
+    W = np.concatenate([np.asarray(o, dtype=np.float64), np.asarray(d, dtype=np.float64)])
+    m = W.shape[1]
+    res = geom.embree.run(np.ascontiguousarray(W[:3].T, dtype=np.float32),
+                          np.ascontiguousarray(W[3:].T, dtype=np.float32), output=1)
+    point, u, v, shade = np.empty((m, 3)), np.empty(m), np.empty(m), np.empty(m)
+    obj, lit = np.empty(m, np.int32), np.empty(m, np.bool_)
+    so, sd, far, sidx = _shadow_buffers(m)
+    s = kern.shade_rays(W, res["primID"], res["tfar"], res["u"], res["v"], *geom.kernel_arrays,
+                        proj.model, SHADOW_OFFSET_MM, point, u, v, shade, obj, so, sd, far, sidx)
+    kern.shadow_rays(_occluded(geom, so, sd, far, s), sidx[:s], shade, lit)
+    return {"point": point.T, "u": u, "v": v, "shade": shade, "lit": lit, "object": obj}
 
 
 _GRIDS: dict[str, np.ndarray] = {}  # undistorted normalised coordinates of every pixel, by camera
@@ -328,63 +283,121 @@ def normalized_grid(cam: DeviceCalibration, threads: int | None = None) -> np.nd
     return _GRIDS[key]
 
 
-def _rays(cam: DeviceCalibration, lens: LensModel, pixels: np.ndarray, grid: np.ndarray | None):
-    """The bundle of pixels (flat indices), its live mask (n, K), and the world rays cast:
-    origins and directions (3, m), the live lens rays then (unless pinhole) the chief rays."""
-    w = cam.width
-    uv = np.stack([pixels % w, pixels // w], axis=1).astype(np.float64)
-    xy = cam.normalized(uv) if grid is None else grid[pixels]
-    b = lens.bundle(xy, uv)
-    live = b.weights > 0  # (n, K): vignetted samples are not traced
-    if live.all():
-        o_cam, d_cam = b.origins.reshape(-1, 3).T, b.directions.reshape(-1, 3).T
-    else:
-        o_cam, d_cam = b.origins[live].T, b.directions[live].T
-    if not isinstance(lens, PinholeLens):  # append the chief rays
-        chief = np.concatenate([xy.T, np.ones((1, len(xy)))])
-        chief /= np.sqrt(_dot(chief, chief))
-        o_cam = np.concatenate([o_cam, np.zeros_like(chief)], axis=1)
-        d_cam = np.concatenate([d_cam, chief], axis=1)
+def _camera_model(cam: DeviceCalibration) -> tuple:
+    """The camera tuple ``cam`` of ``sim.trace_kernels`` (16 floats)."""
     R, T = cam.R_array, cam.T_array
-    return b, live, _affine(R.T, o_cam, -R.T @ T), _affine(R.T, d_cam, np.zeros(3))
+    return tuple(float(x) for x in (*R.T.ravel(), *(-R.T @ T), *R[2], T[2]))
+
+
+class _Chunk(NamedTuple):
+    """A chunk's rays as ``sim.trace_kernels.chunk_rays`` takes them: the lens bundle's flat
+    weights (n K,) and K, camera-frame origins ((K, 3) when ``shared`` by every pixel, else
+    (n, K, 3)) and directions (n, K, 3) (n = 0 for a pinhole); the chief rays' normalised
+    coordinates (2, n), or (2, 0) and the pixels (float64) of an undistorted camera."""
+
+    weights: np.ndarray
+    k: int
+    o_cam: np.ndarray
+    shared: bool
+    d_cam: np.ndarray
+    xy: np.ndarray
+    pixels: np.ndarray
+    run: tuple[int, int]
+    pinhole: bool
+
+    @property
+    def n_rays(self) -> int:
+        """Room for every ray of the chunk: lens rays and chief rays."""
+        return len(self.weights) + max(self.xy.shape[1], len(self.pixels), self.run[1])
+
+
+_NO_BUNDLE = (np.zeros(0), 1, np.zeros((1, 3)), True, np.zeros((0, 1, 3)))
+_NO_XY, _NO_PIXELS, _NO_RUN = np.zeros((2, 0)), np.zeros(0), (0, 0)
+
+
+def _intrinsics(cam: DeviceCalibration) -> tuple:
+    """The tuple ``A`` of ``trace_kernels._pixel_xy``."""
+    K = cam.K_array
+    return (float(cam.width), 1.0 / cam.width, 1.0 / K[0, 0], K[0, 1], K[0, 2], 1.0 / K[1, 1],
+            K[1, 2])
+
+
+def _chunk(cam: DeviceCalibration, A: tuple, lens: LensModel, pixels: np.ndarray,
+           grid: np.ndarray | None, run: bool = False) -> _Chunk:
+    """The rays of pixels (flat indices; ``run``: they are consecutive): the lens rays of
+    ``lens.bundle(xy_n, uv)`` (those of weight > 0 are cast) then the chief rays; a pinhole's
+    one ray is its chief ray (its bundle is not built). ``A``: ``_intrinsics(cam)``; ``grid``:
+    ``normalized_grid(cam)``."""
+    if isinstance(lens, PinholeLens):
+        if grid is not None:
+            xy = np.ascontiguousarray(grid[pixels].T)
+            return _Chunk(*_NO_BUNDLE, xy, _NO_PIXELS, _NO_RUN, True)
+        if run and len(pixels):
+            return _Chunk(*_NO_BUNDLE, _NO_XY, _NO_PIXELS, (int(pixels[0]), len(pixels)), True)
+        return _Chunk(*_NO_BUNDLE, _NO_XY, pixels.astype(np.float64), _NO_RUN, True)
+    if grid is None:
+        uv, xy = np.empty((len(pixels), 2)), np.empty((len(pixels), 2))
+        kern.pixel_coordinates(pixels, A, uv, xy)
+    else:
+        row, col = np.divmod(pixels, cam.width)
+        uv = np.stack([col, row], axis=1).astype(np.float64)
+        xy = np.ascontiguousarray(grid[pixels])
+    b = lens.bundle(xy, uv)
+    shared = len(xy) > 1 and b.origins.strides[0] == 0  # a broadcast of the aperture samples
+    return _Chunk(np.ascontiguousarray(b.weights, dtype=np.float64).reshape(-1),
+                  b.weights.shape[1],
+                  np.ascontiguousarray(b.origins[0] if shared else b.origins, dtype=np.float64),
+                  shared, np.ascontiguousarray(b.directions, dtype=np.float64),
+                  np.ascontiguousarray(xy.T), _NO_PIXELS, _NO_RUN, False)
+
+
+def _world_rays(c: _Chunk, A: tuple, cam_model: tuple, proj_uv: np.ndarray, weight: np.ndarray):
+    """``trace_kernels.chunk_rays`` of a chunk: world rays W (6, >= m) (the first m columns),
+    float32 origins and directions (m, 3), the lens rays' destinations (n_lens,), n_lens."""
+    n = c.n_rays
+    W, dest = np.empty((6, n)), np.empty(n, np.int64)
+    o32, d32 = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+    n_lens, n_chief = kern.chunk_rays(c.weights, c.k, c.o_cam, c.shared, c.d_cam, c.xy, c.pixels,
+                                      c.run, A, cam_model, W, o32, d32, dest, proj_uv, weight)
+    m = n_lens + n_chief
+    return W, o32[:m], d32[:m], dest[:n_lens], n_lens
 
 
 def camera_rays(camera: DeviceCalibration, lens: LensModel,
                 pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The world rays ``trace_camera`` casts for ``pixels`` (default all): origins (m, 3) mm
     and unit directions (m, 3), float64; lens rays of weight > 0, then the chief rays unless
-    the lens is a pinhole. For timing raw Embree on exactly our rays."""
+    the lens is a pinhole. For timing raw Embree on exactly our rays (Embree gets them as
+    float32)."""
     w, h = camera.size
     pix = np.arange(w * h) if pixels is None else np.asarray(pixels, dtype=np.int64).ravel()
-    _, _, o, d = _rays(camera, lens, pix, normalized_grid(camera))
-    return o.T, d.T
+    A = _intrinsics(camera)
+    c = _chunk(camera, A, lens, pix, normalized_grid(camera), run=pixels is None)
+    n = len(c.weights)
+    W, o32, _, _, _ = _world_rays(c, A, _camera_model(camera), np.empty((n, 2), np.float32),
+                                  np.empty(n, np.float32))
+    m = len(o32)
+    return np.ascontiguousarray(W[:3, :m].T), np.ascontiguousarray(W[3:, :m].T)
 
 
-def _trace_chunk(geom, proj, cam: DeviceCalibration, lens: LensModel, pixels: np.ndarray,
+def _trace_chunk(geom: TraceGeometry, proj: _Projector, cam: DeviceCalibration, A: tuple,
+                 cam_model: tuple, lens: LensModel, pixels: np.ndarray, run: bool,
                  grid: np.ndarray | None, result: Transport, sl: slice) -> int:
-    b, live, o, d = _rays(cam, lens, pixels, grid)
-    n, k = b.weights.shape
-    all_live = bool(live.all())
-    n_live = int(live.sum())
-    pinhole = isinstance(lens, PinholeLens)
-    R, T = cam.R_array, cam.T_array
-    r = trace_rays(geom, proj, o, d)
-    wt = (b.weights.reshape(-1) if all_live else b.weights[live]) * r["shade"][:n_live]
-    puv = np.stack([r["u"][:n_live], r["v"][:n_live]], axis=-1)
-    if all_live:
-        result.proj_uv[sl] = puv.reshape(n, k, 2)
-        result.weight[sl] = wt.reshape(n, k)
-    else:
-        full_uv = np.full((n, k, 2), np.nan, dtype=np.float32)
-        full_w = np.zeros((n, k), dtype=np.float32)
-        full_uv[live], full_w[live] = puv, wt
-        result.proj_uv[sl], result.weight[sl] = full_uv, full_w
-    c = slice(n_live, None) if not pinhole else slice(0, n_live)
-    pc = r["point"][:, c]
-    result.depth[sl] = R[2, 0] * pc[0] + R[2, 1] * pc[1] + R[2, 2] * pc[2] + T[2]
-    result.proj_chief[sl] = np.stack([r["u"][c], r["v"][c]], axis=-1)
-    result.lit[sl], result.object_id[sl] = r["lit"][c], r["object"][c]
-    return o.shape[1]
+    """Trace the pixels of ``result[sl]`` into it; returns the number of camera rays."""
+    c = _chunk(cam, A, lens, pixels, grid, run)
+    proj_uv, weight = result.proj_uv[sl].reshape(-1, 2), result.weight[sl].reshape(-1)
+    W, o32, d32, dest, n_lens = _world_rays(c, A, cam_model, proj_uv, weight)
+    m, nk = len(o32), len(c.weights)
+    hits = geom.embree.run(o32, d32, output=1)
+    so, sd, far, sidx = _shadow_buffers(m)
+    s = kern.shade_chunk(W, dest, nk, n_lens, n_lens == nk, c.pinhole, cam_model,
+                         hits["primID"], hits["tfar"], hits["u"], hits["v"], *geom.kernel_arrays,
+                         proj.model, SHADOW_OFFSET_MM, c.weights, proj_uv, weight,
+                         result.depth[sl], result.proj_chief[sl], result.lit[sl],
+                         result.object_id[sl], so, sd, far, sidx)
+    kern.shadow_chunk(_occluded(geom, so, sd, far, s), sidx[:s], nk, c.pinhole, weight,
+                      result.lit[sl])
+    return m
 
 
 def trace_camera(geom: TraceGeometry, camera: DeviceCalibration, projector: DeviceCalibration,
@@ -402,22 +415,26 @@ def trace_camera(geom: TraceGeometry, camera: DeviceCalibration, projector: Devi
         pix = np.arange(w * h, dtype=np.int64)
     else:
         pix = np.asarray(pixels, dtype=np.int64).ravel()
-    if len(pix) and (pix.min() < 0 or pix.max() >= w * h):
-        raise ValueError(f"pixels must be flat indices in [0, {w * h}) of camera '{camera.name}'")
+        if len(pix) and (pix.min() < 0 or pix.max() >= w * h):
+            raise ValueError(f"pixels must be flat indices in [0, {w * h}) of camera "
+                             f"'{camera.name}'")
     k = lens.bundle(np.zeros((1, 2)), np.zeros((1, 2))).weights.shape[1]
     n = len(pix)
-    res = Transport(camera.size, projector.size, pix, np.full((n, k, 2), np.nan, np.float32),
-                    np.zeros((n, k), np.float32), np.full(n, np.nan), np.full((n, 2), np.nan),
-                    np.zeros(n, bool), np.full(n, -1, np.int32))
+    # every entry is written by the chunk that holds its pixel
+    res = Transport(camera.size, projector.size, pix, np.empty((n, k, 2), np.float32),
+                    np.empty((n, k), np.float32), np.empty(n), np.empty((n, 2)),
+                    np.empty(n, bool), np.empty(n, np.int32))
     proj = _Projector.of(projector)
+    _ = proj.model
+    cam_model, A = _camera_model(camera), _intrinsics(camera)
     grid = normalized_grid(camera, threads)
-    for attr in ("embree", "face_offset", "face_smooth", "face_normals_soa", "face_shading_soa"):
+    for attr in ("embree", "kernel_arrays"):
         getattr(geom, attr)  # build once, before the threads share them
     step = max(1, CHUNK_RAYS // (k + 1))
     slices = [slice(s, min(s + step, n)) for s in range(0, n, step)]
     with ThreadPoolExecutor(max_workers=threads or os.cpu_count() or 1) as ex:
-        futs = [ex.submit(_trace_chunk, geom, proj, camera, lens, pix[s], grid, res, s)
-                for s in slices]
+        futs = [ex.submit(_trace_chunk, geom, proj, camera, A, cam_model, lens, pix[s],
+                          pixels is None, grid, res, s) for s in slices]
         for fut in tqdm(futs, desc=f"trace {camera.name}", unit="chunk", disable=not progress,
                         leave=False):
             res.rays += fut.result()
