@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import os
 import platform
-import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +26,6 @@ from sim.phase import wrapped_phase
 from sim.projection import camera_to_world
 from sim.rig import DeviceCalibration, Rig, look_at
 from sim.scene import PlaneObject, Pose, Scene, SphereObject
-from sim.trace import TraceGeometry
 
 CAMERA_SIZE = (2048, 1088)
 CAMERA_FOCAL_MM = 16.0
@@ -42,7 +39,6 @@ PLANE_SIZE_MM = (1000.0, 600.0)
 SPHERE_DIAMETER_MM = 50.8007
 PERIOD_DIVISORS = (1, 8, 64)  # fringe periods: projector width / these
 STEPS = 4
-RAW_CHUNK_RAYS = 1 << 16
 
 
 class BenchConfig(BaseModel):
@@ -113,21 +109,6 @@ def band_pixels(cam: DeviceCalibration, fraction: float) -> np.ndarray:
     rows = max(1, round(h * fraction))
     r0 = (h - rows) // 2
     return np.arange(r0 * w, (r0 + rows) * w, dtype=np.int64)
-
-
-def raw_embree_seconds(geom: TraceGeometry, origins: list[np.ndarray], directions: list[np.ndarray],
-                       threads: int | None = None) -> float:
-    """Wall time of embreex ``scene.run(o, d)`` (first-hit primitive ids only) over the ray
-    chunks, on ``threads`` Python threads (default: every core)."""
-    scene = geom.embree
-    with ThreadPoolExecutor(threads or os.cpu_count() or 1) as ex:
-        t0 = time.perf_counter()
-        list(ex.map(scene.run, origins, directions))
-        return time.perf_counter() - t0
-
-
-def chunked(a: np.ndarray, size: int = RAW_CHUNK_RAYS) -> list[np.ndarray]:
-    return [np.ascontiguousarray(a[i:i + size]) for i in range(0, len(a), size)]
 
 
 def surface_points(cam: DeviceCalibration, depth: np.ndarray) -> np.ndarray:

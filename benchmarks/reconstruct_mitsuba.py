@@ -42,7 +42,7 @@ from _mitsuba_scene import MitsubaFringeRenderer, irradiance_scale_at, unavailab
 from sim.metrology import find_spheres  # noqa: E402
 from sim.reconstruct import DecodeSettings, reconstruct  # noqa: E402
 from sim.render import (  # noqa: E402
-    CameraResponse, ProjectorResponse, pattern_columns, project_patterns, render_camera,
+    CameraResponse, ProjectorResponse, project_patterns, render_camera,
 )
 
 README = Path(__file__).resolve().parent / "README.md"
@@ -72,7 +72,7 @@ def render_images(cfg: BenchConfig, lens_kind: str, who: str) -> np.ndarray:
     _, pats = bench_patterns(rig)
     lens = bench_lens(lens_kind, cfg)
     if who == "ours":
-        cols = pattern_columns(project_patterns(pats, ProjectorResponse(input_bits=None)))
+        cols = project_patterns(pats, ProjectorResponse(input_bits=None))
         return render_camera(bench_scene().trace_geometry(), rig, 0, lens, cols,
                              CameraResponse(quantize=False), None).radiance
     spp = cfg.pinhole_spp if lens_kind == "pinhole" else cfg.thin_samples

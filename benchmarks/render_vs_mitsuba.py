@@ -10,7 +10,8 @@ machine hits them alike); times are medians over the repeats.
 
 Cases: ours and Mitsuba rendering the 12 fringe images with a pinhole (ours 1 ray per pixel;
 Mitsuba at ``--pinhole-spp`` and at 1 spp) and with a 64-sample thin lens; ours' tracing
-throughput against raw embreex ``scene.run`` on the same rays; ours' cost of 24 patterns
+throughput against raw embreex on the same rays (the primary and shadow queries our tracer
+makes, recorded and replayed: ``trace_throughput.py``); ours' cost of 24 patterns
 against 1.
 
 Run (``scripts/bench_setup.sh`` installs Mitsuba and prints the LLVM path)::
@@ -37,17 +38,19 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _bench_scene import (  # noqa: E402
-    BenchConfig, band_pixels, bench_lens, bench_patterns, bench_rig, bench_scene, chunked,
-    raw_embree_seconds, replace_subsection,
+    BenchConfig, band_pixels, bench_lens, bench_patterns, bench_rig, bench_scene,
+    replace_subsection,
 )
 from _mitsuba_scene import irradiance_scale_at, unavailable_reason  # noqa: E402
 from _render_report import compare, report_markdown, summarise  # noqa: E402
 
 from sim.render import (  # noqa: E402
-    CameraResponse, ProjectorResponse, RenderSettings, pattern_columns, project_patterns, render,
+    CameraResponse, ProjectorResponse, RenderSettings, project_patterns, render,
     render_camera,
 )
-from sim.trace import camera_rays, trace_camera  # noqa: E402
+from trace_throughput import record_queries, replay, summarise_queries  # noqa: E402
+
+from sim.trace import trace_camera  # noqa: E402
 
 REPLY = "@@bench "
 README = Path(__file__).resolve().parent / "README.md"
@@ -95,7 +98,7 @@ class OursCase:
 
     def run(self, repeat: int) -> dict:
         t0 = time.perf_counter()
-        cols = pattern_columns(project_patterns(self.patterns, SETTINGS.projector))
+        cols = project_patterns(self.patterns, SETTINGS.projector)
         self.result = render_camera(self.geom, self.rig, 0, self.lens, cols, SETTINGS.camera, None)
         return dict(seconds=time.perf_counter() - t0, rays=self.result.n_rays, **self.result.timings)
 
@@ -142,10 +145,10 @@ class ExtrasCase:
         w, h = self.cam.size
         self.subsets = {"pinhole": (bench_lens("pinhole", cfg), np.arange(w * h, dtype=np.int64)),
                         "thin": (bench_lens("thin", cfg), band_pixels(self.cam, cfg.band_fraction))}
-        self.rays = {}
-        for kind, (lens, pix) in self.subsets.items():
-            o, d = camera_rays(self.cam, lens, pix)  # exactly the rays trace_camera casts
-            self.rays[kind] = (chunked(o.astype(np.float32)), chunked(d.astype(np.float32)))
+        self.queries = {}
+        for kind, (lens, pix) in self.subsets.items():  # exactly the queries trace_camera makes
+            self.queries[kind] = record_queries(self.geom, lambda: trace_camera(
+                self.geom, self.cam, self.rig.projector, lens, pixels=pix))
         self.one = bench_patterns(self.rig)[1][:1]
         self.many = bench_patterns(self.rig, "both")[1]
         for lens, _ in self.subsets.values():
@@ -156,9 +159,10 @@ class ExtrasCase:
         out = {}
         for kind, (lens, pix) in self.subsets.items():
             tr = trace_camera(self.geom, self.cam, self.rig.projector, lens, pixels=pix)
-            o, d = self.rays[kind]
-            n_raw = sum(len(c) for c in o)
-            raw_s = raw_embree_seconds(self.geom, o, d)
+            t0 = time.perf_counter()
+            replay(self.geom, self.queries[kind], os.cpu_count() or 1)
+            raw_s = time.perf_counter() - t0
+            n_raw = summarise_queries(self.queries[kind])["primary"]
             out[f"{kind}_ours_rays"], out[f"{kind}_raw_rays"] = tr.rays, n_raw
             out[f"{kind}_ours_rays_per_s"] = tr.rays / tr.seconds
             out[f"{kind}_raw_rays_per_s"] = n_raw / raw_s

@@ -27,12 +27,12 @@ from typing import Literal
 
 import cv2
 import numpy as np
-import scipy.sparse as sp
 import zarr
 from pydantic import BaseModel, ConfigDict, Field
 from tqdm import tqdm
 
 from sim.lens import LensModel
+from sim.render_kernels import BLOCK_RAYS, digitise, gather_rows
 from sim.rig import Rig
 from sim.trace import TraceGeometry, Transport, trace_camera
 
@@ -83,7 +83,8 @@ class RenderSettings(BaseModel):
 
 
 def project_patterns(patterns: np.ndarray, projector: ProjectorResponse) -> np.ndarray:
-    """Projected light (n, H, W) float32 of pattern images (n, H, W) in [0, 1]."""
+    """Projected light (n, H, W) float32 of pattern images (n, H, W) in [0, 1] (the input
+    itself, not a copy, where the projector is ideal and the input float32)."""
     p = np.asarray(patterns, dtype=np.float32)
     if p.ndim != 3:
         raise ValueError(f"pattern images must be (n, H, W), got shape {p.shape}")
@@ -92,7 +93,10 @@ def project_patterns(patterns: np.ndarray, projector: ProjectorResponse) -> np.n
     if projector.input_bits is not None:
         q = float((1 << projector.input_bits) - 1)
         p = np.round(p * q) / q
-    p = projector.black_level + (1.0 - projector.black_level) * p**projector.gamma
+    if projector.gamma != 1:
+        p = p**projector.gamma
+    if projector.black_level > 0:
+        p = projector.black_level + (1.0 - projector.black_level) * p
     s = projector.defocus_sigma_px
     if s > 0:
         k = 2 * math.ceil(4 * s) + 1
@@ -101,83 +105,92 @@ def project_patterns(patterns: np.ndarray, projector: ProjectorResponse) -> np.n
     return np.ascontiguousarray(p, dtype=np.float32)
 
 
-def transport_matrix(tr: Transport, rows: slice = slice(None)) -> sp.csr_array:
-    """Sparse (n_pixels, Hp * Wp) float32 matrix of the bilinear weights of every lit ray
-    (of the pixel ``rows`` of the transport, when given)."""
-    wp, hp = tr.projector_size
-    weight = tr.weight[rows]
-    n, k = weight.shape
-    w = weight.reshape(-1)
-    keep = np.flatnonzero(w > 0)
-    uv = tr.proj_uv[rows].reshape(-1, 2)
-    u, v, wk = uv[keep, 0], uv[keep, 1], w[keep]
-    iu, iv = np.floor(u), np.floor(v)
-    fu, fv = u - iu, v - iv
-    iu, iv = iu.astype(np.int32), iv.astype(np.int32)
-    ia, ib = np.clip(iu, 0, wp - 1), np.clip(iu + 1, 0, wp - 1)
-    ja, jb = np.clip(iv, 0, hp - 1) * wp, np.clip(iv + 1, 0, hp - 1) * wp
-    a, b = wk * (1 - fu), wk * fu
-    cols = np.stack([ja + ia, ja + ib, jb + ia, jb + ib], axis=1).ravel()
-    vals = np.stack([a * (1 - fv), b * (1 - fv), a * fv, b * fv], axis=1).ravel()
-    indptr = np.zeros(n + 1, np.int64)
-    np.cumsum(np.bincount(keep // k, minlength=n) * 4, out=indptr[1:])
-    return sp.csr_array((vals, cols, indptr), shape=(n, wp * hp))
-
-
-def pattern_columns(projected: np.ndarray) -> np.ndarray:
-    """Projected patterns (n, Hp, Wp) as the (Hp * Wp, n) float32 matrix the gather multiplies."""
-    p = np.asarray(projected, dtype=np.float32)
-    return np.ascontiguousarray(p.reshape(len(p), -1).T)
-
-
-def gather(tr: Transport, columns: np.ndarray, threads: int | None = None) -> np.ndarray:
-    """Radiance (n_pixels, n_patterns) float32 of the transport's pixels for ``pattern_columns``;
-    the sparse matrix is built and applied in row blocks on every core."""
-    wp, hp = tr.projector_size
-    if columns.shape[0] != wp * hp:
-        raise ValueError(f"patterns have {columns.shape[0]} pixels, the projector {wp} x {hp}")
-    n = len(tr.pixels)
+def _split(n: int, threads: int | None, min_part: int) -> list[tuple[int, int]]:
+    """``[first, last)`` ranges splitting ``range(n)`` into parts of at least ``min_part``, a few
+    per thread."""
     nt = threads or os.cpu_count() or 1
-    step = max(1, min(n, max(1, (1 << 16) // tr.weight.shape[1])))
-    out = np.empty((n, columns.shape[1]), np.float32)
+    step = max(min_part, -(-n // (4 * nt)))
+    return [(a, min(a + step, n)) for a in range(0, n, step)]
 
-    def part(a: int) -> None:
-        rows = slice(a, min(a + step, n))
-        out[rows] = transport_matrix(tr, rows) @ columns
 
-    with ThreadPoolExecutor(nt) as ex:
-        list(ex.map(part, range(0, n, step)))
+def _run(kernel, parts: list[tuple[int, int]], threads: int | None, *args) -> None:
+    """``kernel(*args, first, last)`` for every part, on ``threads`` threads (every core)."""
+    if len(parts) <= 1:
+        for a, b in parts:
+            kernel(*args, a, b)
+        return
+    with ThreadPoolExecutor(threads or os.cpu_count() or 1) as ex:
+        list(ex.map(lambda ab: kernel(*args, *ab), parts))
+
+
+def _check_patterns(tr: Transport, projected: np.ndarray) -> np.ndarray:
+    p = np.ascontiguousarray(projected, dtype=np.float32)
+    wp, hp = tr.projector_size
+    if p.ndim != 3 or p.shape[1:] != (hp, wp):
+        raise ValueError(f"projected patterns are {p.shape}, expected (n, {hp}, {wp}) for the "
+                         f"{wp} x {hp} projector")
+    return p
+
+
+def gather_into(tr: Transport, projected: np.ndarray, out: np.ndarray,
+                threads: int | None = None) -> None:
+    """Write the radiance of the transport's pixels for projected patterns (n, Hp, Wp) float32
+    (``project_patterns``) into ``out[:, tr.pixels]`` of images ``out`` (n, H * W) float32."""
+    p = _check_patterns(tr, projected)
+    if out.dtype != np.float32 or out.shape != (len(p), tr.camera_size[0] * tr.camera_size[1]):
+        raise ValueError(f"gather_into: out must be float32 (n, H * W) = ({len(p)}, "
+                         f"{tr.camera_size[0] * tr.camera_size[1]}), got {out.dtype} {out.shape}")
+    rows = max(1, BLOCK_RAYS // tr.weight.shape[1])
+    _run(gather_rows, _split(len(tr.pixels), threads, rows), threads,
+         tr.pixels, tr.proj_uv, tr.weight, p, out)
+
+
+def gather(tr: Transport, projected: np.ndarray, threads: int | None = None) -> np.ndarray:
+    """Radiance (n_patterns, n_pixels) float32 of the transport's pixels for projected
+    patterns (n, Hp, Wp) (``project_patterns``), on every core."""
+    p = _check_patterns(tr, projected)
+    n = len(tr.pixels)
+    out = np.empty((len(p), n), np.float32)
+    rows = max(1, BLOCK_RAYS // tr.weight.shape[1])
+    _run(gather_rows, _split(n, threads, rows), threads,
+         np.arange(n, dtype=np.int64), tr.proj_uv, tr.weight, p, out)
     return out
 
 
 def camera_response(radiance: np.ndarray, camera: CameraResponse,
-                    rng: np.random.Generator | None = None) -> np.ndarray:
+                    rng: np.random.Generator | None = None, threads: int | None = None) -> np.ndarray:
     """Digital images (same shape) of radiance: uint8 (8 bits), uint16 (12, 16) or float32 DN."""
-    if (camera.shot_noise or camera.read_noise_e > 0) and rng is None:
+    noisy = camera.shot_noise or camera.read_noise_e > 0
+    if noisy and rng is None:
         raise ValueError("camera_response: rng is required when shot_noise or read_noise_e is on")
-    e = np.asarray(radiance, dtype=np.float32) * np.float32(camera.exposure_e)
-    np.maximum(e, 0.0, out=e)
-    if camera.shot_noise:
-        e = rng.poisson(e).astype(np.float32)
-    np.minimum(e, np.float32(camera.full_well_e), out=e)
-    if camera.read_noise_e > 0:
-        e += np.float32(camera.read_noise_e) * rng.standard_normal(e.shape, dtype=np.float32)
-    dn = e * np.float32(camera.dn_per_e) + np.float32(camera.black_level_dn)
-    np.clip(dn, 0.0, camera.max_dn, out=dn)
-    if not camera.quantize:
-        return dn
-    return np.rint(dn, out=dn).astype(np.uint8 if camera.bit_depth == 8 else np.uint16)
+    x = np.ascontiguousarray(radiance, dtype=np.float32)
+    f32 = np.float32
+    scale, low, high = f32(camera.exposure_e), f32(0.0), f32(camera.full_well_e)
+    if noisy:
+        e = np.maximum(x * scale, low)
+        if camera.shot_noise:
+            e = rng.poisson(e).astype(np.float32)
+        np.minimum(e, high, out=e)
+        if camera.read_noise_e > 0:
+            e += f32(camera.read_noise_e) * rng.standard_normal(e.shape, dtype=np.float32)
+        x, scale, low, high = e, f32(1.0), f32(-np.inf), f32(np.inf)
+    out = np.empty(x.shape, np.float32 if not camera.quantize else
+                   np.uint8 if camera.bit_depth == 8 else np.uint16)
+    _run(digitise, _split(x.size, threads, 1 << 16), threads, x.reshape(-1), scale, low, high,
+         f32(camera.dn_per_e), f32(camera.black_level_dn), f32(camera.max_dn), camera.quantize,
+         out.reshape(-1))
+    return out
 
 
 def render(tr: Transport, pattern_images: np.ndarray, settings: RenderSettings,
            rng: np.random.Generator | None = None) -> np.ndarray:
     """Camera images (n, H, W) of a transport for pattern images (n, Hp, Wp) in [0, 1]
     (pixels the transport does not cover get radiance 0)."""
-    cols = pattern_columns(project_patterns(pattern_images, settings.projector))
+    projected = project_patterns(pattern_images, settings.projector)
     w, h = tr.camera_size
-    rad = np.zeros((w * h, cols.shape[1]), np.float32)
-    rad[tr.pixels] = gather(tr, cols)
-    return camera_response(rad.T.reshape(-1, h, w), settings.camera, rng)
+    rad = (np.empty if len(tr.pixels) == w * h else np.zeros)((len(projected), w * h), np.float32)
+    gather_into(tr, projected, rad)
+    return camera_response(rad.reshape(-1, h, w), settings.camera, rng)
 
 
 @dataclass
@@ -204,17 +217,17 @@ class RenderResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel, columns: np.ndarray,
+def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel, projected: np.ndarray,
                   camera: CameraResponse, rng: np.random.Generator | None, progress: bool = False,
                   where: str = "scene") -> CameraImages:
     """Trace camera ``index`` of the rig tile by tile (``TILE_RAYS`` rays: memory stays bounded
-    whatever the lens), gather the patterns ``columns`` (``pattern_columns``) from each tile's
-    transport, then apply the camera response. Errors name ``where``."""
+    whatever the lens), gather the projected patterns (n, Hp, Wp) (``project_patterns``) from
+    each tile's transport, then apply the camera response. Errors name ``where``."""
     cam = rig.cameras[index]
     w, h = cam.size
     k = lens.bundle(np.zeros((1, 2)), np.zeros((1, 2))).weights.shape[1]
     step = max(1, TILE_RAYS // (k + 1))
-    rad = np.zeros((w * h, columns.shape[1]), np.float32)
+    rad = np.zeros((len(projected), w * h), np.float32)
     depth, pmap = np.full(w * h, np.nan), np.full((w * h, 2), np.nan)
     lit, obj = np.zeros(w * h, bool), np.full(w * h, -1, np.int32)
     t_trace = t_gather = 0.0
@@ -225,7 +238,7 @@ def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel, co
         pix = np.arange(s, min(s + step, w * h))
         tr = trace_camera(geom, cam, rig.projector, lens, pixels=pix)
         t0 = time.perf_counter()
-        rad[pix] = gather(tr, columns)
+        gather_into(tr, projected, rad)
         t_gather += time.perf_counter() - t0
         t_trace += tr.seconds
         n_rays += tr.rays
@@ -236,7 +249,7 @@ def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel, co
         raise ValueError(f"{where}: camera {index} ('{cam.name}') sees none of the scene objects; "
                          "check the rig's R and T (field 'rig') and the objects' poses")
     t0 = time.perf_counter()
-    radiance = np.ascontiguousarray(rad.T).reshape(-1, h, w)
+    radiance = rad.reshape(-1, h, w)
     images = camera_response(radiance, camera, rng)
     t_resp = time.perf_counter() - t0
     return CameraImages(cam.name, images, radiance, depth.reshape(h, w), pmap.reshape(h, w, 2),
@@ -257,9 +270,9 @@ def render_views(geom: TraceGeometry, rig: Rig, lenses: list[LensModel], pattern
     if np.shape(pattern_images)[1:] != (hp, wp):
         raise ValueError(f"{where}: pattern images are {np.shape(pattern_images)}, "
                          f"the projector is {wp} x {hp}")
-    cols = pattern_columns(project_patterns(pattern_images, settings.projector))
+    projected = project_patterns(pattern_images, settings.projector)
     t_pat = time.perf_counter() - t0
-    cams = [render_camera(geom, rig, i, lens, cols, settings.camera, rng, progress, where)
+    cams = [render_camera(geom, rig, i, lens, projected, settings.camera, rng, progress, where)
             for i, lens in enumerate(lenses)]
     return RenderResult(cams, {"patterns_s": t_pat, "total_s": time.perf_counter() - t0})
 

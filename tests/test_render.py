@@ -17,7 +17,7 @@ from sim.render import (
     RenderSettings,
     camera_response,
     gather,
-    pattern_columns,
+    gather_into,
     project_patterns,
     render,
     render_views,
@@ -70,15 +70,75 @@ def test_gather_reproduces_linear_patterns():
     pw, ph = proj.size
     u, v = np.meshgrid(np.arange(pw, dtype=np.float32), np.arange(ph, dtype=np.float32))
     pats = np.stack([u / (pw - 1), v / (ph - 1), np.ones_like(u)])
-    rad = gather(tr, pattern_columns(pats))
+    rad = gather(tr, pats).T
     uv = tr.proj_uv[:, 0].astype(np.float64)
     ok = (uv[:, 0] >= 0) & (uv[:, 0] <= pw - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= ph - 1) & (rad[:, 2] > 0)
     assert ok.sum() > 1000
     np.testing.assert_allclose(rad[ok, 2], tr.weight[ok, 0], rtol=1e-6)
     np.testing.assert_allclose(rad[ok, 0] / rad[ok, 2], uv[ok, 0] / (pw - 1), atol=1e-5)
     np.testing.assert_allclose(rad[ok, 1] / rad[ok, 2], uv[ok, 1] / (ph - 1), atol=1e-5)
-    with pytest.raises(ValueError, match=r"patterns have 12 pixels, the projector 96 x 54"):
+    with pytest.raises(ValueError, match=r"projected patterns are \(12, 1\), expected \(n, 54, 96\)"):
         gather(tr, np.zeros((12, 1), np.float32))
+
+
+def _bilinear_reference(img, u, v):
+    """Bilinear sample of img (H, W) at (u, v), float64, pixel centres at integers, taps clamped."""
+    h, w = img.shape
+    iu, iv = np.floor(u).astype(int), np.floor(v).astype(int)
+    fu, fv = u - iu, v - iv
+    a, b = np.clip(iu, 0, w - 1), np.clip(iu + 1, 0, w - 1)
+    c, d = np.clip(iv, 0, h - 1), np.clip(iv + 1, 0, h - 1)
+    return ((1 - fu) * (1 - fv) * img[c, a] + fu * (1 - fv) * img[c, b]
+            + (1 - fu) * fv * img[d, a] + fu * fv * img[d, b])
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_gather_is_the_weighted_bilinear_sum_of_every_ray(threads):
+    """Several rays per pixel, rays of weight 0 with NaN coordinates, taps off every edge,
+    pixels in any order, written in place: against a float64 reference."""
+    from sim.trace import Transport
+
+    rng = np.random.default_rng(3)
+    wp, hp, n, k, npat = 13, 7, 500, 5, 6
+    uv = np.stack([rng.uniform(-2, wp + 1, (n, k)), rng.uniform(-2, hp + 1, (n, k))], -1)
+    weight = rng.uniform(0, 1, (n, k))
+    weight[rng.random((n, k)) < 0.3] = 0.0
+    uv[weight == 0] = np.nan
+    pixels = rng.permutation(40 * 30)[:n]
+    tr = Transport((40, 30), (wp, hp), pixels, uv.astype(np.float32), weight.astype(np.float32),
+                   np.zeros(n), np.zeros((n, 2)), np.ones(n, bool), np.zeros(n, np.int32))
+    pats = rng.random((npat, hp, wp)).astype(np.float32)
+    u32, v32 = (np.nan_to_num(uv[..., i].astype(np.float32)).astype(float) for i in (0, 1))
+    ref = np.stack([np.sum(weight.astype(np.float32) * _bilinear_reference(p.astype(float), u32, v32),
+                           axis=1) for p in pats])
+    np.testing.assert_allclose(gather(tr, pats, threads=threads), ref, rtol=2e-6, atol=1e-6)
+    out = np.full((npat, 40 * 30), -1.0, np.float32)
+    gather_into(tr, pats, out, threads=threads)
+    np.testing.assert_allclose(out[:, pixels], ref, rtol=2e-6, atol=1e-6)
+    untouched = np.setdiff1d(np.arange(40 * 30), pixels)
+    assert np.all(out[:, untouched] == -1.0)
+
+
+@pytest.mark.parametrize("bits, quantize", [(8, True), (12, True), (16, False)])
+def test_noise_free_render_is_the_camera_response_of_the_gathered_radiance(bits, quantize):
+    """The fused gather-and-digitise path equals gather then camera_response, value for value,
+    on a whole frame and on a subset of pixels (the others get the response to radiance 0)."""
+    rig = small_rig(0.05)
+    geom = Scene(objects=[SphereObject(), PlaneObject(pose=Pose(t=[0, 0, 60.0]))]).trace_geometry()
+    settings = RenderSettings(camera=CameraResponse(exposure_e=9000.0, bit_depth=bits,
+                                                    black_level_dn=2.0, quantize=quantize))
+    pats = PhaseShiftSet(periods_px=[16.0], steps=3).images(rig.projector.size)
+    cam = rig.cameras[0]
+    w, h = cam.size
+    for pix in (None, np.arange(0, w * h, 3)):
+        tr = trace_camera(geom, cam, rig.projector, PinholeLens(), pixels=pix)
+        rad = np.zeros((len(pats), w * h), np.float32)
+        rad[:, tr.pixels] = gather(tr, project_patterns(pats, settings.projector))
+        want = camera_response(rad.reshape(-1, h, w), settings.camera)
+        got = render(tr, pats, settings)
+        assert got.dtype == want.dtype and got.shape == want.shape == (3, h, w)
+        np.testing.assert_array_equal(got, want)
+    assert len(np.unique(got)) > 20
 
 
 def test_rendered_fringes_decode_to_the_true_projector_coordinate():
@@ -106,7 +166,7 @@ def test_thin_lens_blur_disk_matches_geometry(z):
     tr = trace_camera(_plane(z), cam, proj, lens)
     dot = np.zeros((1, 64, 64), np.float32)
     dot[0, 32, 32] = 1.0
-    img = gather(tr, pattern_columns(project_patterns(dot, EXACT.projector)))[:, 0].reshape(45, 45)
+    img = gather(tr, project_patterns(dot, EXACT.projector))[0].reshape(45, 45)
     assert img[0].max() == img[-1].max() == img[:, 0].max() == img[:, -1].max() == 0  # all inside
     y, x = np.mgrid[:45, :45]
     m = img.sum()
@@ -128,6 +188,21 @@ def test_camera_response_exact_chain():
     out = camera_response(rad, cam12)
     assert out.dtype == np.uint16
     np.testing.assert_array_equal(out, [10, round(4000 * 0.5 * 4095 / 10000 + 10), 2058, 10])
+
+
+def test_camera_response_matches_the_float32_chain_rounding_half_to_even():
+    rad = np.concatenate([np.linspace(-0.2, 1.3, 100_001), np.arange(0, 256) / 204.0,
+                          np.array([0.5 / 204, 2.5 / 204, np.inf])]).astype(np.float32)
+    for cam in (CameraResponse(exposure_e=8160.0, full_well_e=10000.0, gain=1.25),
+                CameraResponse(exposure_e=5000.0, bit_depth=12, black_level_dn=3.5),
+                CameraResponse(exposure_e=5000.0, bit_depth=16, quantize=False)):
+        e = np.minimum(np.maximum(rad * np.float32(cam.exposure_e), np.float32(0)),
+                       np.float32(cam.full_well_e))
+        dn = np.clip(e * np.float32(cam.dn_per_e) + np.float32(cam.black_level_dn), 0, cam.max_dn)
+        want = np.rint(dn).astype(np.uint8 if cam.bit_depth == 8 else np.uint16) if cam.quantize else dn
+        got = camera_response(rad.reshape(3, -1), cam, threads=2)
+        assert got.dtype == want.dtype and got.shape == (3, len(rad) // 3)
+        np.testing.assert_array_equal(got.reshape(-1), want)
 
 
 def test_camera_noise_statistics():

@@ -42,7 +42,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("cloud", type=Path, help="point cloud (PLY)")
     what = p.add_mutually_exclusive_group(required=True)
-    what.add_argument("--sphere", action="store_true", help="fit one sphere")
+    what.add_argument("--sphere", action="store_true",
+                      help="fit one sphere to the whole cloud (with --diameter: find the sphere "
+                           "of about that size among other points first)")
     what.add_argument("--ballbar", action="store_true", help="find two balls, measure their distance")
     what.add_argument("--reference", type=Path, metavar="MESH", help="CAD mesh (PLY, STL, OBJ)")
     what.add_argument("--against", type=Path, metavar="CLOUD2", help="reference point cloud (PLY)")
