@@ -13,6 +13,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from sim.metrology import finite_points
+
 ICP_RCOND = 1e-3  # singular values below this fraction of the largest count as unconstrained
 
 
@@ -46,16 +48,6 @@ class CloudComparison:
             "R": self.transform.R.tolist(),
             "t_mm": self.transform.t.tolist(),
         }
-
-
-def _finite(points: np.ndarray, name: str, minimum: int = 6) -> np.ndarray:
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"{name} must be an (n, 3) array of points, got shape {p.shape}")
-    p = p[np.all(np.isfinite(p), axis=1)]
-    if len(p) < minimum:
-        raise ValueError(f"{name} has {len(p)} finite points, at least {minimum} are needed")
-    return p
 
 
 def estimate_normals(points: np.ndarray, k: int = 12, outward_from: np.ndarray | None = None) -> np.ndarray:
@@ -107,8 +99,8 @@ def icp(
     ``tolerance_mm`` (shapes with unconstrained motions, such as spheres, stop there).
     Returns the transform mapping source onto target and the iteration count.
     """
-    src0 = _finite(source, "source cloud")
-    tgt = _finite(target, "target cloud")
+    src0 = finite_points(source, "source cloud")
+    tgt = finite_points(target, "target cloud")
     nrm = estimate_normals(tgt) if target_normals is None else np.asarray(target_normals, float)
     tree = cKDTree(tgt)
     r_tot, t_tot = np.eye(3), np.zeros(3)
@@ -179,8 +171,8 @@ def compare_clouds(
 ) -> CloudComparison:
     """Align ``measured`` to ``reference`` by ICP (if ``align``), then the signed distance of each
     measured point to the reference surface (``signed_distance_to_cloud``), their mean and RMSE."""
-    m = _finite(measured, "measured cloud")
-    ref = _finite(reference, "reference cloud")
+    m = finite_points(measured, "measured cloud")
+    ref = finite_points(reference, "reference cloud")
     nrm = estimate_normals(ref) if reference_normals is None else np.asarray(reference_normals, float)
     if align:
         tf, n_it = icp(m, ref, nrm, max_distance_mm=max_distance_mm)
@@ -197,7 +189,7 @@ def mesh_signed_distance(points: np.ndarray, mesh: trimesh.Trimesh) -> np.ndarra
     triangle that could be closer than the nearest centroid's triangle is checked); the sign is
     that of ``(p - c) . n`` with ``n`` the vertex normals interpolated at the closest point ``c``.
     """
-    p = _finite(points, "points", 1)
+    p = finite_points(points, "points", 1)
     if len(mesh.faces) == 0:
         raise ValueError("reference mesh has no triangles")
     mesh = mesh.copy()

@@ -47,7 +47,8 @@ class SphereFit:
         }
 
 
-def _as_points(points: np.ndarray, name: str, minimum: int) -> np.ndarray:
+def finite_points(points: np.ndarray, name: str, minimum: int = 6) -> np.ndarray:
+    """The finite rows of an (n, 3) point array (mm), float64; errors name ``name``."""
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"{name} must be an (n, 3) array of points, got shape {p.shape}")
@@ -62,7 +63,7 @@ def fit_sphere_algebraic(points: np.ndarray) -> tuple[np.ndarray, float]:
 
     points : (n, 3) mm, n >= 4, not coplanar.
     """
-    p = _as_points(points, "points", 4)
+    p = finite_points(points, "points", 4)
     m = p.mean(axis=0)
     q = p - m
     a = np.concatenate([2.0 * q, np.ones((len(q), 1))], axis=1)
@@ -99,7 +100,7 @@ def fit_sphere(
     inlier set is stable (None keeps every point). Returns a ``SphereFit`` whose ``inliers``
     index the finite rows of ``points``.
     """
-    p = _as_points(points, "points", 4)
+    p = finite_points(points, "points", 4)
     c, r = fit_sphere_algebraic(p)
     inl = np.ones(len(p), dtype=bool)
     for _ in range(max_rounds):
@@ -149,7 +150,7 @@ def find_spheres(
     ``max(5 inlier_mm, 0.1 radius_mm)`` of its surface go to ``fit_sphere`` (which trims the
     outliers); then every point inside that shell is removed before the next search.
     """
-    p = _as_points(points, "points", 4 * count)
+    p = finite_points(points, "points", 4 * count)
     if radius_mm <= 0:
         raise ValueError(f"radius_mm must be > 0, got {radius_mm}")
     rng = np.random.default_rng(0) if rng is None else rng
