@@ -28,7 +28,7 @@ def gather_rows(pixels, proj_uv, weight, patterns, out, first, last):
     k = weight.shape[1]
     flat = patterns.reshape(n_pat, hp * wp)
     rows_per_block = max(1, BLOCK_RAYS // k)
-    taps = np.empty((rows_per_block * k, 4), np.int32)  # projector pixels < 2^31
+    taps = np.empty((rows_per_block * k, 4), np.uint32)  # unsigned: loads skip the wraparound check
     coef = np.empty((rows_per_block * k, 4), np.float32)
     ends = np.empty(rows_per_block, np.int64)
     for b0 in range(first, last, rows_per_block):
