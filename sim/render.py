@@ -158,7 +158,8 @@ def gather(tr: Transport, projected: np.ndarray, threads: int | None = None) -> 
 
 
 def camera_response(radiance: np.ndarray, camera: CameraResponse,
-                    rng: np.random.Generator | None = None, threads: int | None = None) -> np.ndarray:
+                    rng: np.random.Generator | None = None,
+                    threads: int | None = None) -> np.ndarray:
     """Digital images (same shape) of radiance: uint8 (8 bits), uint16 (12, 16) or float32 DN."""
     noisy = camera.shot_noise or camera.read_noise_e > 0
     if noisy and rng is None:
