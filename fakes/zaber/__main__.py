@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import threading
+import time
 
 from fakes.zaber.device import FakeZaberDevice
 from fakes.zaber.pty import FakeZaberPty
@@ -29,7 +29,8 @@ def main(argv: list[str] | None = None) -> None:
             print(f"  then type: /{args.address} 1 get pos")
             print(f"  or: ZaberStage({server.port!r}, microstep_um=0.047625, travel_mm=(0, 50))")
             print("  Ctrl-C stops", flush=True)
-            threading.Event().wait()
+            while True:  # short sleeps: a SIGINT landing just before one is seen within 0.2 s
+                time.sleep(0.2)
     except KeyboardInterrupt:
         print("stopped")
 
