@@ -140,9 +140,7 @@ def gather_into(tr: Transport, projected: np.ndarray, out: np.ndarray,
     if out.dtype != np.float32 or out.shape != (len(p), tr.camera_size[0] * tr.camera_size[1]):
         raise ValueError(f"gather_into: out must be float32 (n, H * W) = ({len(p)}, "
                          f"{tr.camera_size[0] * tr.camera_size[1]}), got {out.dtype} {out.shape}")
-    rows = max(1, BLOCK_RAYS // tr.weight.shape[1])
-    _run(gather_rows, _split(len(tr.pixels), threads, rows), threads,
-         tr.pixels, tr.proj_uv, tr.weight, p, out)
+    _gather_rows(tr, tr.pixels, p, out, threads)
 
 
 def gather(tr: Transport, projected: np.ndarray, threads: int | None = None) -> np.ndarray:
@@ -151,10 +149,17 @@ def gather(tr: Transport, projected: np.ndarray, threads: int | None = None) -> 
     p = _check_patterns(tr, projected)
     n = len(tr.pixels)
     out = np.empty((len(p), n), np.float32)
-    rows = max(1, BLOCK_RAYS // tr.weight.shape[1])
-    _run(gather_rows, _split(n, threads, rows), threads,
-         np.arange(n, dtype=np.int64), tr.proj_uv, tr.weight, p, out)
+    _gather_rows(tr, np.arange(n, dtype=np.int64), p, out, threads)
     return out
+
+
+def _gather_rows(tr: Transport, dest: np.ndarray, projected: np.ndarray, out: np.ndarray,
+                 threads: int | None) -> None:
+    """``gather_rows`` over every row of the transport on every core; row i goes to column
+    ``dest[i]`` of ``out``."""
+    rows = max(1, BLOCK_RAYS // tr.weight.shape[1])
+    _run(gather_rows, _split(len(dest), threads, rows), threads,
+         dest, tr.proj_uv, tr.weight, projected, out)
 
 
 def camera_response(radiance: np.ndarray, camera: CameraResponse,
