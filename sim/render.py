@@ -32,7 +32,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from tqdm import tqdm
 
 from sim.lens import LensModel
-from sim.render_kernels import BLOCK_RAYS, digitise, gather_rows
+from sim.pattern_stack import PatternStack
+from sim.render_kernels import BLOCK_RAYS, IDENTITY, digitise, gather_rows
 from sim.rig import Rig
 from sim.trace import TraceGeometry, Transport, trace_camera
 
@@ -82,27 +83,34 @@ class RenderSettings(BaseModel):
     camera: CameraResponse = Field(default_factory=CameraResponse)
 
 
-def project_patterns(patterns: np.ndarray, projector: ProjectorResponse) -> np.ndarray:
-    """Projected light (n, H, W) float32 of pattern images (n, H, W) in [0, 1] (the input
-    itself, not a copy, where the projector is ideal and the input float32)."""
-    p = np.asarray(patterns, dtype=np.float32)
-    if p.ndim != 3:
-        raise ValueError(f"pattern images must be (n, H, W), got shape {p.shape}")
-    if p.size and (p.min() < 0 or p.max() > 1):
-        raise ValueError(f"pattern values must lie in [0, 1], got [{p.min():g}, {p.max():g}]")
+def project_patterns(patterns: np.ndarray | PatternStack,
+                     projector: ProjectorResponse) -> PatternStack:
+    """Projected light of pattern images (n, H, W) in [0, 1] (or their ``PatternStack``), each
+    pattern kept in its cheapest exact form (a row or column profile where it varies along one
+    axis only)."""
+    stack = as_stack(patterns)
+    lo, hi = stack.value_range()
+    if not (lo >= 0 and hi <= 1):
+        raise ValueError(f"pattern values must lie in [0, 1], got [{lo:g}, {hi:g}]")
     if projector.input_bits is not None:
-        q = float((1 << projector.input_bits) - 1)
-        p = np.round(p * q) / q
+        q = np.float32((1 << projector.input_bits) - 1)
+        stack = stack.map(lambda p: np.round(p * q) / q)
     if projector.gamma != 1:
-        p = p**projector.gamma
+        stack = stack.map(lambda p: p ** np.float32(projector.gamma))
     if projector.black_level > 0:
-        p = projector.black_level + (1.0 - projector.black_level) * p
+        b = np.float32(projector.black_level)
+        stack = stack.map(lambda p: b + (1 - b) * p)
     s = projector.defocus_sigma_px
     if s > 0:
         k = 2 * math.ceil(4 * s) + 1
-        p = np.stack([cv2.GaussianBlur(im, (k, k), s, sigmaY=s, borderType=cv2.BORDER_REPLICATE)
-                      for im in p])
-    return np.ascontiguousarray(p, dtype=np.float32)
+        stack = stack.map(lambda p: cv2.GaussianBlur(p, (k, k), s, sigmaY=s,
+                                                     borderType=cv2.BORDER_REPLICATE))
+    return stack
+
+
+def as_stack(patterns: np.ndarray | PatternStack) -> PatternStack:
+    """``patterns`` itself if it is a ``PatternStack``, else the stack of images (n, H, W)."""
+    return patterns if isinstance(patterns, PatternStack) else PatternStack.from_images(patterns)
 
 
 def _split(n: int, threads: int | None, min_part: int) -> list[tuple[int, int]]:
@@ -123,19 +131,20 @@ def _run(kernel, parts: list[tuple[int, int]], threads: int | None, *args) -> No
         list(ex.map(lambda ab: kernel(*args, *ab), parts))
 
 
-def _check_patterns(tr: Transport, projected: np.ndarray) -> np.ndarray:
-    p = np.ascontiguousarray(projected, dtype=np.float32)
-    wp, hp = tr.projector_size
-    if p.ndim != 3 or p.shape[1:] != (hp, wp):
-        raise ValueError(f"projected patterns are {p.shape}, expected (n, {hp}, {wp}) for the "
-                         f"{wp} x {hp} projector")
-    return p
+def _check_patterns(tr: Transport, projected: np.ndarray | PatternStack) -> PatternStack:
+    stack = as_stack(projected)
+    if stack.size != tuple(tr.projector_size):
+        w, h = stack.size
+        raise ValueError(f"projected patterns are {w} x {h} px, expected the transport's "
+                         f"{tr.projector_size[0]} x {tr.projector_size[1]} projector")
+    return stack
 
 
-def gather_into(tr: Transport, projected: np.ndarray, out: np.ndarray,
+def gather_into(tr: Transport, projected: np.ndarray | PatternStack, out: np.ndarray,
                 threads: int | None = None) -> None:
-    """Write the radiance of the transport's pixels for projected patterns (n, Hp, Wp) float32
-    (``project_patterns``) into ``out[:, tr.pixels]`` of images ``out`` (n, H * W) float32."""
+    """Write the radiance of the transport's pixels for projected patterns (``project_patterns``,
+    or images (n, Hp, Wp) of light) into ``out[:, tr.pixels]`` of images ``out`` (n, H * W)
+    float32."""
     p = _check_patterns(tr, projected)
     if out.dtype != np.float32 or out.shape != (len(p), tr.camera_size[0] * tr.camera_size[1]):
         raise ValueError(f"gather_into: out must be float32 (n, H * W) = ({len(p)}, "
@@ -143,9 +152,10 @@ def gather_into(tr: Transport, projected: np.ndarray, out: np.ndarray,
     _gather_rows(tr, tr.pixels, p, out, threads)
 
 
-def gather(tr: Transport, projected: np.ndarray, threads: int | None = None) -> np.ndarray:
-    """Radiance (n_patterns, n_pixels) float32 of the transport's pixels for projected
-    patterns (n, Hp, Wp) (``project_patterns``), on every core."""
+def gather(tr: Transport, projected: np.ndarray | PatternStack,
+           threads: int | None = None) -> np.ndarray:
+    """Radiance (n_patterns, n_pixels) float32 of the transport's pixels for projected patterns
+    (``project_patterns``, or images (n, Hp, Wp) of light), on every core."""
     p = _check_patterns(tr, projected)
     n = len(tr.pixels)
     out = np.empty((len(p), n), np.float32)
@@ -153,50 +163,76 @@ def gather(tr: Transport, projected: np.ndarray, threads: int | None = None) -> 
     return out
 
 
-def _gather_rows(tr: Transport, dest: np.ndarray, projected: np.ndarray, out: np.ndarray,
-                 threads: int | None) -> None:
+def _gather_rows(tr: Transport, dest: np.ndarray, stack: PatternStack, out: np.ndarray,
+                 threads: int | None, resp: tuple = IDENTITY, quantize: bool = False) -> None:
     """``gather_rows`` over every row of the transport on every core; row i goes to column
-    ``dest[i]`` of ``out``."""
+    ``dest[i]`` of ``out`` through ``response(radiance, *resp)``, rounded if ``quantize``."""
     rows = max(1, BLOCK_RAYS // tr.weight.shape[1])
-    _run(gather_rows, _split(len(dest), threads, rows), threads,
-         dest, tr.proj_uv, tr.weight, projected, out)
+    c = np.ascontiguousarray
+    _run(gather_rows, _split(len(dest), threads, rows), threads, dest, tr.proj_uv, tr.weight,
+         stack.form, stack.slot, c(stack.full), c(stack.rows), c(stack.cols), resp, quantize, out)
+
+
+def _noisy(camera: CameraResponse) -> bool:
+    return camera.shot_noise or camera.read_noise_e > 0
+
+
+def _response_args(camera: CameraResponse, electrons: bool = False) -> tuple:
+    """Arguments of ``sim.render_kernels.response`` for the camera (rounding is
+    ``camera.quantize``): from radiance, or from electrons already exposed and clipped
+    (``electrons``)."""
+    f32 = np.float32
+    scale, low, high = ((f32(1.0), f32(-np.inf), f32(np.inf)) if electrons else
+                        (f32(camera.exposure_e), f32(0.0), f32(camera.full_well_e)))
+    return scale, low, high, f32(camera.dn_per_e), f32(camera.black_level_dn), f32(camera.max_dn)
+
+
+def _image_dtype(camera: CameraResponse) -> type:
+    return np.float32 if not camera.quantize else np.uint8 if camera.bit_depth == 8 else np.uint16
 
 
 def camera_response(radiance: np.ndarray, camera: CameraResponse,
                     rng: np.random.Generator | None = None,
                     threads: int | None = None) -> np.ndarray:
     """Digital images (same shape) of radiance: uint8 (8 bits), uint16 (12, 16) or float32 DN."""
-    noisy = camera.shot_noise or camera.read_noise_e > 0
+    noisy = _noisy(camera)
     if noisy and rng is None:
         raise ValueError("camera_response: rng is required when shot_noise or read_noise_e is on")
     x = np.ascontiguousarray(radiance, dtype=np.float32)
-    f32 = np.float32
-    scale, low, high = f32(camera.exposure_e), f32(0.0), f32(camera.full_well_e)
     if noisy:
-        e = np.maximum(x * scale, low)
+        f32 = np.float32
+        e = np.maximum(x * f32(camera.exposure_e), f32(0.0))
         if camera.shot_noise:
             e = rng.poisson(e).astype(np.float32)
-        np.minimum(e, high, out=e)
+        np.minimum(e, f32(camera.full_well_e), out=e)
         if camera.read_noise_e > 0:
             e += f32(camera.read_noise_e) * rng.standard_normal(e.shape, dtype=np.float32)
-        x, scale, low, high = e, f32(1.0), f32(-np.inf), f32(np.inf)
-    out = np.empty(x.shape, np.float32 if not camera.quantize else
-                   np.uint8 if camera.bit_depth == 8 else np.uint16)
-    _run(digitise, _split(x.size, threads, 1 << 16), threads, x.reshape(-1), scale, low, high,
-         f32(camera.dn_per_e), f32(camera.black_level_dn), f32(camera.max_dn), camera.quantize,
-         out.reshape(-1))
+        x = e
+    out = np.empty(x.shape, _image_dtype(camera))
+    _run(digitise, _split(x.size, threads, 1 << 16), threads, x.reshape(-1),
+         _response_args(camera, electrons=noisy), camera.quantize, out.reshape(-1))
     return out
 
 
-def render(tr: Transport, pattern_images: np.ndarray, settings: RenderSettings,
+def render(tr: Transport, pattern_images: np.ndarray | PatternStack, settings: RenderSettings,
            rng: np.random.Generator | None = None) -> np.ndarray:
-    """Camera images (n, H, W) of a transport for pattern images (n, Hp, Wp) in [0, 1]
-    (pixels the transport does not cover get radiance 0)."""
-    projected = project_patterns(pattern_images, settings.projector)
+    """Camera images (n, H, W) of a transport for pattern images (n, Hp, Wp) in [0, 1] (or their
+    ``PatternStack``); pixels the transport does not cover get radiance 0. A noise-free camera's
+    response is applied as the radiance is gathered (the same values as ``camera_response``)."""
+    projected = _check_patterns(tr, project_patterns(pattern_images, settings.projector))
     w, h = tr.camera_size
-    rad = (np.empty if len(tr.pixels) == w * h else np.zeros)((len(projected), w * h), np.float32)
-    gather_into(tr, projected, rad)
-    return camera_response(rad.reshape(-1, h, w), settings.camera, rng)
+    cam = settings.camera
+    if _noisy(cam):
+        rad = np.zeros((len(projected), w * h), np.float32)
+        gather_into(tr, projected, rad)
+        return camera_response(rad.reshape(-1, h, w), cam, rng)
+    resp = _response_args(cam)
+    shape, dtype = (len(projected), w * h), _image_dtype(cam)
+    out = np.empty(shape, dtype)
+    if len(tr.pixels) < w * h:  # the response to radiance 0
+        out[:] = camera_response(np.zeros(1, np.float32), cam, None, 1)[0]
+    _gather_rows(tr, tr.pixels, projected, out, None, resp, cam.quantize)
+    return out.reshape(-1, h, w)
 
 
 @dataclass
@@ -223,12 +259,14 @@ class RenderResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel, projected: np.ndarray,
+def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
+                  projected: np.ndarray | PatternStack,
                   camera: CameraResponse, rng: np.random.Generator | None, progress: bool = False,
                   where: str = "scene") -> CameraImages:
     """Trace camera ``index`` of the rig tile by tile (``TILE_RAYS`` rays: memory stays bounded
-    whatever the lens), gather the projected patterns (n, Hp, Wp) (``project_patterns``) from
-    each tile's transport, then apply the camera response. Errors name ``where``."""
+    whatever the lens), gather the projected patterns (``project_patterns``) from each tile's
+    transport, then apply the camera response. Errors name ``where``."""
+    projected = as_stack(projected)
     cam = rig.cameras[index]
     w, h = cam.size
     k = lens.bundle(np.zeros((1, 2)), np.zeros((1, 2))).weights.shape[1]
@@ -266,17 +304,17 @@ def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel, pr
 def render_views(geom: TraceGeometry, rig: Rig, lenses: list[LensModel], pattern_images: np.ndarray,
                  settings: RenderSettings, rng: np.random.Generator | None = None,
                  progress: bool = False, where: str = "scene") -> RenderResult:
-    """Render pattern images (n, Hp, Wp) in [0, 1] on every camera of ``rig`` with one lens
-    per camera: images plus timings (``patterns_s``, ``total_s``; per camera ``trace_s``,
-    ``gather_s``, ``response_s``). Errors name ``where``."""
+    """Render pattern images (n, Hp, Wp) in [0, 1] (or their ``PatternStack``) on every camera
+    of ``rig`` with one lens per camera: images plus timings (``patterns_s``, ``total_s``; per
+    camera ``trace_s``, ``gather_s``, ``response_s``). Errors name ``where``."""
     t0 = time.perf_counter()
     if len(lenses) != len(rig.cameras):
         raise ValueError(f"{where}: {len(lenses)} lenses for {len(rig.cameras)} cameras")
-    wp, hp = rig.projector.size
-    if np.shape(pattern_images)[1:] != (hp, wp):
-        raise ValueError(f"{where}: pattern images are {np.shape(pattern_images)}, "
-                         f"the projector is {wp} x {hp}")
-    projected = project_patterns(pattern_images, settings.projector)
+    stack = as_stack(pattern_images)
+    if stack.size != tuple(rig.projector.size):
+        raise ValueError(f"{where}: pattern images are {stack.size[0]} x {stack.size[1]} px, "
+                         f"the projector is {rig.projector.size[0]} x {rig.projector.size[1]}")
+    projected = project_patterns(stack, settings.projector)
     t_pat = time.perf_counter() - t0
     cams = [render_camera(geom, rig, i, lens, projected, settings.camera, rng, progress, where)
             for i, lens in enumerate(lenses)]

@@ -1,75 +1,130 @@
 """Compiled loops of ``sim.render`` (numba): the bilinear gather of projected patterns through a
 light transport, and the camera's digitisation, both written in place.
 
-The gather reads the pattern images where they lie ((n, Hp, Wp), no transposed copy) and writes
-each pattern's radiance straight into its image row ((n, H W)), so the cost of a pattern is one
-pass over the transport's rays, with the bilinear weights of a block of rays computed once for
-every pattern. The loops release the GIL (``nogil``); ``sim.render`` runs them on every core.
+The gather reads each pattern in its ``sim.pattern_stack`` form (a row or column profile, or
+the full image) and writes its radiance into the pattern's image row ((n, H W)), so the cost of
+a pattern is one pass over the transport's rays, with the taps of a block of rays computed once
+for every pattern. The loops release the GIL (``nogil``); ``sim.render`` runs them on every core.
 """
 
 from __future__ import annotations
 
-import math
-
 import numba as nb
 import numpy as np
 
+from sim.pattern_stack import ALONG_U, ALONG_V
+
 _JIT = {"nogil": True, "cache": True, "error_model": "numpy"}
-BLOCK_RAYS = 4096  # rays whose bilinear taps are computed once per block, for every pattern
+BLOCK_RAYS = 2048  # rays whose taps are computed once per block, for every pattern
 
 
 @nb.njit(**_JIT)
-def gather_rows(pixels, proj_uv, weight, patterns, out, first, last):
-    """Radiance of transport rows ``first:last`` into ``out[p, pixels[i]]`` (float32) for every
-    projected pattern ``p`` of ``patterns`` (n, Hp, Wp) float32: the sum over the row's rays of
-    weight times the pattern sampled bilinearly at the ray's projector coordinate (pixel centres
-    at integers, taps clamped to the edge pixels). Rays of weight <= 0 are skipped."""
-    n_pat, hp, wp = patterns.shape
+def response(x, scale, low_e, high_e, dn_per_e, black_dn, max_dn):
+    """DN of radiance ``x`` before rounding, float32:
+    ``clip(clip(scale x, low_e, high_e) dn_per_e + black_dn, 0, max_dn)`` (``scale`` turns
+    radiance into electrons, or is 1). ``IDENTITY`` keeps any ``x >= 0``."""
+    e = x * scale
+    e = e if e > low_e else low_e  # selects rather than min/max: they vectorise
+    e = e if e < high_e else high_e
+    dn = e * dn_per_e + black_dn
+    dn = dn if dn > np.float32(0.0) else np.float32(0.0)
+    return dn if dn < max_dn else max_dn
+
+
+_INF = np.float32(np.inf)
+IDENTITY = (np.float32(1.0), -_INF, _INF, np.float32(1.0), np.float32(0.0), _INF)
+
+
+@nb.njit(**_JIT)
+def write(row, start, values, m, resp, quantize):
+    """``row[start + q] = response(values[q], *resp)`` for ``q < m``, rounded half to even when
+    ``quantize`` (``row`` then an integer array)."""
+    scale, low_e, high_e, dn_per_e, black_dn, max_dn = resp
+    dst = row[start:start + m]  # indices from range(m): no negative-index checks, so it vectorises
+    if quantize:
+        for q in range(m):
+            dst[q] = np.rint(response(values[q], scale, low_e, high_e, dn_per_e, black_dn, max_dn))
+    else:
+        for q in range(m):
+            dst[q] = response(values[q], scale, low_e, high_e, dn_per_e, black_dn, max_dn)
+
+
+@nb.njit(**_JIT)
+def gather_rows(pixels, proj_uv, weight, form, slot, full, rows, cols, resp, quantize, out,
+                first, last):
+    """``response(radiance, *resp)`` (rounded when ``quantize``) of transport rows
+    ``first:last`` into ``out[p, pixels[i]]`` for every pattern ``p`` of a
+    ``sim.pattern_stack.PatternStack`` (``form``, ``slot``, ``full``, ``rows``, ``cols``).
+    Radiance is the sum over the row's rays of weight times the pattern sampled bilinearly at
+    the ray's projector coordinate (pixel centres at integers, taps clamped to the edge pixels);
+    a row or column profile is sampled linearly along its axis, which is the same value. Rays of
+    weight <= 0 add nothing."""
+    n_pat = len(form)
+    n_full, hp, wp = full.shape
+    flat = full.reshape(n_full, hp * wp)
     k = weight.shape[1]
-    flat = patterns.reshape(n_pat, hp * wp)
+    ray_w, ray_uv = weight.reshape(-1), proj_uv.reshape(-1, 2)  # ray r = row r // k, ray r % k
     rows_per_block = max(1, BLOCK_RAYS // k)
-    taps = np.empty((rows_per_block * k, 4), np.uint32)  # unsigned: loads skip the wraparound check
-    coef = np.empty((rows_per_block * k, 4), np.float32)
-    ends = np.empty(rows_per_block, np.int64)
+    m_max = rows_per_block * k
+    iu0, iu1 = np.empty(m_max, np.uint32), np.empty(m_max, np.uint32)  # unsigned: no wraparound
+    iv0, iv1 = np.empty(m_max, np.uint32), np.empty(m_max, np.uint32)  # checks on the loads
+    cu0, cu1 = np.empty(m_max, np.float32), np.empty(m_max, np.float32)  # weight times the
+    cv0, cv1 = np.empty(m_max, np.float32), np.empty(m_max, np.float32)  # linear weights
+    fv0, fv1 = np.empty(m_max, np.float32), np.empty(m_max, np.float32)  # linear weights along v
+    acc = np.empty(m_max, np.float32)
+    zero, one = np.float32(0.0), np.float32(1.0)
+    u_max, v_max = np.float32(wp - 1), np.float32(hp - 1)
     for b0 in range(first, last, rows_per_block):
         b1 = min(b0 + rows_per_block, last)
-        m = 0
-        for i in range(b0, b1):
-            for j in range(k):
-                w = weight[i, j]
-                if not w > 0:
-                    continue
-                u, v = proj_uv[i, j, 0], proj_uv[i, j, 1]
-                fu, fv = math.floor(u), math.floor(v)
-                au, av = u - fu, v - fv
-                iu, iv = int(fu), int(fv)
-                ia, ib = min(max(iu, 0), wp - 1), min(max(iu + 1, 0), wp - 1)
-                ja, jb = min(max(iv, 0), hp - 1) * wp, min(max(iv + 1, 0), hp - 1) * wp
-                taps[m, 0], taps[m, 1], taps[m, 2], taps[m, 3] = ja + ia, ja + ib, jb + ia, jb + ib
-                a, c = w * (1 - au), w * au
-                coef[m, 0], coef[m, 1] = a * (1 - av), c * (1 - av)
-                coef[m, 2], coef[m, 3] = a * av, c * av
-                m += 1
-            ends[i - b0] = m
+        m = (b1 - b0) * k
+        bw, buv = ray_w[b0 * k:b0 * k + m], ray_uv[b0 * k:b0 * k + m]
+        for q in range(m):  # float clamps and selects, no negative-index checks: it vectorises
+            w, u, v = bw[q], buv[q, 0], buv[q, 1]
+            hit = w > zero
+            w, u, v = (w if hit else zero), (u if hit else zero), (v if hit else zero)
+            fu, fv = np.floor(u), np.floor(v)
+            au, av = u - fu, v - fv
+            iu0[q] = np.uint32(min(max(fu, zero), u_max))
+            iu1[q] = np.uint32(min(max(fu + one, zero), u_max))
+            iv0[q] = np.uint32(min(max(fv, zero), v_max))
+            iv1[q] = np.uint32(min(max(fv + one, zero), v_max))
+            fv0[q], fv1[q] = one - av, av
+            cu0[q], cu1[q] = w * (one - au), w * au
+            cv0[q], cv1[q] = w * (one - av), w * av
+        p0 = pixels[b0]
+        contiguous = k == 1
+        for i in range(b0 + 1, b1):
+            contiguous = contiguous and pixels[i] == p0 + (i - b0)
         for p in range(n_pat):
-            img, row = flat[p], out[p]
-            r = 0
-            for i in range(b0, b1):
-                e = ends[i - b0]
-                s = np.float32(0.0)
-                for q in range(r, e):
-                    s += (coef[q, 0] * img[taps[q, 0]] + coef[q, 1] * img[taps[q, 1]]
-                          + coef[q, 2] * img[taps[q, 2]] + coef[q, 3] * img[taps[q, 3]])
-                row[pixels[i]] = s
-                r = e
+            s = slot[p]
+            if form[p] == ALONG_U:
+                prof = rows[s]
+                for q in range(m):
+                    acc[q] = cu0[q] * prof[iu0[q]] + cu1[q] * prof[iu1[q]]
+            elif form[p] == ALONG_V:
+                prof = cols[s]
+                for q in range(m):
+                    acc[q] = cv0[q] * prof[iv0[q]] + cv1[q] * prof[iv1[q]]
+            else:
+                img = flat[s]
+                for q in range(m):
+                    r0, r1 = iv0[q] * wp, iv1[q] * wp
+                    acc[q] = (fv0[q] * (cu0[q] * img[r0 + iu0[q]] + cu1[q] * img[r0 + iu1[q]])
+                              + fv1[q] * (cu0[q] * img[r1 + iu0[q]] + cu1[q] * img[r1 + iu1[q]]))
+            if contiguous:
+                write(out[p], p0, acc, m, resp, quantize)
+            else:
+                for i in range(b1 - b0):
+                    t = zero
+                    for q in range(i * k, i * k + k):
+                        t += acc[q]
+                    acc[i] = t
+                for i in range(b1 - b0):
+                    write(out[p], pixels[b0 + i], acc[i:], 1, resp, quantize)
 
 
 @nb.njit(**_JIT)
-def digitise(x, scale, low_e, high_e, dn_per_e, black_dn, max_dn, quantize, out, first, last):
-    """``out[i] = clip(clip(scale x[i], low_e, high_e) dn_per_e + black_dn, 0, max_dn)`` for flat
-    indices ``first:last``, rounded half to even when ``quantize`` (then ``out`` is an integer
-    array): electrons to DN (``scale`` turns radiance into electrons, or is 1)."""
-    for i in range(first, last):
-        e = min(max(x[i] * scale, low_e), high_e)
-        dn = min(max(e * dn_per_e + black_dn, 0.0), max_dn)
-        out[i] = np.rint(dn) if quantize else dn
+def digitise(x, resp, quantize, out, first, last):
+    """``out[i] = response(x[i], *resp)`` for flat indices ``first:last``, rounded when
+    ``quantize`` (``out`` then an integer array; otherwise it may be ``x`` itself)."""
+    write(out, first, x[first:last], last - first, resp, quantize)

@@ -10,6 +10,7 @@ import zarr
 
 from sim.fringe_patterns import PhaseShiftSet
 from sim.lens import AberratedLens, PinholeLens
+from sim.pattern_stack import ALONG_U, ALONG_V, FULL, PatternStack
 from sim.phase import wrapped_phase
 from sim.render import (
     CameraResponse,
@@ -46,20 +47,44 @@ def _plane(z=600.0, albedo=1.0):
 
 def test_projector_response():
     p = np.array([[[0.0, 0.301, 0.5, 1.0]]], np.float32)
-    out = project_patterns(p, ProjectorResponse(input_bits=None, gamma=2.2, black_level=0.1))
+    out = project_patterns(p, ProjectorResponse(input_bits=None, gamma=2.2, black_level=0.1)).images()
     np.testing.assert_allclose(out, 0.1 + 0.9 * p.astype(np.float64) ** 2.2, rtol=1e-6)
-    q = project_patterns(p, ProjectorResponse(input_bits=8))
+    q = project_patterns(p, ProjectorResponse(input_bits=8)).images()
     np.testing.assert_allclose(q, [[[0.0, 77 / 255, 128 / 255, 1.0]]], rtol=1e-6)
     dot = np.zeros((1, 41, 41), np.float32)
     dot[0, 20, 20] = 1.0
-    b = project_patterns(dot, ProjectorResponse(input_bits=None, defocus_sigma_px=1.5))[0]
+    b = project_patterns(dot, ProjectorResponse(input_bits=None, defocus_sigma_px=1.5)).images()[0]
     x = np.arange(41) - 20
     assert b.sum() == pytest.approx(1.0, rel=1e-5)
     assert (b.sum(0) * x**2).sum() == pytest.approx(1.5**2, rel=0.01)  # variance along u
     with pytest.raises(ValueError, match=r"pattern images must be \(n, H, W\)"):
         project_patterns(np.zeros((4, 4)), ProjectorResponse())
-    with pytest.raises(ValueError, match=r"pattern values must lie in \[0, 1\]"):
+    with pytest.raises(ValueError, match=r"pattern values must lie in \[0, 1\], got \[1.5, 1.5\]"):
         project_patterns(np.full((1, 2, 2), 1.5), ProjectorResponse())
+    nan = np.zeros((2, 2, 3), np.float32)
+    nan[1, 1, 1] = np.nan
+    with pytest.raises(ValueError, match=r"pattern values must lie in \[0, 1\], got \[nan, nan\]"):
+        project_patterns(nan, ProjectorResponse())
+
+
+@pytest.mark.parametrize("projector", [
+    ProjectorResponse(input_bits=8, gamma=2.2, black_level=0.05),
+    ProjectorResponse(input_bits=None, defocus_sigma_px=1.3),
+    ProjectorResponse(input_bits=10, gamma=1.8, defocus_sigma_px=0.7),
+])
+def test_projector_response_of_profiles_equals_that_of_full_images(projector):
+    """Fringes kept as row or column profiles are projected to the same light as the full
+    images (the blur of a constant axis, edges replicated, changes nothing)."""
+    wp, hp = 40, 23
+    fringes = PhaseShiftSet(periods_px=[7.0, 40.0], steps=3, direction="both").images((wp, hp))
+    rng = np.random.default_rng(5)
+    pats = np.concatenate([fringes, rng.random((2, hp, wp)).astype(np.float32)])
+    stack = project_patterns(pats, projector)
+    assert list(stack.form) == [ALONG_U] * 6 + [ALONG_V] * 6 + [FULL] * 2
+    forced = PatternStack((wp, hp), np.full(len(pats), FULL, np.int8), np.arange(len(pats)),
+                          pats, np.zeros((0, wp), np.float32), np.zeros((0, hp), np.float32))
+    np.testing.assert_allclose(stack.images(), project_patterns(forced, projector).images(),
+                               rtol=0, atol=2e-7)
 
 
 def test_gather_reproduces_linear_patterns():
@@ -77,8 +102,11 @@ def test_gather_reproduces_linear_patterns():
     np.testing.assert_allclose(rad[ok, 2], tr.weight[ok, 0], rtol=1e-6)
     np.testing.assert_allclose(rad[ok, 0] / rad[ok, 2], uv[ok, 0] / (pw - 1), atol=1e-5)
     np.testing.assert_allclose(rad[ok, 1] / rad[ok, 2], uv[ok, 1] / (ph - 1), atol=1e-5)
-    with pytest.raises(ValueError, match=r"projected patterns are \(12, 1\), expected \(n, 54, 96\)"):
+    with pytest.raises(ValueError, match=r"pattern images must be \(n, H, W\), got shape \(12, 1\)"):
         gather(tr, np.zeros((12, 1), np.float32))
+    with pytest.raises(ValueError, match=r"projected patterns are 5 x 4 px, expected the transport's "
+                                         r"96 x 54 projector"):
+        gather(tr, np.zeros((3, 4, 5), np.float32))
 
 
 def _bilinear_reference(img, u, v):
@@ -92,22 +120,39 @@ def _bilinear_reference(img, u, v):
             + (1 - fu) * fv * img[d, a] + fu * fv * img[d, b])
 
 
-@pytest.mark.parametrize("threads", [1, 3])
-def test_gather_is_the_weighted_bilinear_sum_of_every_ray(threads):
-    """Several rays per pixel, rays of weight 0 with NaN coordinates, taps off every edge,
-    pixels in any order, written in place: against a float64 reference."""
+def _patterns(kind, rng, npat, hp, wp):
+    """Random pattern images varying along u only, v only, both, or a mix of all three."""
+    full = rng.random((npat, hp, wp))
+    u = np.broadcast_to(rng.random((npat, 1, wp)), full.shape)
+    v = np.broadcast_to(rng.random((npat, hp, 1)), full.shape)
+    mix = np.concatenate([u[:2], v[:2], full[:2]])
+    return {"full": full, "u": u, "v": v, "mix": mix}[kind].astype(np.float32)
+
+
+@pytest.mark.parametrize("threads, kind, k, order", [
+    (1, "full", 5, "any"), (3, "full", 5, "any"), (1, "u", 5, "any"), (3, "v", 5, "any"),
+    (3, "mix", 5, "any"), (1, "mix", 1, "any"), (3, "mix", 1, "any"), (3, "mix", 1, "run"),
+    (1, "full", 1, "run")])
+def test_gather_is_the_weighted_bilinear_sum_of_every_ray(threads, kind, k, order):
+    """Several rays per pixel (or one), rays of weight 0 with NaN coordinates, taps off every
+    edge, pixels in any order (or one run of consecutive pixels), written in place, patterns
+    kept as row or column profiles or full images: against a float64 bilinear reference on the
+    full images."""
     from sim.trace import Transport
 
     rng = np.random.default_rng(3)
-    wp, hp, n, k, npat = 13, 7, 500, 5, 6
+    wp, hp, n, npat = 13, 7, 500, 6
     uv = np.stack([rng.uniform(-2, wp + 1, (n, k)), rng.uniform(-2, hp + 1, (n, k))], -1)
     weight = rng.uniform(0, 1, (n, k))
     weight[rng.random((n, k)) < 0.3] = 0.0
     uv[weight == 0] = np.nan
-    pixels = rng.permutation(40 * 30)[:n]
+    pixels = rng.permutation(40 * 30)[:n] if order == "any" else np.arange(333, 333 + n)
     tr = Transport((40, 30), (wp, hp), pixels, uv.astype(np.float32), weight.astype(np.float32),
                    np.zeros(n), np.zeros((n, 2)), np.ones(n, bool), np.zeros(n, np.int32))
-    pats = rng.random((npat, hp, wp)).astype(np.float32)
+    pats = _patterns(kind, rng, npat, hp, wp)
+    assert list(PatternStack.from_images(pats).form) == {
+        "full": [FULL] * 6, "u": [ALONG_U] * 6, "v": [ALONG_V] * 6,
+        "mix": [ALONG_U] * 2 + [ALONG_V] * 2 + [FULL] * 2}[kind]
     u32, v32 = (np.nan_to_num(uv[..., i].astype(np.float32)).astype(float) for i in (0, 1))
     ref = np.stack([np.sum(weight.astype(np.float32) * _bilinear_reference(p.astype(float), u32, v32),
                            axis=1) for p in pats])
@@ -266,7 +311,7 @@ def test_render_views_errors():
     rig, geom, pats, _ = _small_views()
     with pytest.raises(ValueError, match="scene: 1 lenses for 2 cameras"):
         render_views(geom, rig, [PinholeLens()], pats, RenderSettings())
-    with pytest.raises(ValueError, match=r"scene: pattern images are \(3, 5, 5\), the projector is 58 x 32"):
+    with pytest.raises(ValueError, match=r"scene: pattern images are 5 x 5 px, the projector is 58 x 32"):
         render_views(geom, rig, [PinholeLens()] * 2, np.zeros((3, 5, 5)), RenderSettings())
 
 
