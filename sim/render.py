@@ -279,14 +279,15 @@ def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
     bar = tqdm(total=w * h, desc=f"render {cam.name}", unit="px", unit_scale=True,
                disable=not progress)
     for s in range(0, w * h, step):
-        pix = np.arange(s, min(s + step, w * h))
+        tile = slice(s, min(s + step, w * h))
+        pix = np.arange(tile.start, tile.stop)
         tr = trace_camera(geom, cam, rig.projector, lens, pixels=pix)
         t0 = time.perf_counter()
         gather_into(tr, projected, rad)
         t_gather += time.perf_counter() - t0
         t_trace += tr.seconds
         n_rays += tr.rays
-        depth[pix], pmap[pix], lit[pix], obj[pix] = tr.depth, tr.proj_chief, tr.lit, tr.object_id
+        depth[tile], pmap[tile], lit[tile], obj[tile] = tr.depth, tr.proj_chief, tr.lit, tr.object_id
         bar.update(len(pix))
     bar.close()
     if not np.any(obj >= 0):

@@ -36,12 +36,18 @@ IDENTITY = (np.float32(1.0), -_INF, _INF, np.float32(1.0), np.float32(0.0), _INF
 
 
 @nb.njit(**_JIT)
-def write(row, start, values, m, resp, quantize):
-    """``row[start + q] = response(values[q], *resp)`` for ``q < m``, rounded half to even when
-    ``quantize`` (``row`` then an integer array)."""
+def write(row, start, index, values, m, resp, quantize):
+    """``row[start + q] = response(values[q], *resp)`` for ``q < m`` (``row[index[q]]`` when
+    ``index`` is an array rather than None), rounded half to even when ``quantize`` (``row``
+    then an integer array)."""
     scale, low_e, high_e, dn_per_e, black_dn, max_dn = resp
-    dst = row[start:start + m]  # indices from range(m): no negative-index checks, so it vectorises
-    if quantize:
+    if index is not None:
+        for q in range(m):
+            dn = response(values[q], scale, low_e, high_e, dn_per_e, black_dn, max_dn)
+            row[index[q]] = np.rint(dn) if quantize else dn
+        return
+    dst = row[start:start + m]  # indices from range(m): no negative-index checks, so the
+    if quantize:                # loops vectorise
         for q in range(m):
             dst[q] = np.rint(response(values[q], scale, low_e, high_e, dn_per_e, black_dn, max_dn))
     else:
@@ -70,8 +76,14 @@ def gather_rows(pixels, proj_uv, weight, form, slot, full, rows, cols, resp, qua
     iv0, iv1 = np.empty(m_max, np.uint32), np.empty(m_max, np.uint32)  # checks on the loads
     cu0, cu1 = np.empty(m_max, np.float32), np.empty(m_max, np.float32)  # weight times the
     cv0, cv1 = np.empty(m_max, np.float32), np.empty(m_max, np.float32)  # linear weights
-    fv0, fv1 = np.empty(m_max, np.float32), np.empty(m_max, np.float32)  # linear weights along v
-    acc = np.empty(m_max, np.float32)
+    frac_v = np.empty(m_max, np.float32)
+    m_full = m_max if n_full else 0  # bilinear taps and weights, only for full images
+    t00, t01 = np.empty(m_full, np.uint32), np.empty(m_full, np.uint32)
+    t10, t11 = np.empty(m_full, np.uint32), np.empty(m_full, np.uint32)
+    c00, c01 = np.empty(m_full, np.float32), np.empty(m_full, np.float32)
+    c10, c11 = np.empty(m_full, np.float32), np.empty(m_full, np.float32)
+    acc = np.empty(m_max, np.float32)  # per ray, then per pixel
+    ends = np.empty(rows_per_block, np.int64)
     zero, one = np.float32(0.0), np.float32(1.0)
     u_max, v_max = np.float32(wp - 1), np.float32(hp - 1)
     for b0 in range(first, last, rows_per_block):
@@ -88,43 +100,71 @@ def gather_rows(pixels, proj_uv, weight, form, slot, full, rows, cols, resp, qua
             iu1[q] = np.uint32(min(max(fu + one, zero), u_max))
             iv0[q] = np.uint32(min(max(fv, zero), v_max))
             iv1[q] = np.uint32(min(max(fv + one, zero), v_max))
-            fv0[q], fv1[q] = one - av, av
             cu0[q], cu1[q] = w * (one - au), w * au
             cv0[q], cv1[q] = w * (one - av), w * av
+            frac_v[q] = av
+        n_pix = b1 - b0
+        if k > 1:  # keep the rays that hit, in order; ends[i]: end of pixel i's rays
+            m = 0
+            for i in range(n_pix):
+                for q in range(i * k, i * k + k):
+                    if bw[q] > zero:
+                        iu0[m], iu1[m], iv0[m], iv1[m] = iu0[q], iu1[q], iv0[q], iv1[q]
+                        cu0[m], cu1[m], cv0[m], cv1[m] = cu0[q], cu1[q], cv0[q], cv1[q]
+                        frac_v[m] = frac_v[q]
+                        m += 1
+                ends[i] = m
+        for q in range(min(m, m_full)):
+            r0, r1 = iv0[q] * wp, iv1[q] * wp
+            t00[q], t01[q], t10[q], t11[q] = r0 + iu0[q], r0 + iu1[q], r1 + iu0[q], r1 + iu1[q]
+            c00[q], c01[q] = cu0[q] * (one - frac_v[q]), cu1[q] * (one - frac_v[q])
+            c10[q], c11[q] = cu0[q] * frac_v[q], cu1[q] * frac_v[q]
         p0 = pixels[b0]
         contiguous = k == 1
         for i in range(b0 + 1, b1):
             contiguous = contiguous and pixels[i] == p0 + (i - b0)
         for p in range(n_pat):
-            s = slot[p]
-            if form[p] == ALONG_U:
+            s, f = slot[p], form[p]
+            if k > 1:  # each pixel's sum as its rays are sampled (a second pass costs more)
+                r = 0
+                for i in range(n_pix):
+                    t = zero
+                    if f == ALONG_U:
+                        prof = rows[s]
+                        for q in range(r, ends[i]):
+                            t += cu0[q] * prof[iu0[q]] + cu1[q] * prof[iu1[q]]
+                    elif f == ALONG_V:
+                        prof = cols[s]
+                        for q in range(r, ends[i]):
+                            t += cv0[q] * prof[iv0[q]] + cv1[q] * prof[iv1[q]]
+                    else:
+                        img = flat[s]
+                        for q in range(r, ends[i]):
+                            t += (c00[q] * img[t00[q]] + c01[q] * img[t01[q]]
+                                  + c10[q] * img[t10[q]] + c11[q] * img[t11[q]])
+                    acc[i] = t
+                    r = ends[i]
+            elif f == ALONG_U:  # one ray a pixel: one pass over the block that vectorises
                 prof = rows[s]
                 for q in range(m):
                     acc[q] = cu0[q] * prof[iu0[q]] + cu1[q] * prof[iu1[q]]
-            elif form[p] == ALONG_V:
+            elif f == ALONG_V:
                 prof = cols[s]
                 for q in range(m):
                     acc[q] = cv0[q] * prof[iv0[q]] + cv1[q] * prof[iv1[q]]
             else:
                 img = flat[s]
                 for q in range(m):
-                    r0, r1 = iv0[q] * wp, iv1[q] * wp
-                    acc[q] = (fv0[q] * (cu0[q] * img[r0 + iu0[q]] + cu1[q] * img[r0 + iu1[q]])
-                              + fv1[q] * (cu0[q] * img[r1 + iu0[q]] + cu1[q] * img[r1 + iu1[q]]))
+                    acc[q] = (c00[q] * img[t00[q]] + c01[q] * img[t01[q]]
+                              + c10[q] * img[t10[q]] + c11[q] * img[t11[q]])
             if contiguous:
-                write(out[p], p0, acc, m, resp, quantize)
+                write(out[p], p0, None, acc, n_pix, resp, quantize)
             else:
-                for i in range(b1 - b0):
-                    t = zero
-                    for q in range(i * k, i * k + k):
-                        t += acc[q]
-                    acc[i] = t
-                for i in range(b1 - b0):
-                    write(out[p], pixels[b0 + i], acc[i:], 1, resp, quantize)
+                write(out[p], 0, pixels[b0:b1], acc, n_pix, resp, quantize)
 
 
 @nb.njit(**_JIT)
 def digitise(x, resp, quantize, out, first, last):
     """``out[i] = response(x[i], *resp)`` for flat indices ``first:last``, rounded when
     ``quantize`` (``out`` then an integer array; otherwise it may be ``x`` itself)."""
-    write(out, first, x[first:last], last - first, resp, quantize)
+    write(out, first, None, x[first:last], last - first, resp, quantize)
