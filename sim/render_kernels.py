@@ -37,9 +37,9 @@ IDENTITY = (np.float32(1.0), -_INF, _INF, np.float32(1.0), np.float32(0.0), _INF
 
 @nb.njit(**_JIT)
 def write(row, start, index, values, m, resp, quantize):
-    """``row[start + q] = response(values[q], *resp)`` for ``q < m`` (``row[index[q]]`` when
-    ``index`` is an array rather than None), rounded half to even when ``quantize`` (``row``
-    then an integer array)."""
+    """``row[start + q] = response(values[q], *resp)`` for ``q < m`` (``row[index[q]]``, and
+    ``start`` unused, when ``index`` is an array rather than None), rounded half to even when
+    ``quantize`` (``row`` then an integer array)."""
     scale, low_e, high_e, dn_per_e, black_dn, max_dn = resp
     if index is not None:
         for q in range(m):
@@ -49,7 +49,8 @@ def write(row, start, index, values, m, resp, quantize):
     dst = row[start:start + m]  # indices from range(m): no negative-index checks, so the
     if quantize:                # loops vectorise
         for q in range(m):
-            dst[q] = np.rint(response(values[q], scale, low_e, high_e, dn_per_e, black_dn, max_dn))
+            dn = response(values[q], scale, low_e, high_e, dn_per_e, black_dn, max_dn)
+            dst[q] = np.rint(dn)
     else:
         for q in range(m):
             dst[q] = response(values[q], scale, low_e, high_e, dn_per_e, black_dn, max_dn)
@@ -82,7 +83,7 @@ def gather_rows(pixels, proj_uv, weight, form, slot, full, rows, cols, resp, qua
     t10, t11 = np.empty(m_full, np.uint32), np.empty(m_full, np.uint32)
     c00, c01 = np.empty(m_full, np.float32), np.empty(m_full, np.float32)
     c10, c11 = np.empty(m_full, np.float32), np.empty(m_full, np.float32)
-    acc = np.empty(m_max, np.float32)  # per ray, then per pixel
+    acc, sums = np.empty(m_max, np.float32), np.empty(rows_per_block, np.float32)  # per ray, pixel
     ends = np.empty(rows_per_block, np.int64)
     zero, one = np.float32(0.0), np.float32(1.0)
     u_max, v_max = np.float32(wp - 1), np.float32(hp - 1)
@@ -120,31 +121,12 @@ def gather_rows(pixels, proj_uv, weight, form, slot, full, rows, cols, resp, qua
             c00[q], c01[q] = cu0[q] * (one - frac_v[q]), cu1[q] * (one - frac_v[q])
             c10[q], c11[q] = cu0[q] * frac_v[q], cu1[q] * frac_v[q]
         p0 = pixels[b0]
-        contiguous = k == 1
+        contiguous = True
         for i in range(b0 + 1, b1):
             contiguous = contiguous and pixels[i] == p0 + (i - b0)
         for p in range(n_pat):
             s, f = slot[p], form[p]
-            if k > 1:  # each pixel's sum as its rays are sampled (a second pass costs more)
-                r = 0
-                for i in range(n_pix):
-                    t = zero
-                    if f == ALONG_U:
-                        prof = rows[s]
-                        for q in range(r, ends[i]):
-                            t += cu0[q] * prof[iu0[q]] + cu1[q] * prof[iu1[q]]
-                    elif f == ALONG_V:
-                        prof = cols[s]
-                        for q in range(r, ends[i]):
-                            t += cv0[q] * prof[iv0[q]] + cv1[q] * prof[iv1[q]]
-                    else:
-                        img = flat[s]
-                        for q in range(r, ends[i]):
-                            t += (c00[q] * img[t00[q]] + c01[q] * img[t01[q]]
-                                  + c10[q] * img[t10[q]] + c11[q] * img[t11[q]])
-                    acc[i] = t
-                    r = ends[i]
-            elif f == ALONG_U:  # one ray a pixel: one pass over the block that vectorises
+            if f == ALONG_U:  # one pass over the block's rays that vectorises
                 prof = rows[s]
                 for q in range(m):
                     acc[q] = cu0[q] * prof[iu0[q]] + cu1[q] * prof[iu1[q]]
@@ -157,10 +139,17 @@ def gather_rows(pixels, proj_uv, weight, form, slot, full, rows, cols, resp, qua
                 for q in range(m):
                     acc[q] = (c00[q] * img[t00[q]] + c01[q] * img[t01[q]]
                               + c10[q] * img[t10[q]] + c11[q] * img[t11[q]])
-            if contiguous:
-                write(out[p], p0, None, acc, n_pix, resp, quantize)
-            else:
-                write(out[p], 0, pixels[b0:b1], acc, n_pix, resp, quantize)
+            values = acc
+            if k > 1:  # each pixel's rays, summed in order
+                r = 0
+                for i in range(n_pix):
+                    t = zero
+                    for q in range(r, ends[i]):
+                        t += acc[q]
+                    sums[i] = t
+                    r = ends[i]
+                values = sums
+            write(out[p], p0, None if contiguous else pixels[b0:b1], values, n_pix, resp, quantize)
 
 
 @nb.njit(**_JIT)
