@@ -142,3 +142,38 @@ def test_bad_bench_and_camera_settings_are_rejected(lcd):
     cam = FakeCamera(FakeBench(IDEAL), lcd, lambda: 0.0)
     with pytest.raises(ValueError, match="exposure_ms must be > 0"):
         cam.exposure_ms = 0.0
+
+
+def test_fake_camera_ltc_equals_the_virtual_scanners_for_the_same_pixel_and_depth():
+    """One ground-truth lens: the virtual scanner's tracer (``sim.trace``, with the fake bench's
+    ``AberratedLens``, K and pose) looking at the LCD plane gives the fake camera's true LTC.
+    The LCD is stood in for by a projector 1 km away on its axis with f = D / pitch, so
+    projector pixel = LCD pixel and N.L = 1 to 1e-9; each ray's weight goes to the LCD pixel
+    its hit lies in."""
+    from sim.rig import DeviceCalibration
+    from sim.scene import PlaneObject, Pose, Scene
+    from sim.trace import trace_camera
+
+    c = BenchConfig.small(pupil_samples=64, subpixels=1)  # subpixels=1: the pixel centre's rays
+    bench = FakeBench(c)
+    z_mm = 40.0
+    R, t = bench.camera_pose_in_lcd(z_mm)  # X_lcd = R X_cam + t
+    (w, h), (lw, lh), pitch = c.camera_size, c.lcd_size, c.lcd_pitch_mm
+    cam = DeviceCalibration(name="cam", K=bench.K, dist=np.zeros(5), R=R.T, T=-R.T @ t, size=(w, h))
+    d = 1e6
+    lcd_as_projector = DeviceCalibration(name="lcd", K=[[d / pitch, 0, 0], [0, d / pitch, 0], [0, 0, 1]],
+                                         dist=np.zeros(5), R=np.eye(3), T=[0.0, 0.0, d], size=(lw, lh))
+    plane = PlaneObject(size_mm=(4 * lw * pitch, 4 * lh * pitch), albedo=1.0,
+                        pose=Pose(t=[(lw - 1) / 2 * pitch, (lh - 1) / 2 * pitch, 0.0]))
+    pixels = np.array([0, w - 1, (h // 2) * w + w // 2, (h - 1) * w + 3, h * w - 1])
+    tr = trace_camera(Scene(objects=[plane]).trace_geometry(), cam, lcd_as_projector, bench.lens,
+                      pixels=pixels)
+    truth = bench.true_ltc(z_mm)[pixels].toarray()
+    for row, uv, wt, want in zip(range(len(pixels)), tr.proj_uv, tr.weight, truth):
+        i, j = np.floor(uv[:, 0].astype(float) + 0.5), np.floor(uv[:, 1].astype(float) + 0.5)
+        on_lcd = (wt > 0) & (i >= 0) & (i < lw) & (j >= 0) & (j < lh)
+        got = np.bincount((j * lw + i)[on_lcd].astype(int), wt[on_lcd], minlength=lw * lh)
+        assert np.count_nonzero(want) > 10, row  # defocused: the pixel sees a patch of the LCD
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)
+    sums = truth.sum(axis=1)
+    assert sums.min() < 0.8 * sums.max()  # vignetting at the corners is part of what agrees
