@@ -205,6 +205,8 @@ class MitsubaFringeRenderer:
         img = self.mi.render(self.scene, spp=self.spp, seed=seed)
         return np.array(img, dtype=np.float32).reshape(self.camera.height, self.camera.width, -1)[..., 0]
 
-    def render_all(self, patterns: np.ndarray, seed: int = 0) -> np.ndarray:
-        """Radiance (n, H, W) float32 of pattern images (n, Hp, Wp), seeds ``seed + i``."""
-        return np.stack([self.render(p, seed + i) for i, p in enumerate(patterns)])
+    def render_all(self, patterns: np.ndarray, seed: int = 0,
+                   out: np.ndarray | None = None) -> np.ndarray:
+        """Radiance (n, H, W) float32 of pattern images (n, Hp, Wp), seeds ``seed + i``; into
+        ``out`` (an earlier result) when given."""
+        return np.stack([self.render(p, seed + i) for i, p in enumerate(patterns)], out=out)

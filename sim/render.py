@@ -191,10 +191,20 @@ def _image_dtype(camera: CameraResponse) -> type:
     return np.float32 if not camera.quantize else np.uint8 if camera.bit_depth == 8 else np.uint16
 
 
+def _check_array(what: str, a: np.ndarray, shape: tuple, dtype: type) -> None:
+    """Raise if ``a`` is not a C-contiguous array of ``shape`` and ``dtype``; ``what`` names it."""
+    want = f"{np.dtype(dtype).name} {tuple(shape)}"
+    if not isinstance(a, np.ndarray) or a.shape != tuple(shape) or a.dtype != dtype \
+            or not a.flags.c_contiguous:
+        got = f"{a.dtype.name} {a.shape}" if isinstance(a, np.ndarray) else type(a).__name__
+        raise ValueError(f"{what}: expected a C-contiguous {want} array, got {got}")
+
+
 def camera_response(radiance: np.ndarray, camera: CameraResponse,
-                    rng: np.random.Generator | None = None,
-                    threads: int | None = None) -> np.ndarray:
-    """Digital images (same shape) of radiance: uint8 (8 bits), uint16 (12, 16) or float32 DN."""
+                    rng: np.random.Generator | None = None, threads: int | None = None,
+                    out: np.ndarray | None = None) -> np.ndarray:
+    """Digital images (same shape) of radiance: uint8 (8 bits), uint16 (12, 16) or float32 DN;
+    written into ``out`` (C-contiguous, that shape and type) when given."""
     noisy = _noisy(camera)
     if noisy and rng is None:
         raise ValueError("camera_response: rng is required when shot_noise or read_noise_e is on")
@@ -208,7 +218,10 @@ def camera_response(radiance: np.ndarray, camera: CameraResponse,
         if camera.read_noise_e > 0:
             e += f32(camera.read_noise_e) * rng.standard_normal(e.shape, dtype=np.float32)
         x = e
-    out = np.empty(x.shape, _image_dtype(camera))
+    if out is None:
+        out = np.empty(x.shape, _image_dtype(camera))
+    else:
+        _check_array("camera_response out", out, x.shape, _image_dtype(camera))
     _run(digitise, _split(x.size, threads, 1 << 16), threads, x.reshape(-1),
          _response_args(camera, electrons=noisy), camera.quantize, out.reshape(-1))
     return out
@@ -262,44 +275,65 @@ class RenderResult:
 def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
                   projected: np.ndarray | PatternStack,
                   camera: CameraResponse, rng: np.random.Generator | None, progress: bool = False,
-                  where: str = "scene") -> CameraImages:
+                  where: str = "scene", out: CameraImages | None = None) -> CameraImages:
     """Trace camera ``index`` of the rig tile by tile (``TILE_RAYS`` rays: memory stays bounded
     whatever the lens), gather the projected patterns (``project_patterns``) from each tile's
-    transport, then apply the camera response. Errors name ``where``."""
+    transport, then apply the camera response. Errors name ``where``.
+
+    ``out``: an earlier result of the same camera, pattern count and camera response, whose
+    arrays are overwritten and which is returned: a sequence of renders (scene poses, lenses)
+    then reuses its memory instead of asking the system for some 300 MB of fresh pages a
+    full-size render (their first touch can cost as much as the gather)."""
     projected = as_stack(projected)
     cam = rig.cameras[index]
     w, h = cam.size
+    res = _camera_outputs(out, cam.name, len(projected), w, h, _image_dtype(camera))
+    rad = res.radiance.reshape(len(projected), w * h)
+    depth, pmap = res.depth.reshape(-1), res.projector_map.reshape(-1, 2)
+    lit, obj = res.lit.reshape(-1), res.object_id.reshape(-1)
     k = lens.bundle(np.zeros((1, 2)), np.zeros((1, 2))).weights.shape[1]
     step = max(1, TILE_RAYS // (k + 1))
-    rad = np.zeros((len(projected), w * h), np.float32)
-    depth, pmap = np.full(w * h, np.nan), np.full((w * h, 2), np.nan)
-    lit, obj = np.zeros(w * h, bool), np.full(w * h, -1, np.int32)
     t_trace = t_gather = 0.0
     n_rays = 0
     bar = tqdm(total=w * h, desc=f"render {cam.name}", unit="px", unit_scale=True,
                disable=not progress)
-    for s in range(0, w * h, step):
+    for s in range(0, w * h, step):  # every pixel is written: tiles cover the frame
         tile = slice(s, min(s + step, w * h))
-        pix = np.arange(tile.start, tile.stop)
-        tr = trace_camera(geom, cam, rig.projector, lens, pixels=pix)
+        tr = trace_camera(geom, cam, rig.projector, lens, pixels=np.arange(tile.start, tile.stop))
         t0 = time.perf_counter()
         gather_into(tr, projected, rad)
         t_gather += time.perf_counter() - t0
         t_trace += tr.seconds
         n_rays += tr.rays
         depth[tile], pmap[tile], lit[tile], obj[tile] = tr.depth, tr.proj_chief, tr.lit, tr.object_id
-        bar.update(len(pix))
+        bar.update(tile.stop - tile.start)
     bar.close()
     if not np.any(obj >= 0):
         raise ValueError(f"{where}: camera {index} ('{cam.name}') sees none of the scene objects; "
                          "check the rig's R and T (field 'rig') and the objects' poses")
     t0 = time.perf_counter()
-    radiance = rad.reshape(-1, h, w)
-    images = camera_response(radiance, camera, rng)
-    t_resp = time.perf_counter() - t0
-    return CameraImages(cam.name, images, radiance, depth.reshape(h, w), pmap.reshape(h, w, 2),
-                        lit.reshape(h, w), obj.reshape(h, w),
-                        {"trace_s": t_trace, "gather_s": t_gather, "response_s": t_resp}, n_rays)
+    camera_response(res.radiance, camera, rng, out=res.images)
+    res.timings = {"trace_s": t_trace, "gather_s": t_gather,
+                   "response_s": time.perf_counter() - t0}
+    res.n_rays = n_rays
+    return res
+
+
+def _camera_outputs(out: CameraImages | None, name: str, n: int, w: int, h: int,
+                    dtype: type) -> CameraImages:
+    """``out``, checked against camera ``name`` of ``w`` x ``h`` px, ``n`` patterns and image
+    type ``dtype``; or new arrays for it."""
+    shapes = {"images": ((n, h, w), dtype), "radiance": ((n, h, w), np.float32),
+              "depth": ((h, w), np.float64), "projector_map": ((h, w, 2), np.float64),
+              "lit": ((h, w), np.bool_), "object_id": ((h, w), np.int32)}
+    if out is None:
+        return CameraImages(name, **{key: np.empty(*sd) for key, sd in shapes.items()})
+    if out.name != name:
+        raise ValueError(f"render_camera out: it holds camera '{out.name}', not '{name}'")
+    for key, (shape, dt) in shapes.items():
+        _check_array(f"render_camera out, field '{key}' of camera '{name}'", getattr(out, key),
+                     shape, dt)
+    return out
 
 
 def render_views(geom: TraceGeometry, rig: Rig, lenses: list[LensModel], pattern_images: np.ndarray,

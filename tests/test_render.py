@@ -21,6 +21,7 @@ from sim.render import (
     gather_into,
     project_patterns,
     render,
+    render_camera,
     render_views,
     write_png,
     write_zarr,
@@ -313,6 +314,46 @@ def test_render_views_errors():
         render_views(geom, rig, [PinholeLens()], pats, RenderSettings())
     with pytest.raises(ValueError, match=r"scene: pattern images are 5 x 5 px, the projector is 58 x 32"):
         render_views(geom, rig, [PinholeLens()] * 2, np.zeros((3, 5, 5)), RenderSettings())
+
+
+def test_render_camera_into_an_earlier_result_overwrites_every_field():
+    """A render into an earlier result (another scene, other patterns) equals a fresh render,
+    field for field, in the earlier result's own memory."""
+    rig, geom, pats, _ = _small_views()
+    other = Scene(objects=[PlaneObject(pose=Pose(t=[5.0, 0, 45.0]))]).trace_geometry()
+    cam = CameraResponse(shot_noise=True, read_noise_e=3.0)
+    proj = project_patterns(pats, ProjectorResponse())
+    first = render_camera(geom, rig, 1, PinholeLens(), proj, cam, np.random.default_rng(1))
+    held = {key: getattr(first, key) for key in ("images", "radiance", "depth", "projector_map",
+                                                  "lit", "object_id")}
+    proj2 = project_patterns(pats[::-1].copy(), ProjectorResponse())
+    lens = AberratedLens(pupil_diameter_mm=4.0, focus_distance_mm=600.0, samples=5)
+    fresh = render_camera(other, rig, 1, lens, proj2, cam, np.random.default_rng(2))
+    again = render_camera(other, rig, 1, lens, proj2, cam, np.random.default_rng(2), out=first)
+    assert again is first and again.n_rays == fresh.n_rays
+    for key, arr in held.items():
+        assert getattr(again, key) is arr
+        np.testing.assert_array_equal(arr, getattr(fresh, key), err_msg=key)
+    assert not np.array_equal(held["depth"], render_camera(geom, rig, 1, PinholeLens(), proj, cam,
+                                                           np.random.default_rng(1)).depth)
+
+
+def test_render_camera_rejects_an_out_of_another_shape():
+    rig, geom, pats, _ = _small_views()
+    proj = project_patterns(pats, ProjectorResponse())
+    res = render_camera(geom, rig, 0, PinholeLens(), proj, CameraResponse(), None)
+    with pytest.raises(ValueError, match=r"field 'images' of camera 'left': expected a C-contiguous "
+                                         r"uint8 \(2, 65, 123\) array, got uint8 \(3, 65, 123\)"):
+        render_camera(geom, rig, 0, PinholeLens(), project_patterns(pats[:2], ProjectorResponse()),
+                      CameraResponse(), None, out=res)
+    with pytest.raises(ValueError, match=r"field 'images' .* expected a C-contiguous uint16"):
+        render_camera(geom, rig, 0, PinholeLens(), proj, CameraResponse(bit_depth=12), None, out=res)
+    with pytest.raises(ValueError, match=r"holds camera 'left', not 'right'"):
+        render_camera(geom, rig, 1, PinholeLens(), proj, CameraResponse(), None, out=res)
+    with pytest.raises(ValueError, match=r"camera_response out: expected a C-contiguous float32 "
+                                         r"\(2, 3\) array, got float32 \(3, 2\)"):
+        camera_response(np.zeros((2, 3)), CameraResponse(quantize=False),
+                        out=np.zeros((2, 3), np.float32).T)
 
 
 def test_cli_renders_the_example(tmp_path, capsys):
