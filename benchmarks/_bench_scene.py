@@ -48,7 +48,7 @@ class BenchConfig(BaseModel):
     scale: float = Field(1.0, gt=0, le=1, description="image sizes and focal lengths times this "
                          "(1: the 2048 x 1088 camera and 1920 x 1080 projector); < 1 for smoke runs")
     repeats: int = Field(5, ge=1, description="timed repeats of every case; medians are reported")
-    pinhole_spp: int = Field(16, ge=1, description="Mitsuba samples per pixel for the pinhole agreement")
+    pinhole_spp: int = Field(64, ge=1, description="Mitsuba samples per pixel for the pinhole agreement")
     thin_samples: int = Field(64, ge=1, description="thin-lens rays per pixel, both renderers")
     f_number: float = Field(2.8, gt=0, description="thin lens: focal length / entrance pupil diameter")
     variant: str = Field("llvm_ad_rgb", description="Mitsuba variant")

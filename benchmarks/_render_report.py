@@ -98,7 +98,7 @@ def report_markdown(s: dict) -> str:
     if s["cases"]:
         L += ["| case | 12 images, s (median) | repeats, s | setup, s | peak memory, MB |", "|---|---|---|---|---|"]
         for name, c in s["cases"].items():
-            runs = ", ".join(f"{x:.1f}" for x in c["runs_s"])
+            runs = ", ".join(f"{x:.3g}" for x in c["runs_s"])
             L.append(f"| {lab[name]} | {c['median_s']:.2f} | {runs} | {c['setup_s']:.1f} | {c['peak_rss_mb']:.0f} |")
         L.append("")
         for name in ("ours-pinhole", "ours-thin"):

@@ -266,7 +266,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", help=argparse.SUPPRESS)
     ap.add_argument("--scale", type=float, default=1.0, help="image sizes times this (smoke runs: 0.25)")
     ap.add_argument("--repeats", type=int, default=5, help="timed repeats per case (median reported)")
-    ap.add_argument("--pinhole-spp", type=int, default=16, help="Mitsuba pinhole samples per pixel")
+    ap.add_argument("--pinhole-spp", type=int, default=64,
+                    help="Mitsuba pinhole samples per pixel for the agreement (1 spp is timed too)")
     ap.add_argument("--thin-samples", type=int, default=64, help="thin-lens samples per pixel, both renderers")
     ap.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (scalar_rgb needs no LLVM)")
     ap.add_argument("--sampler", default="stratified", help="Mitsuba sampler")
