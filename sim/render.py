@@ -140,15 +140,23 @@ def _check_patterns(tr: Transport, projected: np.ndarray | PatternStack) -> Patt
     return stack
 
 
+def _check_array(what: str, a: np.ndarray, shape: tuple, dtype: type) -> None:
+    """Raise if ``a`` is not a C-contiguous array of ``shape`` and ``dtype``; ``what`` names it."""
+    want = f"{np.dtype(dtype).name} {tuple(shape)}"
+    if not isinstance(a, np.ndarray) or a.shape != tuple(shape) or a.dtype != dtype \
+            or not a.flags.c_contiguous:
+        got = f"{a.dtype.name} {a.shape}" if isinstance(a, np.ndarray) else type(a).__name__
+        raise ValueError(f"{what}: expected a C-contiguous {want} array, got {got}")
+
+
 def gather_into(tr: Transport, projected: np.ndarray | PatternStack, out: np.ndarray,
                 threads: int | None = None) -> None:
     """Write the radiance of the transport's pixels for projected patterns (``project_patterns``,
     or images (n, Hp, Wp) of light) into ``out[:, tr.pixels]`` of images ``out`` (n, H * W)
     float32."""
     p = _check_patterns(tr, projected)
-    if out.dtype != np.float32 or out.shape != (len(p), tr.camera_size[0] * tr.camera_size[1]):
-        raise ValueError(f"gather_into: out must be float32 (n, H * W) = ({len(p)}, "
-                         f"{tr.camera_size[0] * tr.camera_size[1]}), got {out.dtype} {out.shape}")
+    _check_array("gather_into out", out, (len(p), tr.camera_size[0] * tr.camera_size[1]),
+                 np.float32)
     _gather_rows(tr, tr.pixels, p, out, threads)
 
 
@@ -189,15 +197,6 @@ def _response_args(camera: CameraResponse, electrons: bool = False) -> tuple:
 
 def _image_dtype(camera: CameraResponse) -> type:
     return np.float32 if not camera.quantize else np.uint8 if camera.bit_depth == 8 else np.uint16
-
-
-def _check_array(what: str, a: np.ndarray, shape: tuple, dtype: type) -> None:
-    """Raise if ``a`` is not a C-contiguous array of ``shape`` and ``dtype``; ``what`` names it."""
-    want = f"{np.dtype(dtype).name} {tuple(shape)}"
-    if not isinstance(a, np.ndarray) or a.shape != tuple(shape) or a.dtype != dtype \
-            or not a.flags.c_contiguous:
-        got = f"{a.dtype.name} {a.shape}" if isinstance(a, np.ndarray) else type(a).__name__
-        raise ValueError(f"{what}: expected a C-contiguous {want} array, got {got}")
 
 
 def camera_response(radiance: np.ndarray, camera: CameraResponse,

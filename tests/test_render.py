@@ -108,6 +108,10 @@ def test_gather_reproduces_linear_patterns():
     with pytest.raises(ValueError, match=r"projected patterns are 5 x 4 px, expected the transport's "
                                          r"96 x 54 projector"):
         gather(tr, np.zeros((3, 4, 5), np.float32))
+    n_px = tr.camera_size[0] * tr.camera_size[1]
+    with pytest.raises(ValueError, match=rf"gather_into out: expected a C-contiguous float32 \(3, {n_px}\) "
+                                         rf"array, got float64 \(3, {n_px}\)"):
+        gather_into(tr, pats, np.zeros((3, n_px)))
 
 
 def _bilinear_reference(img, u, v):
