@@ -20,12 +20,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from sim.fringe_patterns import PhaseShiftSet
-from sim.lens import AberratedLens, PinholeLens
-from sim.phase import wrapped_phase
-from sim.projection import camera_to_world
-from sim.rig import DeviceCalibration, Rig, look_at
-from sim.scene import PlaneObject, Pose, Scene, SphereObject
+from sim.render.fringe_patterns import PhaseShiftSet
+from sim.optics.lens import AberratedLens, PinholeLens
+from sim.fpp.phase import wrapped_phase
+from sim.optics.projection import camera_to_world
+from sim.optics.rig import DeviceCalibration, Rig, look_at
+from sim.render.scene import PlaneObject, Pose, Scene, SphereObject
 
 CAMERA_SIZE = (2048, 1088)
 CAMERA_FOCAL_MM = 16.0

@@ -18,7 +18,7 @@ Conventions matched here (benchmarks/README.md, section "Rendering"):
 - Radiance. A diffuse surface of albedo ``rho`` lit by Mitsuba's projector has radiance
   ``rho (N.L) T scale / (z_p^2 cos theta_p)`` (``T`` the texture value, ``z_p`` the point's depth
   in the projector frame, ``theta_p`` its angle off the projector's axis); ours is
-  ``rho (N.L) T`` (``sim.render``: no distance fall-off). ``to_our_radiance`` multiplies by
+  ``rho (N.L) T`` (``sim.render.images``: no distance fall-off). ``to_our_radiance`` multiplies by
   ``z_p^3 / (|x_p| scale)``.
 - Lens. Our ideal thin lens (``AberratedLens`` without vignetting and aberrations) is
   Mitsuba's ``thinlens`` with ``aperture_radius = pupil_diameter / 2`` and the same focus
@@ -35,9 +35,9 @@ from types import ModuleType
 
 import numpy as np
 
-from sim.lens import AberratedLens, PinholeLens
-from sim.rig import DeviceCalibration
-from sim.scene import PlaneObject, Scene, SphereObject
+from sim.optics.lens import AberratedLens, PinholeLens
+from sim.optics.rig import DeviceCalibration
+from sim.render.scene import PlaneObject, Scene, SphereObject
 
 CV_TO_MITSUBA = np.diag([-1.0, -1.0, 1.0])  # OpenCV device axes -> Mitsuba's (x left, y up)
 PROJECTOR_ID = "projector"

@@ -3,9 +3,9 @@ renderer (Mitsuba 3), decoded and triangulated by our scanner pipeline, and the 
 
 Same scene as ``render_vs_mitsuba.py`` (``_bench_scene.py``): the 50.8007 mm sphere at 760 mm, a
 plane behind it, one 2048 x 1088 camera and one projector; 12 images (4-step phase shift at
-periods 1920, 240, 30 px). The images go through ``sim.reconstruct.reconstruct`` (``sim.phase``:
-wrapped phase, hierarchical unwrapping; ``sim.stereo.camera_projector_cloud``: camera against
-projector), the sphere is found with ``sim.metrology.find_spheres`` (RANSAC on the nominal
+periods 1920, 240, 30 px). The images go through ``sim.fpp.scan.reconstruct`` (``sim.fpp.phase``:
+wrapped phase, hierarchical unwrapping; ``sim.fpp.stereo.camera_projector_cloud``: camera against
+projector), the sphere is found with ``sim.metrology.spheres.find_spheres`` (RANSAC on the nominal
 radius, then the least-squares fit with outlier rejection) and compared with the truth.
 Our own renderer's images of the same scene go through the same pipeline for reference.
 
@@ -39,9 +39,9 @@ from _bench_scene import (  # noqa: E402
 )
 from _mitsuba_scene import MitsubaFringeRenderer, irradiance_scale_at, unavailable_reason  # noqa: E402
 
-from sim.metrology import find_spheres  # noqa: E402
-from sim.reconstruct import DecodeSettings, reconstruct  # noqa: E402
-from sim.render import (  # noqa: E402
+from sim.metrology.spheres import find_spheres  # noqa: E402
+from sim.fpp.scan import DecodeSettings, reconstruct  # noqa: E402
+from sim.render.images import (  # noqa: E402
     CameraResponse, ProjectorResponse, project_patterns, render_camera,
 )
 
@@ -97,9 +97,9 @@ def load_or_render(cfg: BenchConfig, images_dir: Path | None, case: str) -> np.n
 def report_markdown(rows: dict, cfg: BenchConfig, date: str, host: str) -> str:
     L = ["`benchmarks/reconstruct_mitsuba.py` (issue 6): the 12 images of the scene above, rendered "
          "by Mitsuba (and, for reference, by ours), go through our scanner pipeline "
-         "(`sim.reconstruct.reconstruct`: `sim.phase` wrapped phase and hierarchical unwrapping, "
-         "`sim.stereo.camera_projector_cloud` triangulation of the camera against the projector); "
-         "`sim.metrology.find_spheres` finds the sphere (RANSAC on the nominal radius, least-squares "
+         "(`sim.fpp.scan.reconstruct`: `sim.fpp.phase` wrapped phase and hierarchical unwrapping, "
+         "`sim.fpp.stereo.camera_projector_cloud` triangulation of the camera against the projector); "
+         "`sim.metrology.spheres.find_spheres` finds the sphere (RANSAC on the nominal radius, least-squares "
          "fit with 3-sigma outlier rejection). `--images DIR` reuses `render_vs_mitsuba.py --save DIR`.",
          "",
          f"Run of {date} on {host}. Nominal diameter {SPHERE_DIAMETER_MM} mm, centre at the world "

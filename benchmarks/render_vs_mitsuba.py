@@ -44,13 +44,13 @@ from _bench_scene import (  # noqa: E402
 from _mitsuba_scene import irradiance_scale_at, unavailable_reason  # noqa: E402
 from _render_report import compare, report_markdown, summarise  # noqa: E402
 
-from sim.render import (  # noqa: E402
+from sim.render.images import (  # noqa: E402
     CameraResponse, ProjectorResponse, RenderSettings, camera_response, project_patterns, render,
     render_camera,
 )
 from trace_throughput import record_queries, replay, summarise_queries  # noqa: E402
 
-from sim.trace import trace_camera  # noqa: E402
+from sim.render.trace import trace_camera  # noqa: E402
 
 REPLY = "@@bench "
 README = Path(__file__).resolve().parent / "README.md"

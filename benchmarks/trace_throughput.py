@@ -6,7 +6,7 @@ barycentrics and normal) plus the same shadow rays cast as occlusion queries
 (``query="OCCLUDED"`` with their far distances), in the same chunks, on the same number of
 threads. The rays are exactly the ones our tracer casts: one untimed ``trace_camera`` runs with
 the scene's Embree object wrapped in a recorder that keeps a copy of every query; the timed raw
-run replays those queries. The primary rays are also checked against ``sim.trace.camera_rays``.
+run replays those queries. The primary rays are also checked against ``sim.render.trace.camera_rays``.
 
 "Ours" is the wall time of the whole ``trace_camera`` call (ray generation, Embree, float64 hit
 refinement, shading, shadow rays, projector coordinates, bookkeeping into the ``Transport``).
@@ -44,7 +44,7 @@ from _bench_scene import (  # noqa: E402
     BenchConfig, band_pixels, bench_lens, bench_rig, bench_scene, machine,
 )
 
-from sim.trace import TraceGeometry, camera_rays, trace_camera  # noqa: E402
+from sim.render.trace import TraceGeometry, camera_rays, trace_camera  # noqa: E402
 
 README = Path(__file__).resolve().parent / "README.md"
 SECTION = "## Tracing throughput"

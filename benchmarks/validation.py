@@ -2,17 +2,17 @@
 the LTC station reproduce the "real" scanner better than a Gaussian defocus model, most of all at
 large defocus? (OPTICS.md section 1, "paper's result"; section 7, the Gaussian baseline.)
 
-* **Real scanner**: the FPP rig (``sim.rig.small_rig`` geometry without distortion, both
+* **Real scanner**: the FPP rig (``sim.optics.rig.small_rig`` geometry without distortion, both
   cameras cropped about the image centre to the measurement volume) rendered with the
-  ground-truth aberrated lens (``sim.lens.AberratedLens``: field-dependent vignetting,
+  ground-truth aberrated lens (``sim.optics.lens.AberratedLens``: field-dependent vignetting,
   spherical aberration) on both cameras, with many pupil samples.
 * **Measured lens**: the station run end to end on a fake bench whose camera *is* the rig's
-  camera (same K, sensor and ground-truth lens): ``station.acquire.acquire`` (Fourier SPI and
+  camera (same K, sensor and ground-truth lens): ``station.acquisition.acquire.acquire`` (Fourier SPI and
   localisation frames at several depths through the fake stage, LCD and noisy camera),
-  ``station.spi.reconstruct`` (per-pixel LTC) and ``station.lens_derive.derive_lens``
+  ``station.ltc.spi.reconstruct`` (per-pixel LTC) and ``station.lens.derive.derive_lens``
   (centroids, principal rays, optical centre placed with K, focus fitted from the LTC sizes,
   K aperture samples per node), saved and read back through the lens file
-  (``sim.measured_lens``).
+  (``sim.optics.measured_lens``).
 * **Virtual scanners**: the same rig rendered with (a) the measured lens, (b) the Gaussian
   baseline (OPTICS.md section 7): same ray geometry (the measured focus distance, as many
   samples), Gaussian aperture weights with the second moment of the measured LTC at the
@@ -20,10 +20,10 @@ large defocus? (OPTICS.md section 1, "paper's result"; section 7, the Gaussian b
   comparison, (d) the true lens itself with only as many samples as the measured one.
 * **Scenes**: the 50.8007 mm sphere near the focus distance (slight defocus) and far from it
   (large defocus). Same fringe patterns, no noise, same quantisation for every lens.
-* **Comparison**: each virtual cloud (``sim.reconstruct.reconstruct``, stereo) against the
-  real one, ``sim.cloud_compare.compare_clouds`` *without* ICP: all clouds share the rig's
+* **Comparison**: each virtual cloud (``sim.fpp.scan.reconstruct``, stereo) against the
+  real one, ``sim.metrology.compare.compare_clouds`` *without* ICP: all clouds share the rig's
   world frame, so a shift is a difference to report, not an alignment to remove. Mean and
-  RMSE of the signed distances; the sphere fit (``sim.metrology.fit_sphere``) of each cloud.
+  RMSE of the signed distances; the sphere fit (``sim.metrology.spheres.fit_sphere``) of each cloud.
 
 Run (about 5-6 minutes on 2 cores; ``--quick``: a reduced smoke run, under a minute)::
 
@@ -51,22 +51,22 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from sim.cloud_compare import compare_clouds
-from sim.fringe_patterns import PhaseShiftSet
-from sim.lens import AberratedLens, GaussianLens, LensModel, PinholeLens, sunflower_disk
-from sim.measured_lens import MeasuredLens, load_lens, save_lens
-from sim.metrology import fit_sphere
-from sim.reconstruct import reconstruct
-from sim.render import CameraResponse, ProjectorResponse, RenderSettings, render_views
-from sim.rig import DeviceCalibration, Rig, small_rig
-from sim.scene import Scene, SphereObject
-from sim.trace import TraceGeometry
-from station.acquire import acquire
-from station.centroids import open_ltc_volume
-from station.config import StationConfig
-from station.lens_derive import derive_lens
-from station.lens_fit import LensFitConfig
-from station.spi import reconstruct as reconstruct_ltc
+from sim.metrology.compare import compare_clouds
+from sim.render.fringe_patterns import PhaseShiftSet
+from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens, sunflower_disk
+from sim.optics.measured_lens import MeasuredLens, load_lens, save_lens
+from sim.metrology.spheres import fit_sphere
+from sim.fpp.scan import reconstruct
+from sim.render.images import CameraResponse, ProjectorResponse, RenderSettings, render_views
+from sim.optics.rig import DeviceCalibration, Rig, small_rig
+from sim.render.scene import Scene, SphereObject
+from sim.render.trace import TraceGeometry
+from station.acquisition.acquire import acquire
+from station.lens.centroids import open_ltc_volume
+from station.acquisition.config import StationConfig
+from station.lens.derive import derive_lens
+from station.lens.geometry import LensFitConfig
+from station.ltc.spi import reconstruct as reconstruct_ltc
 
 README = Path(__file__).resolve().with_name("README.md")
 SECTION = "## Validation: measured LTC vs Gaussian"
@@ -89,7 +89,7 @@ class ValidationConfig(BaseModel):
     """Everything the experiment depends on; the defaults are the benchmark's."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    scale: float = Field(0.2, gt=0, le=1, description="rig scale (sim.rig.small_rig): focal "
+    scale: float = Field(0.2, gt=0, le=1, description="rig scale (sim.optics.rig.small_rig): focal "
                          "lengths in pixels and the projector size times this")
     camera_size: tuple[int, int] = Field((224, 128), description="cropped camera sensor "
                                          "(width, height), px; principal point at its centre")
@@ -520,8 +520,8 @@ def readme_section(cfg: ValidationConfig, rows: list[dict], station: dict | None
         {cfg.focus_distance_mm:g} mm, vignetting shift {cfg.vignetting_shift_mm:g} mm per unit
         tan(field), spherical aberration {cfg.spherical_mm:g} mm, {cfg.truth_samples} pupil
         samples.""",
-        f"""**Measured lens**: the station run end to end (`station.acquire.acquire` ->
-        `station.spi.reconstruct` -> `station.lens_derive.derive_lens`, the library functions
+        f"""**Measured lens**: the station run end to end (`station.acquisition.acquire.acquire` ->
+        `station.ltc.spi.reconstruct` -> `station.lens.derive.derive_lens`, the library functions
         behind `ltc acquire / reconstruct / lens`) on a fake bench whose camera is the rig's
         camera (same K, sensor and true lens): LCD {cfg.lcd_size[0]} x {cfg.lcd_size[1]} at
         {cfg.lcd_pitch_mm:g} mm pitch, P = {cfg.period} ({cfg.steps}-step), LCD at {depths} mm
@@ -541,8 +541,8 @@ def readme_section(cfg: ValidationConfig, rows: list[dict], station: dict | None
         the focus distance and {n_large} far from it (x = 0; depth along camera 0's axis; defocus
         = depth - {cfg.focus_distance_mm:g} mm); 4-step fringes at periods
         {', '.join(f'{p:g}' for p in cfg.periods_px)} projector px, no noise, 12-bit
-        quantisation, the same for every lens; stereo reconstruction (`sim.reconstruct`). Each
-        virtual cloud against the real one with `sim.cloud_compare.compare_clouds(align=False)`:
+        quantisation, the same for every lens; stereo reconstruction (`sim.fpp.scan`). Each
+        virtual cloud against the real one with `sim.metrology.compare.compare_clouds(align=False)`:
         the clouds share the rig's world frame, so a shift is a difference to report, not an
         alignment to remove (ICP would hide a sphere's shift). Positive distance: the virtual
         cloud lies outside the real one.""",

@@ -9,9 +9,9 @@ import sys
 from pathlib import Path
 
 from drivers.interfaces import DeviceError
-from station.acquire import AcquisitionError, acquire
-from station.config import ConfigError, load_config
-from station.run_store import RunStoreError
+from station.acquisition.acquire import AcquisitionError, acquire
+from station.acquisition.config import ConfigError, load_config
+from station.acquisition.run_store import RunStoreError
 
 
 def register(sub: argparse._SubParsersAction) -> None:

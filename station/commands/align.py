@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 
 from drivers.interfaces import DeviceError
-from station.align import AlignError, format_align, run_align
-from station.config import ConfigError, load_config
+from station.acquisition.align import AlignError, format_align, run_align
+from station.acquisition.config import ConfigError, load_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:

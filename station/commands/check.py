@@ -7,8 +7,8 @@ import json
 import sys
 from pathlib import Path
 
-from station.check import format_report, run_check
-from station.config import ConfigError, example_config, load_config
+from station.acquisition.check import format_report, run_check
+from station.acquisition.config import ConfigError, example_config, load_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from station.config import ConfigError, example_text, load_config
+from station.acquisition.config import ConfigError, example_text, load_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:

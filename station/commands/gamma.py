@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from drivers.interfaces import DeviceError
-from station.config import ConfigError, load_config
-from station.gamma import GammaError, measure_lut, save_lut
+from station.acquisition.config import ConfigError, load_config
+from station.acquisition.gamma import GammaError, measure_lut, save_lut
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -1,8 +1,8 @@
 """``ltc lens LTC.zarr --out LENS.npz [--figures DIR] [--json] [--focus-mm Z] [--samples K]``.
 
-Derives the measured lens from an LTC store (``station.lens_derive``) and writes the lens
-model file (``sim.measured_lens``). The camera matrix comes from the store's
-``camera_matrix`` attribute or from ``--rig RIG --rig-camera NAME`` (``sim.rig`` file).
+Derives the measured lens from an LTC store (``station.lens.derive``) and writes the lens
+model file (``sim.optics.measured_lens``). The camera matrix comes from the store's
+``camera_matrix`` attribute or from ``--rig RIG --rig-camera NAME`` (``sim.optics.rig`` file).
 """
 
 from __future__ import annotations
@@ -15,15 +15,15 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
-from sim.measured_lens import LensFileError, save_lens
-from sim.rig import Rig
-from station.backend import fake_truth
-from station.centroids import LtcVolumeError, open_ltc_volume
-from station.lens_derive import derive_lens
-from station.lens_figures import write_figures
-from station.lens_fit import LensFitConfig, LensFitError
-from station.ltc_store import LtcStoreError, open_ltc_store
-from station.principal_rays import RayFitError
+from sim.optics.measured_lens import LensFileError, save_lens
+from sim.optics.rig import Rig
+from station.acquisition.backend import fake_truth
+from station.lens.centroids import LtcVolumeError, open_ltc_volume
+from station.lens.derive import derive_lens
+from station.lens.figures import write_figures
+from station.lens.geometry import LensFitConfig, LensFitError
+from station.ltc.store import LtcStoreError, open_ltc_store
+from station.lens.rays import RayFitError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -49,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--centre", choices=("auto", "pinhole", "rays"), default="auto",
                    help="optical centre: pinhole (needs K), principal-ray intersection, or "
                    "auto (pinhole when K is known)")
-    p.add_argument("--rig", type=Path, help="rig calibration (sim.rig JSON/YAML) giving K")
+    p.add_argument("--rig", type=Path, help="rig calibration (sim.optics.rig JSON/YAML) giving K")
     p.add_argument("--rig-camera", help="camera name in --rig (default: the first camera)")
     p.set_defaults(func=run)
 

@@ -23,14 +23,14 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from sim.cloud_compare import (
+from sim.metrology.compare import (
     compare_clouds,
     distance_colormap_png,
     icp,
     mesh_signed_distance,
 )
-from sim.cloud_io import read_ply
-from sim.metrology import find_spheres, fit_sphere, measure_ball_bar
+from sim.fpp.cloud import read_ply
+from sim.metrology.spheres import find_spheres, fit_sphere, measure_ball_bar
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -6,9 +6,9 @@ import argparse
 import json
 import sys
 
-from station.ltc_store import LtcStoreError
-from station.run_store import RunStoreError
-from station.spi import reconstruct
+from station.ltc.store import LtcStoreError
+from station.acquisition.run_store import RunStoreError
+from station.ltc.spi import reconstruct
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -5,7 +5,7 @@ Writes into DIR:
 - ``camera_<i>/pattern_<nnn>.png``: the images of camera i (8-bit PNG for 8 bits; 12 and 16 bits
   as 16-bit PNG holding the DN values unscaled, so 12-bit images keep 0..4095); none when the
   scene asks for unquantised images (``render.camera.quantize = false``);
-- ``render.zarr``: the same images plus the truth maps of every camera (``sim.render.write_zarr``:
+- ``render.zarr``: the same images plus the truth maps of every camera (``sim.render.images.write_zarr``:
   depth, projector coordinates, lit mask, object ids), the scene, rig and pattern descriptors in
   its attributes;
 - ``summary.json``: what was rendered, where it went, and how long it took.
@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.render import RenderResult, write_pngs, write_zarr
-from sim.scene import LoadedScene, load_scene_file
+from sim.render.images import RenderResult, write_pngs, write_zarr
+from sim.render.scene import LoadedScene, load_scene_file
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -31,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="render fringe images of a scene file with the virtual scanner",
         description=__doc__.split("\n\n")[0],
     )
-    p.add_argument("scene", type=Path, help="scene file (TOML, see sim.scene)")
+    p.add_argument("scene", type=Path, help="scene file (TOML, see sim.render.scene)")
     p.add_argument("--out", type=Path, required=True, help="output directory (created)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

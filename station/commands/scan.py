@@ -8,7 +8,7 @@ IMAGES is one of:
 - a zarr stack (``render.zarr``): groups ``camera_<i>`` with ``images`` (n, H, W), the pattern set
   in the root attributes (``summary.pattern_set``);
 - any folder with ``camera_0/`` and ``camera_1/`` of PNG or TIFF images (sorted by name), with the
-  pattern set given by ``--patterns`` (a JSON file of a ``sim.fringe_patterns`` set).
+  pattern set given by ``--patterns`` (a JSON file of a ``sim.render.fringe_patterns`` set).
 
 Stereo between the rig's two cameras by default; ``--camera i`` triangulates camera i against
 the projector instead.
@@ -27,10 +27,10 @@ import numpy as np
 import zarr
 from pydantic import TypeAdapter, ValidationError
 
-from sim.cloud_io import write_ply
-from sim.fringe_patterns import PatternSet
-from sim.reconstruct import DecodeSettings, reconstruct
-from sim.rig import Rig, format_validation_error
+from sim.fpp.cloud import write_ply
+from sim.render.fringe_patterns import PatternSet
+from sim.fpp.scan import DecodeSettings, reconstruct
+from sim.optics.rig import Rig, format_validation_error
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
 

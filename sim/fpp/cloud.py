@@ -1,0 +1,121 @@
+"""Point clouds as PLY files: points, optional normals and a per-point quality.
+
+Written as ``binary_little_endian`` with ``double x y z``, ``float nx ny nz`` and
+``float quality`` (double coordinates keep sub-micrometre detail far from the origin). Read:
+ASCII and binary PLY (either endianness) whose first element is ``vertex`` with scalar
+properties ``x y z`` (any numeric type) and optionally ``nx ny nz`` and ``quality``; any
+later elements (faces) are ignored. Lengths in mm.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sim.fpp.stereo import PointCloud
+
+PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
+
+
+def write_ply(path: str | Path, cloud: PointCloud) -> None:
+    """Write ``cloud`` (points (n, 3), optional normals (n, 3) and quality (n,)) as binary PLY."""
+    pts = np.asarray(cloud.points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"write_ply {path}: points must be (n, 3), got shape {pts.shape}")
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}
+    if cloud.normals is not None:
+        n = np.asarray(cloud.normals)
+        if n.shape != pts.shape:
+            raise ValueError(f"write_ply {path}: normals have shape {n.shape}, points {pts.shape}")
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+        cols.update(nx=n[:, 0], ny=n[:, 1], nz=n[:, 2])
+    if cloud.quality is not None:
+        q = np.asarray(cloud.quality).ravel()
+        if len(q) != len(pts):
+            raise ValueError(f"write_ply {path}: {len(q)} quality values for {len(pts)} points")
+        fields.append(("quality", "<f4"))
+        cols["quality"] = q
+    rec = np.empty(len(pts), dtype=fields)
+    for name, _ in fields:
+        rec[name] = cols[name]
+    names = {"<f8": "double", "<f4": "float"}
+    header = ["ply", "format binary_little_endian 1.0", "comment written by sim.fpp.cloud",
+              f"element vertex {len(pts)}"]
+    header += [f"property {names[t]} {name}" for name, t in fields]
+    header.append("end_header")
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(rec.tobytes())
+
+
+def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
+    if f.readline().strip() != b"ply":
+        raise ValueError(f"{path}: not a PLY file (no 'ply' magic line)")
+    fmt, count, props, element = None, None, [], None
+    while True:
+        line = f.readline()
+        if not line:
+            raise ValueError(f"{path}: PLY header has no end_header")
+        words = line.decode("ascii", errors="replace").split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "end_header":
+            break
+        if words[0] == "format":
+            fmt = words[1] if len(words) > 1 else ""
+            if fmt not in FORMATS:
+                raise ValueError(f"{path}: unknown PLY format '{fmt}'")
+        elif words[0] == "element":
+            if element is None and words[1] != "vertex":
+                raise ValueError(f"{path}: the first PLY element must be 'vertex', got '{words[1]}'")
+            element = words[1]
+            if element == "vertex":
+                count = int(words[2])
+        elif words[0] == "property" and element == "vertex":
+            if words[1] == "list":
+                raise ValueError(f"{path}: list property '{words[-1]}' in the vertex element")
+            if words[1] not in PLY_TYPES:
+                raise ValueError(f"{path}: unknown PLY type '{words[1]}' of property '{words[2]}'")
+            props.append((words[2], PLY_TYPES[words[1]]))
+    if fmt is None or count is None:
+        raise ValueError(f"{path}: PLY header lacks a format line or a vertex element")
+    return fmt, count, props
+
+
+def read_ply(path: str | Path) -> PointCloud:
+    """Read a PLY point cloud (see the module docstring)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"point cloud {path} not found")
+    with open(path, "rb") as f:
+        fmt, count, props = _parse_header(f, path)
+        names = [n for n, _ in props]
+        if not {"x", "y", "z"} <= set(names):
+            raise ValueError(f"{path}: the vertex element needs properties x, y and z, has {names}")
+        if FORMATS[fmt] is None:
+            rows = [f.readline().split() for _ in range(count)]
+            try:
+                data = np.array(rows, dtype=np.float64)
+            except ValueError as exc:
+                raise ValueError(f"{path}: malformed ASCII vertex rows: {exc}") from exc
+            if data.shape != (count, len(props)):
+                raise ValueError(f"{path}: expected {count} vertex rows of {len(props)} values")
+            col = {n: data[:, i] for i, n in enumerate(names)}
+        else:
+            dt = np.dtype([(n, FORMATS[fmt] + t) for n, t in props])
+            raw = f.read(dt.itemsize * count)
+            if len(raw) < dt.itemsize * count:
+                raise ValueError(f"{path}: file ends after {len(raw) // dt.itemsize} of {count} vertices")
+            rec = np.frombuffer(raw, dtype=dt)
+            col = {n: rec[n].astype(np.float64) for n in names}
+    pts = np.stack([col["x"], col["y"], col["z"]], axis=1)
+    normals = np.stack([col["nx"], col["ny"], col["nz"]], axis=1) if {"nx", "ny", "nz"} <= set(col) else None
+    return PointCloud(pts, normals, col.get("quality"))

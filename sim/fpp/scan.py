@@ -1,0 +1,249 @@
+"""From fringe images to projector-coordinate maps and point clouds (the scanner's pipeline).
+
+``decode_view`` turns one camera's image stack, taken with a ``sim.render.fringe_patterns`` set, into
+per-axis projector-coordinate maps (NaN where invalid) and a modulation map; ``reconstruct``
+matches the two cameras of a rig (``sim.fpp.stereo.stereo_cloud``) or triangulates one camera
+against the projector (``sim.fpp.stereo.camera_projector_cloud``).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from sim.render.fringe_patterns import GrayCodeSet, PatternDescriptor, PhaseShiftSet
+from sim.fpp.phase import (
+    absolute_phase_to_projector,
+    gray_bits,
+    gray_to_index,
+    quality_mask,
+    unwrap_gray_code,
+    unwrap_heterodyne,
+    unwrap_hierarchical,
+    wrapped_phase,
+)
+from sim.optics.rig import DeviceCalibration, Rig
+from sim.fpp.stereo import PointCloud, camera_projector_cloud, grid_normals, stereo_cloud
+
+EDGE_MARGIN_PX = 0.5  # decoded coordinates this close to the outer pixel centres are dropped
+
+
+class DecodeSettings(BaseModel):
+    """How fringe images are decoded and matched."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    min_modulation: float = Field(
+        2.0, ge=0, description="smallest fringe amplitude B kept, image units (DN)"
+    )
+    min_modulation_fraction: float = Field(
+        0.05, ge=0, lt=1,
+        description="smallest B kept as a fraction of the 99th percentile of B over the image",
+    )
+    min_contrast: float = Field(0.0, ge=0, description="smallest B / A kept")
+    saturation: float | None = Field(
+        None, gt=0, description="pixels reaching this value in any image are dropped, image units"
+    )
+    unwrap: Literal["auto", "hierarchical", "heterodyne"] = Field(
+        "auto",
+        description="temporal unwrapping of phase-shift sets: auto picks hierarchical when the "
+        "longest period covers the projector, else heterodyne",
+    )
+    max_order_error: float = Field(
+        0.4, gt=0, le=0.5,
+        description="pixels whose temporal unwrapping missed the chosen fringe order by more "
+        "than this fraction of a fringe are dropped (Gray code: right ones reach 0.25)",
+    )
+    max_projector_error_px: float = Field(
+        0.5, gt=0, description="stereo points must reproject into the projector this close, px"
+    )
+    interpolation_order: Literal[1, 3] = Field(
+        3, description="phase-map interpolation in stereo matching: 1 linear, 3 cubic"
+    )
+
+
+@dataclass(frozen=True)
+class DecodedView:
+    """One camera's decoded images: ``coord[axis]`` (H, W) projector coordinate in pixels along
+    'u' (columns) and/or 'v' (rows), NaN where invalid; ``modulation`` (H, W) the smallest
+    fringe amplitude over the phase sets, image units."""
+
+    coord: dict[str, np.ndarray]
+    modulation: np.ndarray
+
+
+def _check_stack(images: np.ndarray, descs: list[PatternDescriptor], where: str) -> np.ndarray:
+    images = np.asarray(images)
+    if images.ndim != 3:
+        raise ValueError(f"{where}: images must be a stack (n, H, W), got shape {images.shape}")
+    if len(images) != len(descs):
+        raise ValueError(
+            f"{where}: {len(images)} images, but the pattern set has {len(descs)} patterns"
+        )
+    return images
+
+
+def _threshold(mod: np.ndarray, settings: DecodeSettings, where: str) -> float:
+    top = float(np.percentile(mod, 99))
+    thr = max(settings.min_modulation, settings.min_modulation_fraction * top)
+    if not np.any(mod >= thr) or top <= 0:
+        raise ValueError(
+            f"{where}: no pixel has a fringe modulation of {thr:g} or more (largest "
+            f"{float(mod.max()):g}): the images are dark or show no fringes"
+        )
+    return thr
+
+
+def _valid(wps, images, settings: DecodeSettings, where: str) -> tuple[np.ndarray, np.ndarray]:
+    mod = np.min([w.modulation for w in wps], axis=0)
+    thr = _threshold(mod, settings, where)
+    peak = images.max(axis=0) if settings.saturation is not None else None
+    ok = np.ones(mod.shape, dtype=bool)
+    for w in wps:
+        ok &= quality_mask(w, thr, settings.min_contrast, settings.saturation, peak)
+    return ok, mod
+
+
+def _decode_phase_shift(images, descs, ps: PhaseShiftSet, size, settings, where):
+    groups: dict[tuple[str, float], list[int]] = defaultdict(list)
+    for d in sorted(descs, key=lambda d: d.shift or 0):
+        groups[(d.direction, d.period_px)].append(d.index)
+    coord, wps_all = {}, []
+    for axis in sorted({a for a, _ in groups}):
+        extent = size[0] if axis == "u" else size[1]
+        periods = [p for a, p in groups if a == axis]
+        wps = [wrapped_phase(images[groups[(axis, p)]]) for p in periods]
+        wps_all += wps
+        method = settings.unwrap
+        if method == "auto":
+            method = "hierarchical" if max(periods) >= extent else "heterodyne"
+        if method == "hierarchical":
+            if max(periods) < extent:
+                raise ValueError(
+                    f"{where}: hierarchical unwrapping needs a period of at least {extent} px "
+                    f"(the projector along '{axis}'), the longest is {max(periods):g} px"
+                )
+            absph, oerr = unwrap_hierarchical([w.phase for w in wps], periods, extent, True)
+        else:
+            if len(periods) not in (2, 3):
+                raise ValueError(
+                    f"{where}: {len(periods)} period(s) along '{axis}' cannot be unwrapped: "
+                    f"use one period >= {extent} px or 2-3 periods for heterodyne"
+                )
+            absph, oerr = unwrap_heterodyne([w.phase for w in wps], periods, extent, True)
+        c = absolute_phase_to_projector(absph, min(periods))
+        coord[axis] = np.where(oerr <= settings.max_order_error, c, np.nan)
+    return coord, wps_all
+
+
+def _indices(descs: list[PatternDescriptor], kind: str) -> list[int]:
+    """Image indices of the patterns of one kind, by bit plane then shift."""
+    sel = [d for d in descs if d.kind == kind]
+    sel.sort(key=lambda d: (d.bit or 0, d.shift or 0))
+    return [d.index for d in sel]
+
+
+def _decode_gray(images, descs, gs: GrayCodeSet, settings, where):
+    coord, wps_all = {}, []
+    for axis in sorted({d.direction for d in descs}):
+        mine = [d for d in descs if d.direction == axis]
+        wp = wrapped_phase(images[_indices(mine, "phase")])
+        wps_all.append(wp)
+        gray = images[_indices(mine, "gray")]
+        if gs.inverse:
+            bits = gray_bits(gray, inverse=images[_indices(mine, "gray_inverse")])
+        elif gs.references:
+            white = images[_indices(mine, "white")[0]].astype(np.float64)
+            bits = gray_bits(gray, threshold=0.5 * (white + images[_indices(mine, "black")[0]]))
+        else:
+            bits = gray_bits(gray, threshold=wp.offset)
+        absph, oerr = unwrap_gray_code(
+            wp.phase, gs.period_px, gray_to_index(bits), gs.stripe_width, return_order_error=True
+        )
+        c = absolute_phase_to_projector(absph, gs.period_px)
+        coord[axis] = np.where(oerr <= settings.max_order_error, c, np.nan)
+    return coord, wps_all
+
+
+def decode_view(
+    images: np.ndarray,
+    patterns: PhaseShiftSet | GrayCodeSet,
+    projector_size: tuple[int, int],
+    settings: DecodeSettings | None = None,
+    where: str = "images",
+) -> DecodedView:
+    """Decode one camera's image stack (n, H, W) taken with ``patterns`` on a projector of
+    ``projector_size`` (width, height). Errors name ``where``."""
+    settings = settings or DecodeSettings()
+    descs = patterns.descriptors(projector_size)
+    images = _check_stack(images, descs, where)
+    if isinstance(patterns, GrayCodeSet):
+        coord, wps = _decode_gray(images, descs, patterns, settings, where)
+    else:
+        coord, wps = _decode_phase_shift(images, descs, patterns, projector_size, settings, where)
+    ok, mod = _valid(wps, images, settings, where)
+    for axis, c in coord.items():
+        extent = projector_size[0] if axis == "u" else projector_size[1]
+        # outside the edge pixels' centres the pattern stops varying and the phase is wrong
+        inside = (c >= EDGE_MARGIN_PX) & (c <= extent - 1 - EDGE_MARGIN_PX)
+        coord[axis] = np.where(ok & inside, c, np.nan)
+    return DecodedView(coord, mod)
+
+
+def _check_camera(view_images: np.ndarray, cam: DeviceCalibration, where: str) -> None:
+    h, w = np.shape(view_images)[1:]
+    if (w, h) != tuple(cam.size):
+        raise ValueError(
+            f"{where}: images are {w} x {h} pixels but the rig's camera '{cam.name}' is "
+            f"{cam.size[0]} x {cam.size[1]}; is the rig file for these images?"
+        )
+
+
+def reconstruct(
+    images: list[np.ndarray],
+    patterns: PhaseShiftSet | GrayCodeSet,
+    rig: Rig,
+    settings: DecodeSettings | None = None,
+    camera: int | None = None,
+) -> PointCloud:
+    """Point cloud (world frame, mm) from the image stacks (n, H, W) of the rig's cameras.
+
+    ``camera=None``: stereo between cameras 0 and 1 (both stacks needed); ``camera=i``:
+    camera i against the projector (``images`` may hold just that camera's stack).
+    """
+    settings = settings or DecodeSettings()
+    psize = tuple(rig.projector.size)
+    if camera is None:
+        if len(images) != 2:
+            raise ValueError(f"stereo needs the image stacks of 2 cameras, got {len(images)}")
+        for i in range(2):
+            _check_camera(images[i], rig.cameras[i], f"camera {i}")
+        if np.shape(images[0])[0] != np.shape(images[1])[0]:
+            raise ValueError(
+                f"camera 0 has {np.shape(images[0])[0]} images, camera 1 has "
+                f"{np.shape(images[1])[0]}: the stacks must match"
+            )
+        views = [decode_view(images[i], patterns, psize, settings, f"camera {i}") for i in range(2)]
+        if "u" not in views[0].coord:
+            raise ValueError("stereo matching needs fringes along 'u' (projector columns)")
+        return stereo_cloud(
+            views[0].coord["u"], views[1].coord["u"], rig.cameras[0], rig.cameras[1],
+            projector=rig.projector, max_projector_error_px=settings.max_projector_error_px,
+            quality1=views[0].modulation, order=settings.interpolation_order,
+        )
+    if not 0 <= camera < len(rig.cameras):
+        raise ValueError(f"camera must be 0 or 1, got {camera}")
+    stack = images[camera] if len(images) == len(rig.cameras) else images[0]
+    cam = rig.cameras[camera]
+    _check_camera(stack, cam, f"camera {camera}")
+    view = decode_view(stack, patterns, psize, settings, f"camera {camera}")
+    axis = "u" if "u" in view.coord else "v"
+    pts, uv = camera_projector_cloud(view.coord[axis], cam, rig.projector, axis)
+    grid = np.full((cam.height, cam.width, 3), np.nan)
+    iu, iv = uv[:, 0].astype(int), uv[:, 1].astype(int)
+    grid[iv, iu] = pts
+    normals = grid_normals(grid, cam.centre_world)[iv, iu]
+    return PointCloud(pts, normals, view.modulation[iv, iu])

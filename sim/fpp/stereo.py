@@ -1,0 +1,373 @@
+"""Stereo correspondence by equal projector coordinate along epipolar lines, and triangulation.
+
+Both cameras' absolute phase maps (as projector coordinates ``u_p``, NaN where invalid) are
+resampled onto a rectified grid: ``cv2.stereoRectify`` gives the rotations and projection
+matrices; the maps (``cv2.initUndistortRectifyMap``'s) are computed here in float64 and
+sampled with cubic interpolation and NaN propagation, because ``cv2.remap`` quantises its
+interpolation weights to 1/32 pixel and its maps are float32. For every rectified
+left pixel the right row is searched for the sub-pixel position with the same ``u_p``
+(cubic interpolation around the crossing), and the pair is triangulated in the rectified
+frame (linear least squares, as ``cv2.triangulatePoints``), then moved to the world frame.
+
+Where a right row holds the left value more than once (depth steps, folds) the candidate whose
+triangulated point projects into the projector closest to ``u_p`` wins when the projector
+calibration is given; otherwise such pixels are dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from sim.optics.projection import camera_to_world, project_points
+from sim.optics.rig import DeviceCalibration
+
+
+@dataclass(frozen=True)
+class Rectification:
+    """Rectified stereo geometry.
+
+    R1, R2 : (3, 3) rotations from each camera's frame to its rectified frame.
+    P1, P2 : (3, 4) projection matrices of the rectified cameras (rectified camera-1 frame).
+    rows : (2,) int, first and last rectified row of the common grid.
+    cols1, cols2 : (2,) int, first and last rectified column of each camera's grid.
+    """
+
+    R1: np.ndarray
+    R2: np.ndarray
+    P1: np.ndarray
+    P2: np.ndarray
+    rows: tuple[int, int]
+    cols1: tuple[int, int]
+    cols2: tuple[int, int]
+
+
+@dataclass(frozen=True)
+class PointCloud:
+    """Points (n, 3) mm in the world frame, with optional unit normals (n, 3) and quality (n,)."""
+
+    points: np.ndarray
+    normals: np.ndarray | None = None
+    quality: np.ndarray | None = None
+
+
+def relative_pose(cam1: DeviceCalibration, cam2: DeviceCalibration) -> tuple[np.ndarray, np.ndarray]:
+    """``R, T`` taking camera-1 coordinates to camera-2 coordinates (OpenCV ``stereoCalibrate``)."""
+    r = cam2.R_array @ cam1.R_array.T
+    return r, cam2.T_array - r @ cam1.T_array
+
+
+def _to_rectified(uv: np.ndarray, cam: DeviceCalibration, r: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Rectified pixel coordinates (n, 2) of original pixels (n, 2)."""
+    xy = cam.normalized(uv)
+    ray = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ r.T @ p[:, :3].T
+    return ray[:, :2] / ray[:, 2:3]
+
+
+def _bounds(valid: np.ndarray, cam: DeviceCalibration, r: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Rectified bounding box ``[[x0, y0], [x1, y1]]`` of the valid pixels."""
+    v, u = np.nonzero(valid)
+    xy = _to_rectified(np.stack([u, v], axis=1), cam, r, p)
+    return np.stack([np.floor(xy.min(axis=0)) - 1, np.ceil(xy.max(axis=0)) + 1]).astype(int)
+
+
+def stereo_rectification(
+    cam1: DeviceCalibration, cam2: DeviceCalibration, valid1: np.ndarray, valid2: np.ndarray
+) -> Rectification:
+    """Rectify the pair (``cv2.stereoRectify``, zero disparity at infinity) and size a grid that
+    covers the valid pixels ``valid1`` (H1, W1) and ``valid2`` (H2, W2) bool."""
+    for cam, valid in ((cam1, valid1), (cam2, valid2)):
+        if valid.shape != (cam.height, cam.width):
+            raise ValueError(
+                f"camera '{cam.name}': phase map is {valid.shape[1]} x {valid.shape[0]} pixels "
+                f"but its calibration is for {cam.width} x {cam.height}"
+            )
+        if not valid.any():
+            raise ValueError(f"camera '{cam.name}': no valid pixels to match")
+    r, t = relative_pose(cam1, cam2)
+    r1, r2, p1, p2, *_ = cv2.stereoRectify(
+        cam1.K_array, cam1.dist_array, cam2.K_array, cam2.dist_array, cam1.size, r, t.reshape(3, 1),
+        flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1,
+    )
+    if abs(p2[1, 3]) > abs(p2[0, 3]):
+        raise ValueError("the cameras are displaced vertically; only horizontal stereo is supported")
+    b1, b2 = _bounds(valid1, cam1, r1, p1), _bounds(valid2, cam2, r2, p2)
+    rows = (int(max(b1[0, 1], b2[0, 1])), int(min(b1[1, 1], b2[1, 1])))
+    if rows[1] < rows[0]:
+        raise ValueError("the two cameras' valid regions share no epipolar lines")
+    return Rectification(
+        r1, r2, p1, p2, rows, (int(b1[0, 0]), int(b1[1, 0])), (int(b2[0, 0]), int(b2[1, 0]))
+    )
+
+
+def rectify_map(
+    cam: DeviceCalibration, r_rect: np.ndarray, p_rect: np.ndarray, cols: tuple[int, int],
+    rows: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Source pixel ``(map_u, map_v)``, each (rows, cols) float64, of every rectified pixel
+    ``(x, y)`` with x in ``cols`` and y in ``rows`` (inclusive): what
+    ``cv2.initUndistortRectifyMap`` computes, in float64."""
+    x = np.arange(cols[0], cols[1] + 1, dtype=np.float64)
+    y = np.arange(rows[0], rows[1] + 1, dtype=np.float64)
+    xx, yy = np.meshgrid(x, y)
+    k_inv = np.linalg.inv(p_rect[:, :3])
+    rays = np.stack([xx.ravel(), yy.ravel(), np.ones(xx.size)], axis=1) @ k_inv.T
+    rays = rays @ r_rect  # rectified frame -> camera frame: R^T d
+    uv = project_points(rays, cam.K_array, cam.dist_array, np.eye(3), np.zeros(3))
+    return uv[:, 0].reshape(xx.shape), uv[:, 1].reshape(xx.shape)
+
+
+def _cubic_weights(t: np.ndarray) -> np.ndarray:
+    """Cubic Lagrange weights (..., 4) of the nodes -1, 0, 1, 2 at fraction ``t`` (...)."""
+    return np.stack(
+        [
+            -t * (t - 1) * (t - 2) / 6,
+            (t + 1) * (t - 1) * (t - 2) / 2,
+            -(t + 1) * t * (t - 2) / 2,
+            (t + 1) * t * (t - 1) / 6,
+        ],
+        axis=-1,
+    )
+
+
+def sample_image(
+    image: np.ndarray, map_u: np.ndarray, map_v: np.ndarray, order: int = 3
+) -> np.ndarray:
+    """Samples of ``image`` (H, W) at ``(map_u, map_v)`` (any shape): bilinear (``order=1``)
+    or separable cubic Lagrange over 4 x 4 pixels (``order=3``, exact for cubic surfaces).
+    NaN where any pixel of the stencil is NaN or outside the image."""
+    if order not in (1, 3):
+        raise ValueError(f"interpolation order must be 1 or 3, got {order}")
+    img = np.asarray(image, dtype=np.float64)
+    h, w = img.shape
+    u0, v0 = np.floor(map_u), np.floor(map_v)
+    lo, hi = (0, 1) if order == 1 else (-1, 2)
+    inside = (u0 + lo >= 0) & (v0 + lo >= 0) & (u0 + hi <= w - 1) & (v0 + hi <= h - 1)
+    iu = np.where(inside, u0, -lo).astype(np.int64)
+    iv = np.where(inside, v0, -lo).astype(np.int64)
+    fu, fv = map_u - u0, map_v - v0
+    if order == 1:
+        wu = np.stack([1 - fu, fu], axis=-1)
+        wv = np.stack([1 - fv, fv], axis=-1)
+    else:
+        wu, wv = _cubic_weights(fu), _cubic_weights(fv)
+    out = np.zeros(np.shape(map_u))
+    for a in range(hi - lo + 1):
+        row = np.zeros(np.shape(map_u))
+        for b in range(hi - lo + 1):
+            row += wu[..., b] * img[iv + lo + a, iu + lo + b]
+        out += wv[..., a] * row
+    return np.where(inside, out, np.nan)
+
+
+def _refine_cubic(key: np.ndarray, k: np.ndarray, t: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Newton refinement of the crossing ``t`` in [0, 1] of interval ``k`` of the monotone
+    values ``key`` on the cubic through ``key[k-1 .. k+2]`` (linear ``t`` where it is absent)."""
+    has = (k >= 1) & (k + 2 <= len(key) - 1)
+    kk = np.clip(k, 1, max(len(key) - 3, 1))
+    if len(key) < 4 or not has.any():
+        return t
+    nodes = np.stack([key[kk - 1], key[kk], key[kk + 1], key[kk + 2]], axis=1)
+    tt = t.copy()
+    for _ in range(4):
+        f = np.sum(_cubic_weights(tt) * nodes, axis=1) - q
+        eps = 1e-6
+        df = (np.sum(_cubic_weights(tt + eps) * nodes, axis=1) - q - f) / eps
+        tt = np.clip(tt - f / np.where(df > 0, df, np.inf), 0.0, 1.0)
+    return np.where(has, tt, t)
+
+
+def match_row(
+    left: np.ndarray, right: np.ndarray, order: int = 3
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Sub-pixel positions in ``right`` (W_r,) where it takes each value of ``left`` (W_l,).
+
+    The right row is split into monotone runs of finite values; inside a run the crossing is
+    found by binary search and refined by linear (``order=1``) or cubic Lagrange (``order=3``,
+    over the 4 values around the crossing) interpolation. Returns one ``(j_left, x_right)``
+    pair of arrays per run (``x_right`` in right-row index units).
+    """
+    out: list[tuple[np.ndarray, np.ndarray]] = []
+    jl = np.flatnonzero(np.isfinite(left))
+    if len(jl) == 0:
+        return out
+    q = left[jl]
+    step = np.diff(right)
+    slope = np.sign(step)
+    usable = np.flatnonzero(np.isfinite(step) & (slope != 0))
+    if len(usable) == 0:
+        return out
+    cut = np.flatnonzero((np.diff(usable) != 1) | (np.diff(slope[usable]) != 0)) + 1
+    for run in np.split(usable, cut):
+        s, e = int(run[0]), int(run[-1]) + 1  # monotone values right[s..e]
+        vals = right[s : e + 1]
+        sign = slope[s]
+        key = vals if sign > 0 else -vals  # ascending either way
+        qq = q if sign > 0 else -q
+        k = np.searchsorted(key, qq, side="right") - 1
+        k = np.where(qq == key[-1], len(key) - 2, k)
+        ok = (k >= 0) & (k <= len(key) - 2)
+        k = k[ok]
+        t = (qq[ok] - key[k]) / (key[k + 1] - key[k])
+        if order == 3:
+            t = _refine_cubic(key, k, t, qq[ok])
+        out.append((jl[ok], s + k + t))
+    return out
+
+
+def triangulate(p1: np.ndarray, p2: np.ndarray, xy1: np.ndarray, xy2: np.ndarray) -> np.ndarray:
+    """Points (n, 3) from pixel pairs (n, 2) of two cameras with projection matrices (3, 4):
+    linear least squares on the four DLT equations ``x P[2] - P[0] = 0``, ``y P[2] - P[1] = 0``
+    (the inhomogeneous form of ``cv2.triangulatePoints``, vectorised; exact for consistent pairs)."""
+    rows = np.stack([
+        xy1[:, :1] * p1[2] - p1[0], xy1[:, 1:] * p1[2] - p1[1],
+        xy2[:, :1] * p2[2] - p2[0], xy2[:, 1:] * p2[2] - p2[1],
+    ], axis=1)  # (n, 4, 4)
+    a, b = rows[..., :3], -rows[..., 3]
+    ata = np.einsum("nki,nkj->nij", a, a)
+    return np.linalg.solve(ata, np.einsum("nki,nk->ni", a, b)[..., None])[..., 0]
+
+
+def _grid_diff(grid: np.ndarray, axis: int) -> np.ndarray:
+    """Difference of neighbours along ``axis`` (0 rows, 1 columns): central where both exist,
+    else one-sided, scaled to one grid step; NaN where a point has no neighbour."""
+    g = np.moveaxis(grid, axis, 0)
+    fwd = np.full_like(g, np.nan)
+    bwd = np.full_like(g, np.nan)
+    fwd[:-1] = g[1:] - g[:-1]
+    bwd[1:] = g[1:] - g[:-1]
+    d = 0.5 * (fwd + bwd)
+    d = np.where(np.isnan(d), fwd, d)
+    d = np.where(np.isnan(d), bwd, d)
+    return np.moveaxis(d, 0, axis)
+
+
+def grid_normals(grid: np.ndarray, towards: np.ndarray) -> np.ndarray:
+    """Unit normals (H, W, 3) of an organised cloud (H, W, 3) (NaN where missing) from neighbour
+    differences, oriented to face the point ``towards`` (3,) (the camera centre); NaN for
+    points without a neighbour along rows or columns."""
+    n = np.cross(_grid_diff(grid, 1), _grid_diff(grid, 0))
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    flip = np.sum(n * (towards - grid), axis=2) < 0
+    n[flip] *= -1
+    return n
+
+
+def stereo_cloud(
+    coord1: np.ndarray,
+    coord2: np.ndarray,
+    cam1: DeviceCalibration,
+    cam2: DeviceCalibration,
+    projector: DeviceCalibration | None = None,
+    axis: str = "u",
+    max_projector_error_px: float = 0.5,
+    quality1: np.ndarray | None = None,
+    order: int = 3,
+) -> PointCloud:
+    """Point cloud from the projector-coordinate maps (H, W) of two cameras (NaN = invalid).
+
+    projector : its calibration resolves ambiguous matches and rejects points that reproject
+        further than ``max_projector_error_px`` from the measured coordinate along ``axis``.
+    quality1 : optional (H1, W1) per-pixel quality of camera 1 (e.g. modulation), sampled
+        like the phase onto the rectified grid and returned per point.
+    order : interpolation of the phase maps, 1 linear or 3 cubic (see ``sample_image``).
+    Returns points in the world frame with normals (facing camera 1) and quality.
+    """
+    for cam, c in ((cam1, coord1), (cam2, coord2)):
+        if np.shape(c) != (cam.height, cam.width):
+            raise ValueError(
+                f"camera '{cam.name}': projector-coordinate map has shape {np.shape(c)}, "
+                f"its calibration expects (height, width) = ({cam.height}, {cam.width})"
+            )
+    rect = stereo_rectification(cam1, cam2, np.isfinite(coord1), np.isfinite(coord2))
+    mu1, mv1 = rectify_map(cam1, rect.R1, rect.P1, rect.cols1, rect.rows)
+    mu2, mv2 = rectify_map(cam2, rect.R2, rect.P2, rect.cols2, rect.rows)
+    left = sample_image(coord1, mu1, mv1, order)
+    right = sample_image(coord2, mu2, mv2, order)
+    rows_i, jl_all, xr_all = [], [], []
+    for i in range(left.shape[0]):
+        for jl, xr in match_row(left[i], right[i], order):
+            rows_i.append(np.full(len(jl), i))
+            jl_all.append(jl)
+            xr_all.append(xr)
+    ri = np.concatenate(rows_i) if rows_i else np.zeros(0, dtype=np.int64)
+    if len(ri) == 0:
+        raise ValueError("stereo matching found no pixel with the same projector coordinate in both cameras")
+    jl, xr = np.concatenate(jl_all), np.concatenate(xr_all)
+    y = rect.rows[0] + ri.astype(np.float64)
+    xy1 = np.stack([rect.cols1[0] + jl.astype(np.float64), y], axis=1)
+    xy2 = np.stack([rect.cols2[0] + xr, y], axis=1)
+    pts_cam1 = triangulate(rect.P1, rect.P2, xy1, xy2) @ rect.R1  # rectified -> camera 1
+    world = camera_to_world(pts_cam1, cam1.R_array, cam1.T_array)
+    measured = left[ri, jl]
+    keep = np.ones(len(world), dtype=bool)
+    if projector is not None:
+        k = 0 if axis == "u" else 1
+        err = np.abs(projector.project(world)[:, k] - measured)
+        keep = err <= max_projector_error_px
+        err = np.where(keep, err, np.inf)
+    else:
+        err = np.zeros(len(world))
+    # one point per left pixel: the best candidate, or none when ambiguous without a projector
+    flat = ri * left.shape[1] + jl
+    ranked = np.lexsort((err, flat))
+    first = np.r_[True, np.diff(flat[ranked]) != 0]
+    counts = np.diff(np.r_[np.flatnonzero(first), len(ranked)])
+    chosen = ranked[first]
+    if projector is None:
+        chosen = chosen[counts == 1]
+    chosen = chosen[keep[chosen]]
+    grid = np.full(left.shape + (3,), np.nan)
+    grid[ri[chosen], jl[chosen]] = world[chosen]
+    normals = grid_normals(grid, cam1.centre_world)[ri[chosen], jl[chosen]]
+    quality = None
+    if quality1 is not None:
+        quality = sample_image(quality1, mu1, mv1, 1)[ri[chosen], jl[chosen]]
+    return PointCloud(world[chosen], normals, quality)
+
+
+def camera_projector_cloud(
+    coord: np.ndarray,
+    cam: DeviceCalibration,
+    projector: DeviceCalibration,
+    axis: str = "u",
+    iterations: int = 4,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulate one camera against the projector: ``(points (n, 3) world mm, pixels (n, 2))``.
+
+    coord : (H, W) projector coordinate along ``axis`` ('u' column, 'v' row), NaN = invalid.
+    Each pixel's ray is intersected with the projector's plane of constant coordinate (pinhole
+    start), then refined by Newton steps on the distorted projection of the projector.
+    """
+    if axis not in ("u", "v"):
+        raise ValueError(f"axis must be 'u' or 'v', got {axis!r}")
+    if np.shape(coord) != (cam.height, cam.width):
+        raise ValueError(
+            f"camera '{cam.name}': projector-coordinate map has shape {np.shape(coord)}, "
+            f"its calibration expects (height, width) = ({cam.height}, {cam.width})"
+        )
+    v, u = np.nonzero(np.isfinite(coord))
+    target = coord[v, u]
+    uv = np.stack([u, v], axis=1).astype(np.float64)
+    origin, d = cam.pixel_rays(uv)
+    k = 0 if axis == "u" else 1
+    kp = projector.K_array
+    o_p = projector.to_device(origin)
+    d_p = d @ projector.R_array.T
+    # pinhole plane: X - x_n Z = 0 (u) or Y - y_n Z = 0 (v), normalised coordinate of the target
+    if k == 0:
+        yn_guess = 0.0
+        xn = (target - kp[0, 2] - kp[0, 1] * yn_guess) / kp[0, 0]
+    else:
+        xn = (target - kp[1, 2]) / kp[1, 1]
+    num = o_p[:, k] - xn * o_p[:, 2]
+    den = d_p[:, k] - xn * d_p[:, 2]
+    t = -num / den
+    h = 1e-3  # mm, finite-difference step of the Newton refinement
+    for _ in range(iterations):
+        f0 = projector.project(origin + t[:, None] * d)[:, k] - target
+        f1 = projector.project(origin + (t + h)[:, None] * d)[:, k] - target
+        t = t - f0 * h / (f1 - f0)
+    return origin + t[:, None] * d, uv

@@ -1,0 +1,295 @@
+"""The measured lens (OPTICS.md 6.5, ARCHITECTURE.md "Lens model"): per pixel, or per node of
+a grid of pixels, K aperture samples ``(x_k, y_k)`` mm on the plane of the optical centre with
+weights ``w_k`` (sum 1), and one focus distance ``z_f``.
+
+``MeasuredLens.bundle(xy_n, uv)`` casts ray k of a pixel from ``(x_k, y_k, 0)`` through the
+pixel's in-focus point ``(x_n z_f, y_n z_f, z_f)`` in the camera frame whose origin is the
+optical centre, with weight ``w_k * transmittance`` (relative transmittance: 1 for the
+brightest pixels, lower where the lens vignettes). Samples between nodes: ``nearest`` node,
+or ``bilinear`` (sample k of the four surrounding nodes blended; the derivation orders
+samples the same way at every node, so sample k means the same part of the aperture).
+
+File: one ``.npz`` (no pickle), written by ``save_lens`` and read by ``load_lens``:
+
+=====================  ==============  ===================================================
+name                   shape, dtype    meaning
+=====================  ==============  ===================================================
+format                 () str          ``"ltc-fpp-measured-lens"``
+format_version         () int          ``1``
+focus_distance_mm      () float        z_f, mm from the optical centre
+optical_centre_mm      (3,) float      where the optical centre was (station frame), mm
+camera_size            (2,) int        (width, height), pixels
+node_u, node_v         (Gu,), (Gv,)    node pixel columns and rows, strictly increasing
+aperture_x_mm          (Gv, Gu, K)     sample x, mm, camera frame
+aperture_y_mm          (Gv, Gu, K)     sample y, mm
+weights                (Gv, Gu, K)     >= 0, each node sums to 1
+transmittance          (Gv, Gu)        relative transmittance, >= 0
+interpolation          () str          ``"nearest"`` or ``"bilinear"``
+camera_matrix          (3, 3) float    optional: K the model is consistent with
+dist_coeffs            (5,) float      optional: OpenCV distortion with that K
+metadata_json          () str          optional: how it was measured (free JSON)
+=====================  ==============  ===================================================
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sim.optics.lens import RayBundle
+from sim.optics.projection import normalized_to_pixel
+
+FORMAT = "ltc-fpp-measured-lens"
+FORMAT_VERSION = 1
+WEIGHT_SUM_TOL = 1e-6
+INTERPOLATIONS = ("nearest", "bilinear")
+REQUIRED = ("format", "format_version", "focus_distance_mm", "optical_centre_mm", "camera_size",
+            "node_u", "node_v", "aperture_x_mm", "aperture_y_mm", "weights", "transmittance",
+            "interpolation")
+OPTIONAL = ("camera_matrix", "dist_coeffs", "metadata_json")
+
+
+class LensFileError(ValueError):
+    """A measured-lens file or model is invalid; the message names the file and the field."""
+
+
+def _finite(name: str, a: np.ndarray) -> None:
+    if not np.all(np.isfinite(a)):
+        raise LensFileError(f"field '{name}' has {int((~np.isfinite(a)).sum())} NaN or "
+                            "infinite value(s)")
+
+
+@dataclass(frozen=True, eq=False)
+class MeasuredLens:
+    """A lens model measured by the LTC station (see the module docstring for the fields)."""
+
+    focus_distance_mm: float
+    optical_centre_mm: np.ndarray
+    camera_size: tuple[int, int]
+    node_u: np.ndarray
+    node_v: np.ndarray
+    aperture_x_mm: np.ndarray
+    aperture_y_mm: np.ndarray
+    weights: np.ndarray
+    transmittance: np.ndarray
+    interpolation: str = "bilinear"
+    camera_matrix: np.ndarray | None = None
+    dist_coeffs: np.ndarray | None = None
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in ("optical_centre_mm", "node_u", "node_v", "aperture_x_mm", "aperture_y_mm",
+                     "weights", "transmittance", "camera_matrix", "dist_coeffs"):
+            if getattr(self, name) is not None:  # own float64 copies
+                object.__setattr__(self, name, np.array(getattr(self, name), dtype=np.float64))
+        object.__setattr__(self, "focus_distance_mm", float(self.focus_distance_mm))
+        object.__setattr__(self, "camera_size", tuple(int(v) for v in self.camera_size))
+        self._validate()
+
+    def _validate(self) -> None:
+        if not (np.isfinite(self.focus_distance_mm) and self.focus_distance_mm > 0):
+            raise LensFileError(f"field 'focus_distance_mm' must be > 0, got "
+                                f"{self.focus_distance_mm}")
+        if self.optical_centre_mm.shape != (3,):
+            raise LensFileError(f"field 'optical_centre_mm' must have shape (3,), got "
+                                f"{self.optical_centre_mm.shape}")
+        _finite("optical_centre_mm", self.optical_centre_mm)
+        if len(self.camera_size) != 2 or min(self.camera_size) < 1:
+            raise LensFileError(f"field 'camera_size' must be (width, height) >= 1, got "
+                                f"{self.camera_size}")
+        w, h = self.camera_size
+        for name, n in (("node_u", w), ("node_v", h)):
+            a = getattr(self, name)
+            if a.ndim != 1 or len(a) < 1:
+                raise LensFileError(f"field '{name}' must be a non-empty 1-D array, got shape "
+                                    f"{a.shape}")
+            _finite(name, a)
+            if np.any(np.diff(a) <= 0) or a[0] < 0 or a[-1] > n - 1:
+                raise LensFileError(f"field '{name}' must increase strictly within "
+                                    f"[0, {n - 1}], got {a[:4].tolist()}...")
+        gv, gu = len(self.node_v), len(self.node_u)
+        shape = self.weights.shape
+        if len(shape) != 3 or shape[:2] != (gv, gu) or shape[2] < 1:
+            raise LensFileError(f"field 'weights' must have shape (len(node_v)={gv}, "
+                                f"len(node_u)={gu}, K), got {shape}")
+        for name in ("aperture_x_mm", "aperture_y_mm"):
+            if getattr(self, name).shape != shape:
+                raise LensFileError(f"field '{name}' must have the shape of 'weights' {shape}, "
+                                    f"got {getattr(self, name).shape}")
+            _finite(name, getattr(self, name))
+        _finite("weights", self.weights)
+        if np.any(self.weights < 0):
+            raise LensFileError("field 'weights' has negative values")
+        sums = self.weights.sum(axis=2)
+        if np.any(np.abs(sums - 1.0) > WEIGHT_SUM_TOL):
+            j, i = np.unravel_index(np.abs(sums - 1.0).argmax(), sums.shape)
+            raise LensFileError(f"field 'weights' must sum to 1 per node; node (row {j}, col "
+                                f"{i}) sums to {float(sums[j, i])!r}")
+        if self.transmittance.shape != (gv, gu):
+            raise LensFileError(f"field 'transmittance' must have shape ({gv}, {gu}), got "
+                                f"{self.transmittance.shape}")
+        _finite("transmittance", self.transmittance)
+        if np.any(self.transmittance < 0):
+            raise LensFileError("field 'transmittance' has negative values")
+        if self.interpolation not in INTERPOLATIONS:
+            raise LensFileError(f"field 'interpolation' must be one of {INTERPOLATIONS}, got "
+                                f"{self.interpolation!r}")
+        if self.camera_matrix is not None:
+            if self.camera_matrix.shape != (3, 3):
+                raise LensFileError(f"field 'camera_matrix' must be 3x3, got "
+                                    f"{self.camera_matrix.shape}")
+            _finite("camera_matrix", self.camera_matrix)
+        if self.dist_coeffs is not None:
+            if self.dist_coeffs.shape != (5,):
+                raise LensFileError(f"field 'dist_coeffs' must have 5 values, got "
+                                    f"{self.dist_coeffs.shape}")
+            _finite("dist_coeffs", self.dist_coeffs)
+
+    @property
+    def samples(self) -> int:
+        """K, aperture samples per pixel."""
+        return int(self.weights.shape[2])
+
+    def samples_at(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Aperture samples of pixels uv (n, 2): x (n, K), y (n, K) mm and weights (n, K)
+        times the relative transmittance."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        t = self.transmittance[..., None] * self.weights
+        arrays = (self.aperture_x_mm, self.aperture_y_mm, t)
+        if self.interpolation == "nearest":
+            i = np.abs(uv[:, 0, None] - self.node_u[None]).argmin(axis=1)
+            j = np.abs(uv[:, 1, None] - self.node_v[None]).argmin(axis=1)
+            return tuple(a[j, i] for a in arrays)  # type: ignore[return-value]
+        i0, fu = _bracket(self.node_u, uv[:, 0])
+        j0, fv = _bracket(self.node_v, uv[:, 1])
+        i1 = np.minimum(i0 + 1, len(self.node_u) - 1)
+        j1 = np.minimum(j0 + 1, len(self.node_v) - 1)
+        fu, fv = fu[:, None], fv[:, None]
+        return tuple(  # type: ignore[return-value]
+            (1 - fv) * ((1 - fu) * a[j0, i0] + fu * a[j0, i1])
+            + fv * ((1 - fu) * a[j1, i0] + fu * a[j1, i1])
+            for a in arrays
+        )
+
+    def bundle(self, xy_n: np.ndarray, uv: np.ndarray | None = None) -> RayBundle:
+        """Rays (n, K) of pixels with normalised coordinates xy_n (n, 2) and pixel
+        coordinates uv (n, 2); uv may be omitted when the file has a camera matrix."""
+        xy_n = np.asarray(xy_n, dtype=np.float64).reshape(-1, 2)
+        if uv is None:
+            if self.camera_matrix is None:
+                raise LensFileError("MeasuredLens.bundle needs uv (pixel coordinates): the "
+                                    "lens has no camera_matrix to compute them from xy_n")
+            uv = normalized_to_pixel(xy_n, self.camera_matrix, self.dist_coeffs)
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        if len(uv) != len(xy_n):
+            raise LensFileError(f"MeasuredLens.bundle: xy_n has {len(xy_n)} rows but uv has "
+                                f"{len(uv)}")
+        x, y, w = self.samples_at(uv)
+        zf = self.focus_distance_mm
+        aim = np.empty(x.shape + (3,))
+        aim[..., :2] = xy_n[:, None, :] * zf
+        aim[..., 2] = zf
+        origins = np.zeros(x.shape + (3,))
+        origins[..., 0] = x
+        origins[..., 1] = y
+        d = aim - origins
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        return RayBundle(origins, d, w)
+
+
+def _bracket(nodes: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index of the node at or left of x (clamped) and the fraction towards the next."""
+    if len(nodes) == 1:
+        return np.zeros(len(x), dtype=np.int64), np.zeros(len(x))
+    xc = np.clip(x, nodes[0], nodes[-1])
+    i = np.clip(np.searchsorted(nodes, xc, side="right") - 1, 0, len(nodes) - 2)
+    return i, (xc - nodes[i]) / (nodes[i + 1] - nodes[i])
+
+
+def save_lens(path: str | Path, lens: MeasuredLens) -> Path:
+    """Write a measured lens as one ``.npz`` (no pickle); returns the path written."""
+    path = Path(path)
+    arrays = {
+        "format": np.array(FORMAT),
+        "format_version": np.array(FORMAT_VERSION, dtype=np.int64),
+        "focus_distance_mm": np.array(lens.focus_distance_mm),
+        "optical_centre_mm": lens.optical_centre_mm,
+        "camera_size": np.array(lens.camera_size, dtype=np.int64),
+        "node_u": lens.node_u,
+        "node_v": lens.node_v,
+        "aperture_x_mm": lens.aperture_x_mm,
+        "aperture_y_mm": lens.aperture_y_mm,
+        "weights": lens.weights,
+        "transmittance": lens.transmittance,
+        "interpolation": np.array(lens.interpolation),
+        "metadata_json": np.array(json.dumps(lens.metadata)),
+    }
+    if lens.camera_matrix is not None:
+        arrays["camera_matrix"] = lens.camera_matrix
+    if lens.dist_coeffs is not None:
+        arrays["dist_coeffs"] = lens.dist_coeffs
+    with open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
+    return path
+
+
+def _scalar(data: dict, name: str, kind: type):
+    a = data[name]
+    if a.shape != ():
+        raise LensFileError(f"field '{name}' must be a scalar, got shape {a.shape}")
+    try:
+        return kind(a.item())
+    except (TypeError, ValueError) as exc:
+        raise LensFileError(f"field '{name}' is not a {kind.__name__}: {a.item()!r}") from exc
+
+
+def load_lens(path: str | Path) -> MeasuredLens:
+    """Read and validate a measured-lens file; errors name the file and the field."""
+    path = Path(path)
+    if not path.is_file():
+        raise LensFileError(f"{path}: no such measured-lens file")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data = {k: npz[k] for k in npz.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+        raise LensFileError(f"{path}: not a readable measured-lens .npz file ({exc})") from exc
+    try:
+        missing = [k for k in REQUIRED if k not in data]
+        if "format" in data and str(data["format"]) != FORMAT:
+            raise LensFileError(f"field 'format' is {str(data['format'])!r}, expected {FORMAT!r}")
+        if missing:
+            raise LensFileError(f"missing field(s) {missing}")
+        extra = sorted(set(data) - set(REQUIRED) - set(OPTIONAL))
+        if extra:
+            raise LensFileError(f"unknown field(s) {extra}")
+        version = _scalar(data, "format_version", int)
+        if version != FORMAT_VERSION:
+            raise LensFileError(f"field 'format_version' is {version}; this reader supports "
+                                f"version {FORMAT_VERSION}")
+        meta = {}
+        if "metadata_json" in data:
+            try:
+                meta = json.loads(_scalar(data, "metadata_json", str))
+            except json.JSONDecodeError as exc:
+                raise LensFileError(f"field 'metadata_json' is not JSON ({exc})") from exc
+        for name in ("node_u", "node_v", "aperture_x_mm", "aperture_y_mm", "weights",
+                     "transmittance", "optical_centre_mm", "camera_size"):
+            if not np.issubdtype(data[name].dtype, np.number):
+                raise LensFileError(f"field '{name}' must be numeric, got dtype {data[name].dtype}")
+        return MeasuredLens(
+            focus_distance_mm=_scalar(data, "focus_distance_mm", float),
+            optical_centre_mm=data["optical_centre_mm"],
+            camera_size=tuple(data["camera_size"].tolist()),
+            node_u=data["node_u"], node_v=data["node_v"],
+            aperture_x_mm=data["aperture_x_mm"], aperture_y_mm=data["aperture_y_mm"],
+            weights=data["weights"], transmittance=data["transmittance"],
+            interpolation=_scalar(data, "interpolation", str),
+            camera_matrix=data.get("camera_matrix"), dist_coeffs=data.get("dist_coeffs"),
+            metadata=meta,
+        )
+    except LensFileError as exc:
+        raise LensFileError(f"{path}: {exc}") from exc

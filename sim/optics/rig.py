@@ -1,0 +1,361 @@
+"""Calibrated FPP rig: two cameras and one projector with OpenCV intrinsics and extrinsics.
+
+Conventions (ARCHITECTURE.md): ``R, T`` map world to device, ``X_dev = R X_world + T`` (mm);
+``K`` is the 3x3 intrinsic matrix, ``dist`` the OpenCV coefficients ``k1 k2 p1 p2 k3``; pixel
+centres at integer coordinates, ``size = (width, height)``.
+
+File formats (chosen by the extension):
+
+- ``.json``: ``Rig.model_dump_json()``: ``{"cameras": [device, device], "projector": device}``,
+  each device ``{"name", "K", "dist", "R", "T", "size"}``.
+- ``.yaml`` / ``.yml`` / ``.xml``: OpenCV FileStorage, read and written with ``cv2.FileStorage``.
+  Top-level maps ``camera_0``, ``camera_1`` and ``projector``, each holding the nodes
+  ``name`` (string, optional: the node name when absent), ``image_width``, ``image_height``
+  (int), ``camera_matrix`` (3x3), ``distortion_coefficients`` (5 values, 1x5 or 5x1), ``R``
+  (3x3) and ``T`` (3 values, mm); a flat sequence of numbers is accepted for any matrix.
+  The intrinsic node names are those written by OpenCV's calibration sample, so its output
+  pastes in per device. A stereo calibration (``cv2.stereoCalibrate``: R, T from camera 0 to
+  camera 1 or to the projector) drops in with the world frame on camera 0: its R = I, T = 0.
+  Only the 5-coefficient distortion model is supported (rational and thin-prism models are
+  refused with an error naming the node).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from sim.optics.projection import (
+    camera_to_world,
+    directions_to_world,
+    pixel_to_normalized,
+    project_points,
+)
+
+YAML_SUFFIXES = (".yaml", ".yml", ".xml")
+ROTATION_TOL = 1e-6
+DEVICE_NODES = ("camera_0", "camera_1", "projector")
+
+
+def format_validation_error(source: str, exc: ValidationError) -> str:
+    """One line per pydantic error: ``source: field 'a.0.b': message``."""
+    lines = [
+        f"{source}: field '{'.'.join(str(p) for p in e['loc']) or '(root)'}': {e['msg']}"
+        for e in exc.errors()
+    ]
+    return "\n".join(lines)
+
+
+def _matrix(value, shape: tuple[int, ...], what: str) -> list:
+    a = np.asarray(value, dtype=np.float64)
+    if a.size != math.prod(shape):
+        raise ValueError(f"{what} must have {math.prod(shape)} values {shape}, got shape {a.shape}")
+    a = a.reshape(shape)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{what} must be finite, got {a.tolist()}")
+    return a.tolist()
+
+
+class DeviceCalibration(BaseModel):
+    """Intrinsics, distortion and pose of one camera or projector."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    name: str = Field(min_length=1, description="device name, unique in the rig")
+    K: list[list[float]] = Field(description="3x3 intrinsic matrix, pixels")
+    dist: list[float] = Field(description="OpenCV distortion k1 k2 p1 p2 k3 (5 values)")
+    R: list[list[float]] = Field(description="3x3 rotation, world to device")
+    T: list[float] = Field(description="translation, world to device, mm (3 values)")
+    size: tuple[int, int] = Field(description="(width, height) in pixels")
+
+    @field_validator("K", "R", mode="before")
+    @classmethod
+    def _mat3(cls, v, info):
+        return _matrix(v, (3, 3), info.field_name)
+
+    @field_validator("dist", mode="before")
+    @classmethod
+    def _dist(cls, v):
+        return _matrix(v, (5,), "dist (k1 k2 p1 p2 k3)")
+
+    @field_validator("T", mode="before")
+    @classmethod
+    def _vec3(cls, v):
+        return _matrix(v, (3,), "T")
+
+    @model_validator(mode="after")
+    def _check(self) -> DeviceCalibration:
+        K = self.K_array
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+            raise ValueError(f"K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
+                             f"got {self.K}")
+        R = self.R_array
+        if not np.allclose(R @ R.T, np.eye(3), atol=ROTATION_TOL) or np.linalg.det(R) <= 0:
+            raise ValueError(f"R must be a proper rotation matrix (R R^T = I, det +1), got {self.R}")
+        if self.size[0] < 1 or self.size[1] < 1:
+            raise ValueError(f"size must be (width, height) >= 1 pixel, got {self.size}")
+        return self
+
+    @property
+    def K_array(self) -> np.ndarray:
+        return np.asarray(self.K, dtype=np.float64)
+
+    @property
+    def dist_array(self) -> np.ndarray:
+        return np.asarray(self.dist, dtype=np.float64)
+
+    @property
+    def R_array(self) -> np.ndarray:
+        return np.asarray(self.R, dtype=np.float64)
+
+    @property
+    def T_array(self) -> np.ndarray:
+        return np.asarray(self.T, dtype=np.float64)
+
+    @property
+    def width(self) -> int:
+        return self.size[0]
+
+    @property
+    def height(self) -> int:
+        return self.size[1]
+
+    @property
+    def centre_world(self) -> np.ndarray:
+        """Optical centre in world coordinates, (3,) mm: ``-R^T T``."""
+        return camera_to_world(np.zeros(3), self.R_array, self.T_array)
+
+    def to_device(self, points_world: np.ndarray) -> np.ndarray:
+        """World points (n, 3) mm in the device frame, (n, 3) mm."""
+        return np.asarray(points_world, dtype=np.float64) @ self.R_array.T + self.T_array
+
+    def project(self, points_world: np.ndarray) -> np.ndarray:
+        """Pixels (n, 2) of world points (n, 3) mm, with distortion."""
+        return project_points(points_world, self.K_array, self.dist_array, self.R_array, self.T_array)
+
+    def normalized(self, uv: np.ndarray) -> np.ndarray:
+        """Undistorted normalised coordinates (n, 2) of pixels (n, 2)."""
+        return pixel_to_normalized(uv, self.K_array, self.dist_array)
+
+    def pixel_rays(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pinhole rays of pixels (n, 2): world origins (n, 3) mm and unit directions (n, 3)."""
+        xy = self.normalized(uv)
+        d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        origins = np.broadcast_to(self.centre_world, d.shape).copy()
+        return origins, directions_to_world(d, self.R_array)
+
+
+    def backproject(self, uv: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
+        """World points (n, 3) mm of pixels (n, 2) at device-frame depths ``z`` (n,) mm (e.g. a
+        truth depth map); NaN depths give NaN points."""
+        xy = self.normalized(uv)
+        z = np.asarray(depth_mm, dtype=np.float64).reshape(-1, 1)
+        return camera_to_world(np.concatenate([xy * z, z], axis=1), self.R_array, self.T_array)
+
+
+class Rig(BaseModel):
+    """Two cameras and one projector in one world frame."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    cameras: list[DeviceCalibration] = Field(min_length=2, max_length=2,
+                                             description="the two cameras")
+    projector: DeviceCalibration = Field(description="the projector (pattern pixels)")
+
+    @model_validator(mode="after")
+    def _unique_names(self) -> Rig:
+        names = [c.name for c in self.cameras] + [self.projector.name]
+        if len(set(names)) != len(names):
+            raise ValueError(f"device names must be unique, got {names}")
+        return self
+
+    @classmethod
+    def load(cls, path: str | Path) -> Rig:
+        """Read a rig from JSON or OpenCV FileStorage YAML/XML (see the module docstring)."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"rig file {path} not found")
+        suffix = path.suffix.lower()
+        if suffix == ".json":
+            try:
+                return cls.model_validate_json(path.read_text())
+            except ValidationError as exc:
+                raise ValueError(format_validation_error(str(path), exc)) from exc
+        if suffix in YAML_SUFFIXES:
+            return _read_filestorage(path)
+        raise ValueError(f"rig file {path}: unknown extension '{path.suffix}', "
+                         "expected .json, .yaml, .yml or .xml")
+
+    def save(self, path: str | Path) -> None:
+        """Write the rig as JSON or OpenCV FileStorage YAML/XML, chosen by the extension."""
+        path = Path(path)
+        suffix = path.suffix.lower()
+        if suffix == ".json":
+            path.write_text(self.model_dump_json(indent=2))
+        elif suffix in YAML_SUFFIXES:
+            _write_filestorage(self, path)
+        else:
+            raise ValueError(f"rig file {path}: unknown extension '{path.suffix}', "
+                         "expected .json, .yaml, .yml or .xml")
+
+
+def _write_filestorage(rig: Rig, path: Path) -> None:
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    if not fs.isOpened():
+        raise OSError(f"rig file {path}: cannot open for writing")
+    for node, dev in zip(DEVICE_NODES, [*rig.cameras, rig.projector]):
+        fs.startWriteStruct(node, cv2.FileNode_MAP)
+        fs.write("name", dev.name)
+        fs.write("image_width", int(dev.width))
+        fs.write("image_height", int(dev.height))
+        fs.write("camera_matrix", dev.K_array)
+        fs.write("distortion_coefficients", dev.dist_array.reshape(1, 5))
+        fs.write("R", dev.R_array)
+        fs.write("T", dev.T_array.reshape(3, 1))
+        fs.endWriteStruct()
+    fs.release()
+
+
+def _node(parent: cv2.FileNode, key: str, path: Path, where: str) -> cv2.FileNode:
+    node = parent.getNode(key)
+    if node.empty() or node.isNone():
+        raise ValueError(f"rig file {path}: node '{where}/{key}' is missing")
+    return node
+
+
+def _node_matrix(parent: cv2.FileNode, key: str, path: Path, where: str, n: int) -> np.ndarray:
+    """An opencv-matrix node, or a flat sequence of numbers, with ``n`` values."""
+    node = _node(parent, key, path, where)
+    if node.isSeq():
+        items = [node.at(i) for i in range(node.size())]
+        if not all(it.isReal() or it.isInt() for it in items):
+            raise ValueError(f"rig file {path}: node '{where}/{key}' must hold numbers only")
+        m = np.array([it.real() for it in items])
+    elif node.isMap():
+        try:
+            m = node.mat()
+        except cv2.error as exc:
+            raise ValueError(f"rig file {path}: node '{where}/{key}' is not a valid "
+                             "opencv-matrix") from exc
+    else:
+        raise ValueError(f"rig file {path}: node '{where}/{key}' must be an opencv-matrix or a sequence")
+    if m is None or m.size != n:
+        shape = None if m is None else m.shape
+        raise ValueError(f"rig file {path}: node '{where}/{key}' must have {n} values, "
+                         f"got shape {shape}")
+    return m.astype(np.float64).ravel()
+
+
+def _node_int(parent: cv2.FileNode, key: str, path: Path, where: str) -> int:
+    node = _node(parent, key, path, where)
+    if not node.isInt():
+        raise ValueError(f"rig file {path}: node '{where}/{key}' must be an integer")
+    return int(node.real())
+
+
+def _read_filestorage(path: Path) -> Rig:
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:  # the binding wraps parse errors in SystemError
+        cause = str(exc.__cause__ or exc).strip().splitlines()[-1]
+        raise ValueError(f"rig file {path}: not a readable OpenCV FileStorage file: {cause}") from exc
+    devices = []
+    for where in DEVICE_NODES:
+        dev = _node(fs.root(), where, path, "")
+        if not dev.isMap():
+            raise ValueError(f"rig file {path}: node '{where}' must be a map")
+        name_node = dev.getNode("name")
+        if not (name_node.empty() or name_node.isNone() or name_node.isString()):
+            raise ValueError(f"rig file {path}: node '{where}/name' must be a string")
+        fields = {
+            "name": name_node.string() if name_node.isString() else where,
+            "size": (_node_int(dev, "image_width", path, where),
+                  _node_int(dev, "image_height", path, where)),
+            "K": _node_matrix(dev, "camera_matrix", path, where, 9).reshape(3, 3),
+            "dist": _node_matrix(dev, "distortion_coefficients", path, where, 5),
+            "R": _node_matrix(dev, "R", path, where, 9).reshape(3, 3),
+            "T": _node_matrix(dev, "T", path, where, 3),
+        }
+        try:
+            devices.append(DeviceCalibration(**fields))
+        except ValidationError as exc:
+            raise ValueError(format_validation_error(f"rig file {path}: node '{where}'", exc)) from exc
+    fs.release()
+    try:
+        return Rig(cameras=devices[:2], projector=devices[2])
+    except ValidationError as exc:
+        raise ValueError(format_validation_error(f"rig file {path}", exc)) from exc
+
+
+def look_at(centre_mm: np.ndarray, target_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-device ``R, T`` of a device at ``centre_mm`` (3,) whose optical axis points at
+    ``target_mm`` (3,), image rows along world +y as far as possible (world y down)."""
+    c = np.asarray(centre_mm, dtype=np.float64)
+    z = np.asarray(target_mm, dtype=np.float64) - c
+    z /= np.linalg.norm(z)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    if np.linalg.norm(x) < 1e-9:
+        raise ValueError("look_at: the optical axis is parallel to world y; choose another target")
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return R, -R @ c
+
+
+def _device(name: str, size: tuple[int, int], f_px: float, centre: np.ndarray,
+            dist: list[float]) -> DeviceCalibration:
+    R, T = look_at(centre, np.zeros(3))
+    w, h = size
+    K = [[f_px, 0.0, (w - 1) / 2], [0.0, f_px, (h - 1) / 2], [0.0, 0.0, 1.0]]
+    return DeviceCalibration(name=name, K=K, dist=dist, R=R, T=T, size=size)
+
+
+# Reference system (OPTICS.md section 1): 16 mm lenses on 3.45 um pixels, cameras 760 mm from the
+# world origin (centre of the measurement volume) converging at +-15 degrees, projector between.
+WORKING_DISTANCE_MM = 760.0
+CAMERA_FOCAL_MM = 16.0
+CAMERA_PITCH_MM = 0.00345
+CONVERGENCE_DEG = 15.0
+PROJECTOR_FOCAL_PX = 3040.0  # 1920 px cover ~480 mm at 760 mm
+CAMERA_DIST = [-0.08, 0.12, 2e-4, -1e-4, 0.0]
+PROJECTOR_DIST = [0.02, -0.03, 0.0, 0.0, 0.0]
+
+
+def _scaled_rig(camera_size: tuple[int, int], projector_size: tuple[int, int], scale: float,
+                distortion: bool) -> Rig:
+    a = np.radians(CONVERGENCE_DEG)
+    cam_c = [np.array([s * WORKING_DISTANCE_MM * np.sin(a), 0.0, -WORKING_DISTANCE_MM * np.cos(a)])
+             for s in (-1.0, 1.0)]
+    f_cam = CAMERA_FOCAL_MM / CAMERA_PITCH_MM * scale
+    cd = CAMERA_DIST if distortion else [0.0] * 5
+    pd = PROJECTOR_DIST if distortion else [0.0] * 5
+    cams = [_device(n, camera_size, f_cam, c, cd) for n, c in zip(("left", "right"), cam_c)]
+    proj = _device("projector", projector_size, PROJECTOR_FOCAL_PX * scale,
+                   np.array([0.0, 0.0, -WORKING_DISTANCE_MM]), pd)
+    return Rig(cameras=cams, projector=proj)
+
+
+def default_rig(distortion: bool = True) -> Rig:
+    """The reference system: two 4096 x 2168 cameras (16 mm, 3.45 um pixels) at 760 mm,
+    converging at +-15 degrees on the world origin, and a 1920 x 1080 projector between them.
+    World frame: origin at the centre of the measurement volume, z away from the rig, y down."""
+    return _scaled_rig((4096, 2168), (1920, 1080), 1.0, distortion)
+
+
+def small_rig(scale: float = 0.04, distortion: bool = True) -> Rig:
+    """``default_rig`` with every image size and focal length multiplied by ``scale``
+    (0.04: cameras 164 x 87, projector 77 x 43): same poses, nearly the same fields of view."""
+    if not 0 < scale <= 1:
+        raise ValueError(f"small_rig: scale must be in (0, 1], got {scale}")
+    cam = (max(1, round(4096 * scale)), max(1, round(2168 * scale)))
+    proj = (max(1, round(1920 * scale)), max(1, round(1080 * scale)))
+    return _scaled_rig(cam, proj, scale, distortion)

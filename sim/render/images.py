@@ -1,0 +1,399 @@
+"""Fringe images from a light transport: projector response, gather, camera response, writers.
+
+Signal chain for pattern image ``P`` (values in [0, 1]) and camera pixel ``p``:
+
+1. projector (``ProjectorResponse``): input quantised to ``input_bits``, then
+   ``black + (1 - black) * P ** gamma``, then defocus: a Gaussian blur of ``defocus_sigma_px``
+   projector pixels (edges replicated);
+2. gather: ``radiance_p = sum_k w_k * P'(u_k, v_k)`` with ``P'`` sampled bilinearly (pixel
+   centres at integers, clamped to the edge pixels) at each ray's projector coordinate;
+3. camera (``CameraResponse``): electrons ``e = exposure_e * radiance``, Poisson shot noise,
+   clipped at the full well, plus Gaussian read noise; ``DN = gain * (2^bits - 1) / full_well_e
+   * e + black_level_dn``, clipped to ``[0, 2^bits - 1]`` (saturation) and rounded.
+
+Radiance 1 is a white pattern on an albedo-1 surface facing the projector (N.L = 1) seen by an
+unvignetted pixel; there is no distance fall-off (OPTICS.md section 4).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import zarr
+from pydantic import BaseModel, ConfigDict, Field
+from tqdm import tqdm
+
+from sim.optics.lens import LensModel
+from sim.render.pattern_stack import PatternStack
+from sim.render.image_kernels import BLOCK_RAYS, IDENTITY, digitise, gather_rows
+from sim.optics.rig import Rig
+from sim.render.trace import TraceGeometry, Transport, trace_camera
+
+TILE_RAYS = 1 << 22  # rays traced per tile in render_views (about 50 MB of transport)
+
+
+class ProjectorResponse(BaseModel):
+    """How the projector turns pattern values into light."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    input_bits: int | None = Field(8, ge=1, le=16,
+                                   description="pattern quantisation, bits (None: exact)")
+    gamma: float = Field(1.0, gt=0, description="light = value ** gamma")
+    black_level: float = Field(0.0, ge=0, lt=1, description="light of a black pixel, fraction of white")
+    defocus_sigma_px: float = Field(0.0, ge=0,
+                                    description="Gaussian defocus of the image, projector px")
+
+
+class CameraResponse(BaseModel):
+    """Exposure, noise and digitisation of the cameras."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    exposure_e: float = Field(8000.0, ge=0,
+                              description="electrons collected at radiance 1 in the exposure")
+    full_well_e: float = Field(10000.0, gt=0, description="full-well capacity, electrons")
+    gain: float = Field(1.0, gt=0, description="gain; 1 maps the full well to the largest DN")
+    shot_noise: bool = Field(False, description="Poisson photon noise")
+    read_noise_e: float = Field(0.0, ge=0, description="read noise, electrons rms")
+    black_level_dn: float = Field(0.0, ge=0, description="offset added to every pixel, DN")
+    bit_depth: Literal[8, 12, 16] = Field(8, description="output bits per pixel")
+    quantize: bool = Field(True, description="round to integers (False: float32 DN)")
+
+    @property
+    def max_dn(self) -> int:
+        return (1 << self.bit_depth) - 1
+
+    @property
+    def dn_per_e(self) -> float:
+        return self.gain * self.max_dn / self.full_well_e
+
+
+class RenderSettings(BaseModel):
+    """Projector and camera response of a rendering."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    projector: ProjectorResponse = Field(default_factory=ProjectorResponse)
+    camera: CameraResponse = Field(default_factory=CameraResponse)
+
+
+def project_patterns(patterns: np.ndarray | PatternStack,
+                     projector: ProjectorResponse) -> PatternStack:
+    """Projected light of pattern images (n, H, W) in [0, 1] (or their ``PatternStack``), each
+    pattern kept in its cheapest exact form (a row or column profile where it varies along one
+    axis only)."""
+    stack = as_stack(patterns)
+    lo, hi = stack.value_range()
+    if not (lo >= 0 and hi <= 1):
+        raise ValueError(f"pattern values must lie in [0, 1], got [{lo:g}, {hi:g}]")
+    if projector.input_bits is not None:
+        q = np.float32((1 << projector.input_bits) - 1)
+        stack = stack.map(lambda p: np.round(p * q) / q)
+    if projector.gamma != 1:
+        stack = stack.map(lambda p: p ** np.float32(projector.gamma))
+    if projector.black_level > 0:
+        b = np.float32(projector.black_level)
+        stack = stack.map(lambda p: b + (1 - b) * p)
+    s = projector.defocus_sigma_px
+    if s > 0:
+        k = 2 * math.ceil(4 * s) + 1
+        stack = stack.map(lambda p: cv2.GaussianBlur(p, (k, k), s, sigmaY=s,
+                                                     borderType=cv2.BORDER_REPLICATE))
+    return stack
+
+
+def as_stack(patterns: np.ndarray | PatternStack) -> PatternStack:
+    """``patterns`` itself if it is a ``PatternStack``, else the stack of images (n, H, W)."""
+    return patterns if isinstance(patterns, PatternStack) else PatternStack.from_images(patterns)
+
+
+def _split(n: int, threads: int | None, min_part: int) -> list[tuple[int, int]]:
+    """``[first, last)`` ranges splitting ``range(n)`` into parts of at least ``min_part``, a few
+    per thread."""
+    nt = threads or os.cpu_count() or 1
+    step = max(min_part, -(-n // (4 * nt)))
+    return [(a, min(a + step, n)) for a in range(0, n, step)]
+
+
+def _run(kernel, parts: list[tuple[int, int]], threads: int | None, *args) -> None:
+    """``kernel(*args, first, last)`` for every part, on ``threads`` threads (every core)."""
+    if len(parts) <= 1:
+        for a, b in parts:
+            kernel(*args, a, b)
+        return
+    with ThreadPoolExecutor(threads or os.cpu_count() or 1) as ex:
+        list(ex.map(lambda ab: kernel(*args, *ab), parts))
+
+
+def _check_patterns(tr: Transport, projected: np.ndarray | PatternStack) -> PatternStack:
+    stack = as_stack(projected)
+    if stack.size != tuple(tr.projector_size):
+        w, h = stack.size
+        raise ValueError(f"projected patterns are {w} x {h} px, expected the transport's "
+                         f"{tr.projector_size[0]} x {tr.projector_size[1]} projector")
+    return stack
+
+
+def _check_array(what: str, a: np.ndarray, shape: tuple, dtype: type) -> None:
+    """Raise if ``a`` is not a C-contiguous array of ``shape`` and ``dtype``; ``what`` names it."""
+    want = f"{np.dtype(dtype).name} {tuple(shape)}"
+    if not isinstance(a, np.ndarray) or a.shape != tuple(shape) or a.dtype != dtype \
+            or not a.flags.c_contiguous:
+        got = f"{a.dtype.name} {a.shape}" if isinstance(a, np.ndarray) else type(a).__name__
+        raise ValueError(f"{what}: expected a C-contiguous {want} array, got {got}")
+
+
+def gather_into(tr: Transport, projected: np.ndarray | PatternStack, out: np.ndarray,
+                threads: int | None = None) -> None:
+    """Write the radiance of the transport's pixels for projected patterns (``project_patterns``,
+    or images (n, Hp, Wp) of light) into ``out[:, tr.pixels]`` of images ``out`` (n, H * W)
+    float32."""
+    p = _check_patterns(tr, projected)
+    _check_array("gather_into out", out, (len(p), tr.camera_size[0] * tr.camera_size[1]),
+                 np.float32)
+    _gather_rows(tr, tr.pixels, p, out, threads)
+
+
+def gather(tr: Transport, projected: np.ndarray | PatternStack,
+           threads: int | None = None) -> np.ndarray:
+    """Radiance (n_patterns, n_pixels) float32 of the transport's pixels for projected patterns
+    (``project_patterns``, or images (n, Hp, Wp) of light), on every core."""
+    p = _check_patterns(tr, projected)
+    n = len(tr.pixels)
+    out = np.empty((len(p), n), np.float32)
+    _gather_rows(tr, np.arange(n, dtype=np.int64), p, out, threads)
+    return out
+
+
+def _gather_rows(tr: Transport, dest: np.ndarray, stack: PatternStack, out: np.ndarray,
+                 threads: int | None, resp: tuple = IDENTITY, quantize: bool = False) -> None:
+    """``gather_rows`` over every row of the transport on every core; row i goes to column
+    ``dest[i]`` of ``out`` through ``response(radiance, *resp)``, rounded if ``quantize``."""
+    rows = max(1, BLOCK_RAYS // tr.weight.shape[1])
+    c = np.ascontiguousarray
+    _run(gather_rows, _split(len(dest), threads, rows), threads, dest, tr.proj_uv, tr.weight,
+         stack.form, stack.slot, c(stack.full), c(stack.rows), c(stack.cols), resp, quantize, out)
+
+
+def _noisy(camera: CameraResponse) -> bool:
+    return camera.shot_noise or camera.read_noise_e > 0
+
+
+def _response_args(camera: CameraResponse, electrons: bool = False) -> tuple:
+    """Arguments of ``sim.render.image_kernels.response`` for the camera (rounding is
+    ``camera.quantize``): from radiance, or from electrons already exposed and clipped
+    (``electrons``)."""
+    f32 = np.float32
+    scale, low, high = ((f32(1.0), f32(-np.inf), f32(np.inf)) if electrons else
+                        (f32(camera.exposure_e), f32(0.0), f32(camera.full_well_e)))
+    return scale, low, high, f32(camera.dn_per_e), f32(camera.black_level_dn), f32(camera.max_dn)
+
+
+def _image_dtype(camera: CameraResponse) -> type:
+    return np.float32 if not camera.quantize else np.uint8 if camera.bit_depth == 8 else np.uint16
+
+
+def camera_response(radiance: np.ndarray, camera: CameraResponse,
+                    rng: np.random.Generator | None = None, threads: int | None = None,
+                    out: np.ndarray | None = None) -> np.ndarray:
+    """Digital images (same shape) of radiance: uint8 (8 bits), uint16 (12, 16) or float32 DN;
+    written into ``out`` (C-contiguous, that shape and type) when given."""
+    noisy = _noisy(camera)
+    if noisy and rng is None:
+        raise ValueError("camera_response: rng is required when shot_noise or read_noise_e is on")
+    x = np.ascontiguousarray(radiance, dtype=np.float32)
+    if noisy:
+        f32 = np.float32
+        e = np.maximum(x * f32(camera.exposure_e), f32(0.0))
+        if camera.shot_noise:
+            e = rng.poisson(e).astype(np.float32)
+        np.minimum(e, f32(camera.full_well_e), out=e)
+        if camera.read_noise_e > 0:
+            e += f32(camera.read_noise_e) * rng.standard_normal(e.shape, dtype=np.float32)
+        x = e
+    if out is None:
+        out = np.empty(x.shape, _image_dtype(camera))
+    else:
+        _check_array("camera_response out", out, x.shape, _image_dtype(camera))
+    _run(digitise, _split(x.size, threads, 1 << 16), threads, x.reshape(-1),
+         _response_args(camera, electrons=noisy), camera.quantize, out.reshape(-1))
+    return out
+
+
+def render(tr: Transport, pattern_images: np.ndarray | PatternStack, settings: RenderSettings,
+           rng: np.random.Generator | None = None) -> np.ndarray:
+    """Camera images (n, H, W) of a transport for pattern images (n, Hp, Wp) in [0, 1] (or their
+    ``PatternStack``); pixels the transport does not cover get radiance 0. A noise-free camera's
+    response is applied as the radiance is gathered (the same values as ``camera_response``)."""
+    projected = _check_patterns(tr, project_patterns(pattern_images, settings.projector))
+    w, h = tr.camera_size
+    cam = settings.camera
+    if _noisy(cam):
+        rad = np.zeros((len(projected), w * h), np.float32)
+        gather_into(tr, projected, rad)
+        return camera_response(rad.reshape(-1, h, w), cam, rng)
+    resp = _response_args(cam)
+    shape, dtype = (len(projected), w * h), _image_dtype(cam)
+    out = np.empty(shape, dtype)
+    if len(tr.pixels) < w * h:  # the response to radiance 0
+        out[:] = camera_response(np.zeros(1, np.float32), cam, None, 1)[0]
+    _gather_rows(tr, tr.pixels, projected, out, None, resp, cam.quantize)
+    return out.reshape(-1, h, w)
+
+
+@dataclass
+class CameraImages:
+    """One camera's rendering: images (n, H, W), noise-free radiance (n, H, W) float32, truth
+    maps (see ``Transport``), timings in seconds and the number of rays traced."""
+
+    name: str
+    images: np.ndarray
+    radiance: np.ndarray
+    depth: np.ndarray
+    projector_map: np.ndarray
+    lit: np.ndarray
+    object_id: np.ndarray
+    timings: dict[str, float] = field(default_factory=dict)
+    n_rays: int = 0
+
+
+@dataclass
+class RenderResult:
+    """Every camera's rendering, and timings (s) of what is shared (``patterns_s``, ``total_s``)."""
+
+    cameras: list[CameraImages]
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
+                  projected: np.ndarray | PatternStack,
+                  camera: CameraResponse, rng: np.random.Generator | None, progress: bool = False,
+                  where: str = "scene", out: CameraImages | None = None) -> CameraImages:
+    """Trace camera ``index`` of the rig tile by tile (``TILE_RAYS`` rays: memory stays bounded
+    whatever the lens), gather the projected patterns (``project_patterns``) from each tile's
+    transport, then apply the camera response. Errors name ``where``.
+
+    ``out``: an earlier result of the same camera, pattern count and camera response, whose
+    arrays are overwritten and which is returned: a sequence of renders (scene poses, lenses)
+    then reuses its memory instead of asking the system for some 300 MB of fresh pages a
+    full-size render (their first touch can cost as much as the gather)."""
+    projected = as_stack(projected)
+    cam = rig.cameras[index]
+    w, h = cam.size
+    res = _camera_outputs(out, cam.name, len(projected), w, h, _image_dtype(camera))
+    rad = res.radiance.reshape(len(projected), w * h)
+    depth, pmap = res.depth.reshape(-1), res.projector_map.reshape(-1, 2)
+    lit, obj = res.lit.reshape(-1), res.object_id.reshape(-1)
+    k = lens.bundle(np.zeros((1, 2)), np.zeros((1, 2))).weights.shape[1]
+    step = max(1, TILE_RAYS // (k + 1))
+    t_trace = t_gather = 0.0
+    n_rays = 0
+    bar = tqdm(total=w * h, desc=f"render {cam.name}", unit="px", unit_scale=True,
+               disable=not progress)
+    for s in range(0, w * h, step):  # every pixel is written: tiles cover the frame
+        tile = slice(s, min(s + step, w * h))
+        tr = trace_camera(geom, cam, rig.projector, lens, pixels=np.arange(tile.start, tile.stop))
+        t0 = time.perf_counter()
+        gather_into(tr, projected, rad)
+        t_gather += time.perf_counter() - t0
+        t_trace += tr.seconds
+        n_rays += tr.rays
+        depth[tile], pmap[tile], lit[tile], obj[tile] = tr.depth, tr.proj_chief, tr.lit, tr.object_id
+        bar.update(tile.stop - tile.start)
+    bar.close()
+    if not np.any(obj >= 0):
+        raise ValueError(f"{where}: camera {index} ('{cam.name}') sees none of the scene objects; "
+                         "check the rig's R and T (field 'rig') and the objects' poses")
+    t0 = time.perf_counter()
+    camera_response(res.radiance, camera, rng, out=res.images)
+    res.timings = {"trace_s": t_trace, "gather_s": t_gather,
+                   "response_s": time.perf_counter() - t0}
+    res.n_rays = n_rays
+    return res
+
+
+def _camera_outputs(out: CameraImages | None, name: str, n: int, w: int, h: int,
+                    dtype: type) -> CameraImages:
+    """``out``, checked against camera ``name`` of ``w`` x ``h`` px, ``n`` patterns and image
+    type ``dtype``; or new arrays for it."""
+    shapes = {"images": ((n, h, w), dtype), "radiance": ((n, h, w), np.float32),
+              "depth": ((h, w), np.float64), "projector_map": ((h, w, 2), np.float64),
+              "lit": ((h, w), np.bool_), "object_id": ((h, w), np.int32)}
+    if out is None:
+        return CameraImages(name, **{key: np.empty(*sd) for key, sd in shapes.items()})
+    if out.name != name:
+        raise ValueError(f"render_camera out: it holds camera '{out.name}', not '{name}'")
+    for key, (shape, dt) in shapes.items():
+        _check_array(f"render_camera out, field '{key}' of camera '{name}'", getattr(out, key),
+                     shape, dt)
+    return out
+
+
+def render_views(geom: TraceGeometry, rig: Rig, lenses: list[LensModel], pattern_images: np.ndarray,
+                 settings: RenderSettings, rng: np.random.Generator | None = None,
+                 progress: bool = False, where: str = "scene") -> RenderResult:
+    """Render pattern images (n, Hp, Wp) in [0, 1] (or their ``PatternStack``) on every camera
+    of ``rig`` with one lens per camera: images plus timings (``patterns_s``, ``total_s``; per
+    camera ``trace_s``, ``gather_s``, ``response_s``). Errors name ``where``."""
+    t0 = time.perf_counter()
+    if len(lenses) != len(rig.cameras):
+        raise ValueError(f"{where}: {len(lenses)} lenses for {len(rig.cameras)} cameras")
+    stack = as_stack(pattern_images)
+    if stack.size != tuple(rig.projector.size):
+        raise ValueError(f"{where}: pattern images are {stack.size[0]} x {stack.size[1]} px, "
+                         f"the projector is {rig.projector.size[0]} x {rig.projector.size[1]}")
+    projected = project_patterns(stack, settings.projector)
+    t_pat = time.perf_counter() - t0
+    cams = [render_camera(geom, rig, i, lens, projected, settings.camera, rng, progress, where)
+            for i, lens in enumerate(lenses)]
+    return RenderResult(cams, {"patterns_s": t_pat, "total_s": time.perf_counter() - t0})
+
+
+def write_png(path: str | Path, image: np.ndarray, bit_depth: int) -> None:
+    """Write one image (H, W): 8 bits as 8-bit PNG; 12 and 16 bits as 16-bit PNG holding the
+    DN values unscaled (a 12-bit image keeps 0..4095, it is not shifted to the top bits)."""
+    image = np.asarray(image)
+    want = {8: np.uint8, 12: np.uint16, 16: np.uint16}.get(bit_depth)
+    if want is None:
+        raise ValueError(f"write_png: bit_depth must be 8, 12 or 16, got {bit_depth}")
+    if image.ndim != 2 or image.dtype != want or (bit_depth == 12 and image.max(initial=0) > 4095):
+        raise ValueError(f"write_png {path}: expected a 2-D {np.dtype(want).name} image with values "
+                         f"< 2^{bit_depth}, got {image.dtype} {image.shape}")
+    if not cv2.imwrite(str(path), image):
+        raise OSError(f"write_png: could not write {path}")
+
+
+def write_pngs(directory: str | Path, images: np.ndarray, bit_depth: int) -> list[Path]:
+    """Write images (n, H, W) as ``directory/pattern_000.png`` ...; returns the paths."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    paths = [d / f"pattern_{i:03d}.png" for i in range(len(images))]
+    for p, im in zip(paths, images):
+        write_png(p, im, bit_depth)
+    return paths
+
+
+def write_zarr(path: str | Path, result: RenderResult, attrs: dict | None = None,
+               radiance: bool = False) -> None:
+    """Write a zarr v3 stack: group ``camera_<i>`` per camera with ``images`` (n, H, W, one
+    chunk per image), ``depth`` (H, W) mm, ``projector_map`` (H, W, 2) projector px,
+    ``lit`` (H, W), ``object_id`` (H, W) and, if asked, ``radiance`` (n, H, W) float32;
+    ``attrs`` (JSON-able) go on the root group, the camera name and timings on each group."""
+    root = zarr.open_group(str(path), mode="w", attributes=attrs or {})
+    for i, c in enumerate(result.cameras):
+        g = root.create_group(f"camera_{i}", attributes={"name": c.name, "timings": c.timings,
+                                                             "rays": c.n_rays})
+        h, w = c.depth.shape
+        g.create_array("images", data=c.images, chunks=(1, h, w))
+        if radiance:
+            g.create_array("radiance", data=c.radiance, chunks=(1, h, w))
+        g.create_array("depth", data=c.depth, chunks=(h, w))
+        g.create_array("projector_map", data=c.projector_map, chunks=(h, w, 2))
+        g.create_array("lit", data=c.lit, chunks=(h, w))
+        g.create_array("object_id", data=c.object_id, chunks=(h, w))

@@ -1,0 +1,459 @@
+"""The acquisition engine: a run is a declarative plan of events (depth, pattern) carried out
+on the bench and written to a run store frame by frame (HARDWARE.md "Acquisition runs").
+
+For each depth with frames to take: move and settle; calibrate the check code (a capture of
+every code value, so the code reads through any blur; camera pixels that see the code are
+masked in ``code_mask``). For each pattern: show it with the code ``pattern % 2**bits``
+stamped in, wait the display latency, capture, reject a frame that timed out, is stale or
+shows the wrong code (re-capture, at most ``acquire.max_retries`` times, each retry logged
+and counted), count saturated pixels, write the frame and its metadata, mark it done.
+
+Durability comes from the run store: a frame is done only once it and its metadata are on
+disk, so a killed run loses at most the frame in flight, and ``resume=True`` takes up the
+first frame not done, refusing a store made with another config. Teardown (blank display,
+stop the stage after a failure, close the devices, record the run's status) always runs; a
+failed cleanup is logged and attached to the run's error as a note, never raised in its
+place (after a run that went well, it is the error).
+
+On the fake bench the camera's noise is seeded per frame by what the frame shows (depth,
+pattern), so a run interrupted and resumed ends with the same frames as one that was not.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import logging
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from drivers.camera import CameraError, CameraTimeout
+from drivers.frame_code import (
+    CodeCalibration,
+    FrameCodeError,
+    calibrate_code,
+    frame_code_rect,
+    read_code,
+    stamp_frame_code,
+)
+from drivers.interfaces import Frame, ShownFrame
+from station.acquisition.backend import Hardware, load_lut, open_hardware
+from station.acquisition.config import StationConfig
+from station.acquisition.patterns import StationPatternPlan, apply_lut
+from station.acquisition.run_store import FrameMeta, RunStore, RunStoreError
+
+log = logging.getLogger(__name__)
+
+CODE_MASK = "code_mask"  # run store array [depth, row, col] bool: pixels that see the check code
+
+
+class AcquisitionError(RuntimeError):
+    """The run cannot start or cannot go on; the message says where and why."""
+
+
+@dataclass(frozen=True)
+class Event:
+    """One frame of the plan: pattern ``pattern`` at depth ``depth`` (indices)."""
+
+    depth: int
+    pattern: int
+
+
+def plan_events(done: np.ndarray) -> list[Event]:
+    """The events still to do, in plan order (depth by depth, pattern by pattern), from the
+    completion mask ``done`` (depths, patterns) bool."""
+    return [Event(int(d), int(p)) for d, p in np.argwhere(~np.asarray(done, dtype=bool))]
+
+
+def pattern_plan(config: StationConfig, lcd_size: tuple[int, int]) -> StationPatternPlan:
+    """The pattern plan of one depth for the configured patterns on an LCD of (w, h) pixels."""
+    p = config.patterns
+    return StationPatternPlan.for_lcd(lcd_size, p.period, p.steps, offset=p.offset,
+                                      amplitude=p.amplitude)
+
+
+def config_differences(stored: object, current: object, path: str = "") -> list[str]:
+    """Where two JSON-like configs differ: ``"field.sub: stored X, now Y"`` per leaf."""
+    if isinstance(stored, dict) and isinstance(current, dict):
+        out = []
+        for key in sorted(set(stored) | set(current), key=str):
+            sub = f"{path}.{key}" if path else str(key)
+            if key not in stored or key not in current:
+                out.append(f"{sub}: stored {stored.get(key, '(absent)')!r}, "
+                           f"now {current.get(key, '(absent)')!r}")
+            else:
+                out += config_differences(stored[key], current[key], sub)
+        return out
+    return [] if stored == current else [f"{path or '(config)'}: stored {stored!r}, now {current!r}"]
+
+
+def run_record(config: StationConfig, lut: np.ndarray | None) -> dict:
+    """What a run store keeps of the config: the config itself and the display LUT in use."""
+    return {**config.model_dump(mode="json"),
+            "display_lut": None if lut is None else [int(v) for v in lut]}
+
+
+class Acquisition:
+    """The engine: :meth:`setup`, then :meth:`setup_depth` and :meth:`run_event` per event,
+    and :meth:`teardown`, on opened hardware and an open run store."""
+
+    def __init__(self, config: StationConfig, hw: Hardware, store: RunStore,
+                 lut: np.ndarray | None) -> None:
+        self.config, self.hw, self.store, self.lut = config, hw, store, lut
+        self.plan = store.plan
+        self.layout = config.frame_check.layout(store.lcd_size) if config.frame_check.enabled \
+            else None
+        self.calibration: CodeCalibration | None = None
+        self.stage_mm = (float("nan"), float("nan"))
+        self.last_frame_id: int | None = None
+        self.retries: Counter[str] = Counter()
+        self.saturated_frames = 0
+        self.mask_fraction: dict[int, float] = {}
+
+    # ---- setup --------------------------------------------------------------------------
+    def setup(self) -> None:
+        """Identity LUT on the display (the plan applies the LUT), exposure, homed stage."""
+        if self.config.display.frame_code:
+            log.warning("display.frame_code is on: the display driver also draws its strip code "
+                        "in the LCD's top-left corner, changing every frame; camera pixels that "
+                        "see that corner are not masked. Set it to false: [frame_check] verifies "
+                        "the frames")
+        self.hw.display.set_lut(None)
+        self.hw.camera.exposure_ms = self.config.camera.exposure_ms
+        if not self.hw.stage.is_homed:
+            log.info("homing the stage")
+            self.hw.stage.home()
+
+    def setup_depth(self, depth: int, first_pattern: int) -> None:
+        """Move to the depth, then calibrate the check code there and record its mask."""
+        target = self.store.depths_mm[depth]
+        measured = self.hw.stage.move_to(target)
+        self.stage_mm = (target, measured)
+        if self.layout is None:
+            return
+        attempts = self.config.acquire.max_retries + 1
+        for attempt in range(attempts):
+            try:
+                self.calibration = self._calibrate(depth, first_pattern)
+                break
+            except FrameCodeError as exc:
+                if attempt + 1 == attempts:
+                    raise AcquisitionError(
+                        f"check code at LCD {frame_code_rect(self.layout, self.store.lcd_size)} "
+                        f"(x, y, w, h) cannot be read at depth {target} mm: {exc}; move "
+                        "frame_check.origin_px into the camera's view (see `ltc align`) or "
+                        "enlarge frame_check.block_px") from exc
+                self._retry("code calibration", f"depth {depth}", attempt, str(exc))
+        mask = self.calibration.polluted
+        arr = self.store.group[CODE_MASK]
+        arr[depth] = np.asarray(arr[depth]) | mask
+        self.mask_fraction[depth] = float(mask.mean())
+
+    def _calibrate(self, depth: int, first_pattern: int) -> CodeCalibration:
+        """Capture the code on a white display, then every code value on a black one; leave a
+        frame whose code is not the first pattern's on screen, so a display that repeats it is
+        caught."""
+        size = self.store.lcd_size
+        dark = np.broadcast_to(apply_lut(np.zeros((1, 1)), self.lut), size[::-1])
+        light = np.broadcast_to(apply_lut(np.ones((1, 1)), self.lut), size[::-1])
+        values = 2**self.layout.bits
+        background = self._capture_still(stamp_frame_code(light, 0, self.layout),
+                                         (1, depth, values))
+        frames = [self._capture_still(stamp_frame_code(dark, v, self.layout), (1, depth, v))
+                  for v in range(values)]
+        self._show(stamp_frame_code(dark, (first_pattern - 1) % values, self.layout))
+        fc = self.config.frame_check
+        return calibrate_code(np.stack(frames), background, 0, leak_max=fc.leak_max,
+                              pollution=fc.pollution)
+
+    def _capture_still(self, image: np.ndarray, key: tuple[int, ...]) -> np.ndarray:
+        """Show ``image`` and return a good camera frame of it (camera trouble retried)."""
+        shown = self._show(image)
+        for attempt in range(self.config.acquire.max_retries + 1):
+            frame, why = self._capture(shown, key)
+            if frame is not None:
+                return frame.image
+            self._retry(why[0], f"calibration capture {key}", attempt, why[1])
+        raise AcquisitionError(f"no good frame of calibration capture {key} in "
+                               f"{self.config.acquire.max_retries + 1} attempts: {why[1]}")
+
+    # ---- one event ----------------------------------------------------------------------
+    def run_event(self, event: Event) -> None:
+        """Show, capture, verify, write one frame; retries are bounded, logged and recorded."""
+        d, p = event.depth, event.pattern
+        image = self.plan.image(p, self.store.lcd_size, self.lut)
+        code = None
+        if self.layout is not None:
+            code = p % 2**self.layout.bits
+            image = stamp_frame_code(image, code, self.layout)
+        max_retries = self.config.acquire.max_retries
+        reasons: list[str] = []
+        shown = None
+        for attempt in range(max_retries + 1):
+            if shown is None:
+                shown = self._show(image)
+            frame, why = self._capture(shown, (0, d, p))
+            if frame is not None and code is not None:
+                why = self._verify(frame, code)
+                if why is not None:
+                    shown = None  # show the pattern again
+            if why is None:
+                break
+            reasons.append(f"{why[0]}: {why[1]}")
+            self._retry(why[0], f"frame (depth {d}, pattern {p})", attempt, why[1])
+        else:
+            raise AcquisitionError(f"frame (depth {d}, pattern {p}): no good frame in "
+                                   f"{max_retries + 1} attempts: {'; '.join(reasons)}")
+        self._check_saturation(event, frame.image)
+        target, measured = self.stage_mm
+        meta = FrameMeta(stage_target_mm=target, stage_measured_mm=measured,
+                         swap_index=shown.index, swap_time_s=shown.swap_time,
+                         camera_timestamp_s=frame.timestamp, frame_id=frame.frame_id,
+                         exposure_ms=frame.exposure_ms, retries=len(reasons))
+        self.store.write_frame(d, p, frame.image, meta)
+        if reasons:
+            entries = list(self.store.group.attrs.get("retry_log", []))
+            entries.append({"depth": d, "pattern": p, "reasons": reasons})
+            self.store.group.attrs["retry_log"] = entries
+
+    def _show(self, image: np.ndarray) -> ShownFrame:
+        shown = self.hw.display.show(image)
+        d = self.config.display
+        wait = shown.swap_time + d.latency_frames / d.refresh_hz - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        return shown
+
+    def _capture(self, shown: ShownFrame,
+                 key: tuple[int, ...]) -> tuple[Frame | None, tuple[str, str] | None]:
+        """One capture: (frame, None) when it is fresh (taken after ``shown`` went on screen,
+        with a new frame counter), else (None, (kind, detail)). On the fake bench the camera
+        noise is seeded by ``key`` (what is shown), so frames do not depend on interruptions."""
+        if self.hw.fake is not None:
+            self.hw.fake.camera.reseed(key)
+        try:
+            frame = self.hw.camera.capture(self.config.camera.timeout_s)
+        except CameraTimeout as exc:
+            return None, ("camera timeout", str(exc))
+        except CameraError as exc:
+            return None, ("camera error", str(exc))
+        if self.last_frame_id is not None and frame.frame_id <= self.last_frame_id:
+            return None, ("stale frame", f"frame id {frame.frame_id} after {self.last_frame_id}")
+        if frame.timestamp < shown.swap_time:
+            ago = shown.swap_time - frame.timestamp
+            return None, ("stale frame", f"taken {ago:.3f} s before the pattern was shown")
+        self.last_frame_id = frame.frame_id
+        return frame, None
+
+    def _verify(self, frame: Frame, code: int) -> tuple[str, str] | None:
+        """None when the frame shows check code ``code``, else (kind, detail)."""
+        try:
+            seen = read_code(frame.image, self.calibration,
+                             min_margin=self.config.frame_check.min_margin)
+        except FrameCodeError as exc:
+            return "unreadable check code", str(exc)
+        if seen != code:
+            return "wrong check code", f"frame shows code {seen}, expected {code}"
+        return None
+
+    def _retry(self, kind: str, what: str, attempt: int, detail: str) -> None:
+        self.retries[kind] += 1
+        log.warning("%s: attempt %d failed, %s (%s)", what, attempt + 1, kind, detail)
+
+    def _check_saturation(self, event: Event, image: np.ndarray) -> None:
+        c = self.config
+        full = 2**self.store.bit_depth - 1
+        saturated = image >= c.camera.saturation_fraction * full
+        if self.calibration is not None:
+            saturated &= ~self.calibration.polluted
+        n = int(np.count_nonzero(saturated))
+        if n > c.acquire.saturation_warn_fraction * image.size:
+            self.saturated_frames += 1
+            log.warning("frame (depth %d, pattern %d): %d pixels saturated; lower "
+                        "camera.exposure_ms", event.depth, event.pattern, n)
+
+    # ---- teardown -----------------------------------------------------------------------
+    def teardown(self, failed: bool) -> list[str]:
+        """Blank the display and, after a failure, stop the stage; return the cleanup errors
+        (logged, never raised: the caller decides)."""
+        errors = []
+        steps: list[tuple[str, Callable[[], object]]] = [
+            ("blank the display", lambda: self.hw.display.show(
+                np.zeros(self.store.lcd_size[::-1], np.uint8)))]
+        if failed:
+            steps.append(("stop the stage", self.hw.stage.stop))
+        for name, step in steps:
+            try:
+                step()
+            except Exception as exc:  # noqa: BLE001 - collected, logged and reported to the caller
+                log.error("teardown: could not %s: %s", name, exc)
+                errors.append(f"teardown: could not {name}: {type(exc).__name__}: {exc}")
+        return errors
+
+
+def acquire(
+    config: StationConfig,
+    out: str | Path,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    hw: Hardware | None = None,
+    before_event: Callable[[Event, Hardware], None] | None = None,
+) -> dict:
+    """Run (or with ``resume`` finish) the acquisition of ``config`` into the run store ``out``.
+
+    hw : opened hardware to use (left open); by default the config's backend is opened and
+        closed here. before_event : called before each event (e.g. to trigger a fake's fault).
+    Returns a JSON-able summary. Raises :class:`AcquisitionError` (or the device's error)
+    when the run cannot start or go on; frames already done stay done.
+    """
+    out = Path(out)
+    lut = load_lut(config.display.lut_path) if config.display.lut_path else None
+    record = run_record(config, lut)
+    store = None
+    if resume:
+        store = _open_for_resume(out, record)
+    elif out.exists():
+        raise AcquisitionError(f"{out}: already exists; pass --resume to finish that run, or "
+                               "choose a new --out")
+    t0 = time.perf_counter()
+    with _hardware(config, hw) as devices:
+        store = _check_and_create(config, devices, out, store, record, lut)
+        engine = Acquisition(config, devices, store, lut)
+        todo = plan_events(store.done())
+        status = "failed"
+        error: BaseException | None = None
+        try:
+            engine.setup()
+            _run_events(engine, todo, progress, before_event)
+            status = "complete"
+        except KeyboardInterrupt as exc:
+            status, error = "interrupted", exc
+            raise
+        except BaseException as exc:
+            error = exc
+            raise
+        finally:
+            cleanup = engine.teardown(failed=error is not None)
+            try:
+                store.group.attrs.update({"status": status, "end_time": _now()})
+            except OSError as exc:
+                cleanup.append(f"teardown: could not record the run status: {exc}")
+            if cleanup and error is not None:
+                for note in cleanup:
+                    error.add_note(note)
+            elif cleanup:
+                raise AcquisitionError("; ".join(cleanup))
+    seconds = time.perf_counter() - t0
+    return {
+        "run": str(out), "status": status, "resumed": resume, "frames_written": len(todo),
+        "frames_total": int(store.done().size), "depths_mm": store.depths_mm,
+        "patterns_per_depth": store.n_patterns, "retries": dict(engine.retries),
+        "saturated_frames": engine.saturated_frames,
+        "code_mask_fraction": {str(store.depths_mm[d]): f for d, f in engine.mask_fraction.items()},
+        "seconds": round(seconds, 3), "frames_per_second": round(len(todo) / max(seconds, 1e-9), 2),
+    }
+
+
+def _run_events(engine: Acquisition, todo: Sequence[Event], progress: bool,
+                before_event: Callable[[Event, Hardware], None] | None) -> None:
+    n = engine.store.n_patterns
+    depth = None
+    with tqdm(total=len(todo), desc="acquire", unit="frame", disable=not progress) as bar:
+        for event in todo:
+            if event.depth != depth:
+                depth = event.depth
+                bar.set_postfix_str(f"depth {engine.store.depths_mm[depth]:g} mm: calibrating",
+                                    refresh=False)
+                engine.setup_depth(depth, event.pattern)
+            bar.set_postfix_str(f"depth {engine.store.depths_mm[depth]:g} mm "
+                                f"({depth + 1}/{engine.store.n_depths}), frame "
+                                f"{event.pattern + 1}/{n}", refresh=False)
+            if before_event is not None:
+                before_event(event, engine.hw)
+            engine.run_event(event)
+            bar.update(1)
+
+
+def _open_for_resume(out: Path, record: dict) -> RunStore:
+    try:
+        store = RunStore.open(out, mode="r+")
+    except RunStoreError as exc:
+        raise AcquisitionError(f"cannot resume: {exc}") from exc
+    diffs = config_differences(store.config, record)
+    if diffs:
+        raise AcquisitionError(f"{out}: refusing to resume: the config differs from the run's: "
+                               + "; ".join(diffs))
+    return store
+
+
+def _check_and_create(config: StationConfig, hw: Hardware, out: Path, store: RunStore | None,
+                      record: dict, lut: np.ndarray | None) -> RunStore:
+    """Check the config against the opened devices (before anything moves); create the store."""
+    lcd_size = tuple(hw.display.size)
+    plan = pattern_plan(config, lcd_size)
+    if config.frame_check.enabled:
+        try:
+            frame_code_rect(config.frame_check.layout(lcd_size), lcd_size)
+        except ValueError as exc:
+            raise AcquisitionError(f"frame_check: {exc}") from exc
+    lo, hi = hw.stage.limits_mm
+    outside = [z for z in config.depths_mm if not lo <= z <= hi]
+    if outside:
+        raise AcquisitionError(f"depths_mm {outside} outside the stage's travel ({lo}, {hi}) mm")
+    if store is None:
+        store = RunStore.create(
+            out, config=record, plan=plan, depths_mm=config.depths_mm,
+            camera_size=hw.camera.size, bit_depth=hw.camera.bit_depth, lcd_size=lcd_size,
+            lcd_pitch_mm=config.display.pitch_mm, display_lut=lut, start_time=_now())
+        layout = config.frame_check.layout(lcd_size) if config.frame_check.enabled else None
+        store.group.attrs.update({
+            "frame_check": None if layout is None else {
+                "rect_xywh": list(frame_code_rect(layout, lcd_size)), "bits": layout.bits,
+                "block_px": layout.block_px, "columns": layout.grid[1]},
+            "status": "running"})
+        return store
+    try:
+        store.require_same_config(record, plan)
+    except RunStoreError as exc:
+        raise AcquisitionError(f"refusing to resume: {exc}") from exc
+    found = {"camera_size": tuple(hw.camera.size), "bit_depth": hw.camera.bit_depth,
+             "lcd_size": lcd_size}
+    stored = {"camera_size": store.camera_size, "bit_depth": store.bit_depth,
+              "lcd_size": store.lcd_size}
+    if found != stored:
+        raise AcquisitionError(f"{out}: refusing to resume: devices {found} differ from the "
+                               f"run's {stored}")
+    store.group.attrs["status"] = "running"
+    return store
+
+
+@contextlib.contextmanager
+def _hardware(config: StationConfig, hw: Hardware | None) -> Iterator[Hardware]:
+    """The given hardware, or the config's, opened here and closed so that an error while
+    closing is attached to (never replaces) an error of the run."""
+    if hw is not None:
+        yield hw
+        return
+    cm = open_hardware(config)
+    opened = cm.__enter__()
+    try:
+        yield opened
+    except BaseException as exc:
+        try:
+            cm.__exit__(type(exc), exc, exc.__traceback__)
+        except Exception as close_exc:  # noqa: BLE001 - attached to the original error
+            log.error("teardown: closing the devices failed: %s", close_exc)
+            exc.add_note(f"teardown: closing the devices failed: {close_exc!r}")
+        raise
+    cm.__exit__(None, None, None)
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat()

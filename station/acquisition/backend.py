@@ -1,0 +1,99 @@
+"""Open the station's three devices, real or fake, as the config says.
+
+The only station module allowed to import ``fakes`` (import-linter enforces it).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from drivers.frame_code import FrameCodeLayout
+from drivers.interfaces import Camera, PatternDisplay, Stage
+from station.acquisition.config import ConfigError, StationConfig
+
+
+@dataclass
+class Hardware:
+    """The opened devices; ``fake`` is the fake bench (ground truth) on the fake backend."""
+
+    stage: Stage
+    display: PatternDisplay
+    camera: Camera
+    fake: Any = None
+
+
+def load_lut(path: str | Path) -> np.ndarray:
+    """Read an inverse response LUT (256 uint8 values, .npy or one value per line text)."""
+    path = Path(path)
+    try:
+        lut = np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(path)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{path}: cannot read display LUT: {exc}") from exc
+    lut = np.asarray(lut).ravel()
+    if lut.shape != (256,) or np.any(lut < 0) or np.any(lut > 255) or np.any(lut % 1):
+        raise ConfigError(f"{path}: display LUT must be 256 integers in 0..255, got shape "
+                          f"{lut.shape}, range [{lut.min()}, {lut.max()}]")
+    return lut.astype(np.uint8)
+
+
+def frame_code_layout(config: StationConfig) -> FrameCodeLayout | None:
+    """The frame code the display draws, or None when it is off."""
+    d = config.display
+    return FrameCodeLayout(block_px=d.frame_code_block_px) if d.frame_code else None
+
+
+def fake_truth(config: dict) -> dict | None:
+    """Ground truth of a fake-bench run from its stored config (None for a real bench):
+    the true optical centre in the station frame (mm) and focus distance (mm)."""
+    if config.get("backend") != "fake":
+        return None
+    from fakes.bench import FakeBench
+    from fakes.hardware import parse_fake_settings
+
+    bench = FakeBench(parse_fake_settings(config.get("fake", {})).bench_config())
+    return {"optical_centre_mm": bench.optical_centre_station_mm().tolist(),
+            "focus_distance_mm": bench.config.focus_distance_mm}
+
+
+@contextlib.contextmanager
+def open_hardware(config: StationConfig, *, lut: np.ndarray | None = None) -> Iterator[Hardware]:
+    """Open stage, display and camera; close all of them on exit, whatever happened."""
+    if lut is None and config.display.lut_path:
+        lut = load_lut(config.display.lut_path)
+    s = config.stage
+    if config.backend == "fake":
+        from fakes.hardware import FakeHardware, parse_fake_settings
+
+        settings = parse_fake_settings(config.fake)
+        with FakeHardware(
+            settings, microstep_um=s.microstep_um, travel_mm=s.travel_mm,
+            tolerance_um=s.tolerance_um, timeout_s=s.timeout_s, settle_s=s.settle_s,
+            frame_code=frame_code_layout(config), lut=lut,
+        ) as fake:
+            fake.camera.exposure_ms = config.camera.exposure_ms
+            yield Hardware(fake.stage, fake.lcd, fake.camera, fake)
+        return
+
+    from drivers.camera import OpenCVCamera
+    from drivers.display import GlfwDisplay
+    from drivers.stage import ZaberStage
+
+    with contextlib.ExitStack() as stack:
+        stage = stack.enter_context(ZaberStage(
+            s.port, baudrate=s.baudrate, address=s.address, axis=s.axis,
+            microstep_um=s.microstep_um, travel_mm=s.travel_mm, tolerance_um=s.tolerance_um,
+            timeout_s=s.timeout_s, settle_s=s.settle_s,
+        ))
+        display = stack.enter_context(GlfwDisplay(
+            config.display.monitor, lut=lut, frame_code=frame_code_layout(config) or False,
+        ))
+        c = config.camera
+        camera = stack.enter_context(OpenCVCamera(
+            c.source, exposure_ms=c.exposure_ms, gain=c.gain, timeout_s=c.timeout_s,
+        ))
+        yield Hardware(stage, display, camera)

@@ -1,0 +1,287 @@
+"""The LTC at the optical centre (OPTICS.md 6.4-6.5): scale, resample, fuse, quantise.
+
+Similar triangles about the pixel's in-focus point map an LCD point ``q`` at depth ``z_i`` to
+the aperture plane (the plane of the optical centre, ``z_O``):
+
+    p = a + s_i (q - c_i),   s_i = (Z_F - z_O) / (Z_F - z_i)
+
+with ``c_i`` the principal ray at ``z_i``, ``a`` the principal ray at ``z_O`` (both station
+frame) and ``Z_F`` the focus plane; ``s_i < 0`` beyond the focus plane inverts the LTC. All
+z enter as differences, so a constant added to every stage reading cancels.
+
+Each LCD pixel becomes a box of side ``pitch |s_i|`` on the aperture plane. A common grid of
+``G x G`` cells (mm, camera-frame axes, origin at the optical centre) is filled by sampling
+each cell on a ``k x k`` sub-grid (nearest LCD pixel: exact box densities, area-averaged).
+
+Fusion weights: each depth's aperture distribution is in error by noise and by blur, both
+predicted from known quantities (``depth_errors``). Noise: a cell's mass has std
+``sigma_h sqrt(A/B) min(1, sqrt(A/B))`` (cell area A, LCD box area B, ``sigma_h`` the store's
+per-weight noise), an L1 error ``sqrt(2/pi) N_cells sigma_cell``. Blur: the LCD box and the
+camera pixel's footprint spread the distribution by ``sigma_b`` (box std), an L1 error
+``0.8 sigma_b perimeter / area`` for a disk-like pupil. Blur errors of one pixel's depths
+all smear the same pupil edge outwards, so they add linearly; noise errors are independent
+and add in quadrature. The weights minimise ``(sum w b)^2 + sum w^2 n^2`` over the
+non-negative weights summing to 1 (``fusion_weights``): with no noise the sharpest depth
+alone; with noise a blend. (By noise alone, depths near focus, whose LTC is a few large
+boxes with little noise, would win while being the blurriest.)
+
+K samples: weighted k-means (Lloyd) over the cells, started from cells at evenly spaced
+quantiles of the raster-order cumulative mass (deterministic), keeps the first moment
+exactly; an affine map about the mean then gives the samples the target covariance exactly
+(the grid covariance plus the cell's own ``cell^2/12``, minus the known box blurs, so the
+samples describe the aperture, not the measurement's pixels). Finally the samples are put in
+a canonical order (``canonical_order``) so that bilinear interpolation between nodes blends
+like with like.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from sim.optics.lens import sunflower_disk
+
+SQRT_2_OVER_PI = float(np.sqrt(2.0 / np.pi))
+EDGE_L1_PER_SIGMA = 0.8  # L1 error of a blurred step edge per unit blur std and edge length
+NOISE_FLOOR_L1 = 1e-4  # keeps noise-free weights finite
+
+
+@dataclass(frozen=True)
+class ApertureGrid:
+    """A square grid of ``cells x cells`` on the aperture plane, centred on the optical centre.
+
+    Cell ``[j, i]`` (row j along y, column i along x) has centre
+    ``(-half + (i + 0.5) cell, -half + (j + 0.5) cell)`` mm.
+    """
+
+    half_width_mm: float
+    cells: int
+
+    def __post_init__(self) -> None:
+        if not (self.half_width_mm > 0 and np.isfinite(self.half_width_mm)):
+            raise ValueError(f"ApertureGrid: half_width_mm must be > 0, got {self.half_width_mm}")
+        if self.cells < 2:
+            raise ValueError(f"ApertureGrid: cells must be >= 2, got {self.cells}")
+
+    @property
+    def cell_mm(self) -> float:
+        return 2.0 * self.half_width_mm / self.cells
+
+    @property
+    def centres_mm(self) -> np.ndarray:
+        """Cell centre coordinates along one axis, (G,) mm."""
+        return -self.half_width_mm + (np.arange(self.cells) + 0.5) * self.cell_mm
+
+    def points(self, sub: int = 1) -> np.ndarray:
+        """Cell centres (sub=1) or sub x sub sub-cell centres, (G*sub, G*sub, 2) (x, y) mm."""
+        n = self.cells * sub
+        c = -self.half_width_mm + (np.arange(n) + 0.5) * (self.cell_mm / sub)
+        xx, yy = np.meshgrid(c, c)
+        return np.stack([xx, yy], axis=-1)
+
+
+def scale_ratio(depths_mm: np.ndarray, focus_plane_z_mm: float, centre_z_mm: float) -> np.ndarray:
+    """Signed scale (D,) from depth ``z_i`` to the aperture plane: (Z_F - z_O) / (Z_F - z_i)."""
+    dz = focus_plane_z_mm - np.asarray(depths_mm, dtype=np.float64)
+    if np.any(np.abs(dz) < 1e-9):
+        raise ValueError(f"scale_ratio: a depth lies on the focus plane z = {focus_plane_z_mm} mm;"
+                         " its LTC carries no aperture information (drop it)")
+    return (focus_plane_z_mm - centre_z_mm) / dz
+
+
+def resample(
+    h: np.ndarray,
+    origin: np.ndarray,
+    ray_at_depth_mm: np.ndarray,
+    ray_at_centre_mm: np.ndarray,
+    ratio: float | np.ndarray,
+    pitch_mm: float,
+    grid: ApertureGrid,
+    rotation2: np.ndarray | None = None,
+    sub: int = 2,
+) -> np.ndarray:
+    """Aperture-plane masses (n, G, G) of n LTC windows at one depth.
+
+    h : (n, P, P) weights (0 outside the region to keep); origin : (n, 2) LCD (col, row) of
+    element [0, 0]; ray_at_depth_mm : (n, 2) principal ray at the depth (LCD-plane mm);
+    ray_at_centre_mm : (n, 2) principal ray at z_O minus the optical centre (mm);
+    ratio : scalar or (n,) signed scale; rotation2 : (2, 2) station-to-camera rotation of
+    aperture-plane vectors (identity if None).
+    """
+    n, p = h.shape[0], h.shape[-1]
+    pts = grid.points(sub).reshape(-1, 2)  # camera-frame aperture coordinates
+    if rotation2 is not None:
+        pts = pts @ np.asarray(rotation2)  # p_station = R2^T p_cam, row-vector form
+    s = np.broadcast_to(np.asarray(ratio, dtype=np.float64), (n,))
+    inv = 1.0 / s[:, None]
+    col = np.floor((ray_at_depth_mm[:, :1] + (pts[None, :, 0] - ray_at_centre_mm[:, :1]) * inv)
+                   / pitch_mm + 0.5).astype(np.int64) - origin[:, :1]
+    row = np.floor((ray_at_depth_mm[:, 1:] + (pts[None, :, 1] - ray_at_centre_mm[:, 1:]) * inv)
+                   / pitch_mm + 0.5).astype(np.int64) - origin[:, 1:]
+    inside = (col >= 0) & (col < p) & (row >= 0) & (row < p)
+    flat = np.where(inside, row * p + col, 0) + (np.arange(n) * p * p)[:, None]
+    val = np.where(inside, h.reshape(-1)[flat], 0.0)
+    box = (pitch_mm * s) ** 2  # (n,) LCD pixel area on the aperture plane
+    dens = val / box[:, None]
+    g = grid.cells
+    cell_area = grid.cell_mm**2
+    return dens.reshape(n, g, sub, g, sub).mean(axis=(2, 4)) * cell_area
+
+
+def depth_errors(
+    sigma_h: np.ndarray,
+    ratio: np.ndarray,
+    pitch_mm: float,
+    footprint_mm: np.ndarray,
+    cov_mm2: np.ndarray,
+    cell_mm: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted L1 errors (..., D) of each depth's aperture distribution: (blur, noise).
+
+    sigma_h : (..., D) per-weight noise (NaN: unknown, counts as infinite); ratio : (D,);
+    footprint_mm : (D,) camera-pixel footprint on the LCD; cov_mm2 : (..., 2, 2) the pixel's
+    aperture covariance (sets the area and edge length of a disk-like pupil).
+    """
+    det = np.maximum(np.linalg.det(cov_mm2), 1e-30)[..., None]
+    area = 4.0 * np.pi * np.sqrt(det)  # a uniform disk of radius R: pi R^2
+    radius = 2.0 * det**0.25
+    a = cell_mm**2
+    b = (pitch_mm * ratio) ** 2
+    rel = np.sqrt(a / b)
+    sigma_cell = np.nan_to_num(sigma_h, nan=np.inf) * rel * np.minimum(1.0, rel)
+    l1_noise = SQRT_2_OVER_PI * (area / a) * sigma_cell
+    sigma_b = np.sqrt(((pitch_mm * ratio) ** 2 + (footprint_mm * ratio) ** 2) / 12.0)
+    l1_blur = EDGE_L1_PER_SIGMA * sigma_b * 2.0 / radius
+    return np.broadcast_to(l1_blur, l1_noise.shape).copy(), l1_noise
+
+
+def fusion_weights(blur: np.ndarray, noise: np.ndarray, available: np.ndarray) -> np.ndarray:
+    """Weights (n, D), each row summing to 1 (0 where nothing is available), minimising the
+    predicted error of the fused distribution ``(sum w b)^2 + sum w^2 n^2``.
+
+    Blur errors of one pixel's depths share their sign (every depth smears the same pupil
+    edge outwards), so they add linearly; noise errors are independent and add in quadrature.
+    Solved in closed form (Sherman-Morrison) on the active set, dropping depths whose weight
+    comes out negative until none does.
+    """
+    active = np.asarray(available, dtype=bool) & np.isfinite(noise) & np.isfinite(blur)
+    b = np.where(active, blur, 0.0)
+    v = np.where(active, noise**2, 1.0) + NOISE_FLOOR_L1**2
+    w = np.zeros(b.shape)
+    for _ in range(b.shape[1]):
+        vi = np.where(active, 1.0 / v, 0.0)
+        sb = (vi * b).sum(axis=1, keepdims=True)
+        bb = (vi * b * b).sum(axis=1, keepdims=True)
+        w = vi - vi * b * sb / (1.0 + bb)
+        neg = active & (w < 0)
+        if not neg.any():
+            break
+        active &= ~neg
+    w = np.where(active, np.maximum(w, 0.0), 0.0)
+    tot = w.sum(axis=1, keepdims=True)
+    return w / np.where(tot > 0, tot, 1.0)
+
+
+def grid_moments(mass: np.ndarray, grid: ApertureGrid) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (n, 2) and covariance (n, 2, 2) of normalised grid masses (n, G, G)."""
+    pts = grid.points().reshape(-1, 2)
+    m = mass.reshape(len(mass), -1)
+    tot = m.sum(axis=1, keepdims=True)
+    m = m / np.where(tot > 0, tot, 1.0)
+    mean = m @ pts
+    d = pts[None] - mean[:, None]
+    cov = np.einsum("nk,nki,nkj->nij", m, d, d)
+    return mean, cov
+
+
+def kmeans_samples(
+    mass: np.ndarray, grid: ApertureGrid, k: int, iterations: int = 30
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted k-means of grid masses (n, G, G) into k samples: positions (n, k, 2), weights
+    (n, k) summing to 1. An empty cluster is re-seeded at the cell that costs most (mass x
+    squared distance); one still empty at the end (fewer occupied cells than k) keeps
+    weight 0. Negative masses count as 0."""
+    if k < 1:
+        raise ValueError(f"kmeans_samples: need k >= 1 samples, got {k}")
+    n = len(mass)
+    pts = grid.points().reshape(-1, 2)
+    m = np.maximum(mass.reshape(n, -1), 0.0)
+    tot = m.sum(axis=1)
+    if np.any(tot <= 0):
+        raise ValueError(f"kmeans_samples: {int((tot <= 0).sum())} distribution(s) have no "
+                         "positive mass")
+    m = m / tot[:, None]
+    cdf = np.cumsum(m, axis=1)
+    q = (np.arange(k) + 0.5) / k
+    first = np.minimum((cdf[:, :, None] < q[None, None, :]).sum(axis=1), len(pts) - 1)
+    centres = pts[first]  # (n, k, 2)
+    active = m.any(axis=0)  # cells with mass somewhere in this batch
+    pts, m = pts[active], m[:, active]
+    px, py = pts[:, 0].astype(np.float32), pts[:, 1].astype(np.float32)
+    rows = np.arange(n)[:, None]
+    mx, my = (m * pts[None, :, 0]).ravel(), (m * pts[None, :, 1]).ravel()
+    lab_prev = None
+    for _ in range(iterations):
+        cx = centres[..., 0].astype(np.float32)[:, None, :]
+        cy = centres[..., 1].astype(np.float32)[:, None, :]
+        d2 = (px[None, :, None] - cx) ** 2
+        d2 += (py[None, :, None] - cy) ** 2  # (n, cells, k)
+        lab = d2.argmin(axis=2)
+        if lab_prev is not None and np.array_equal(lab, lab_prev):
+            break  # assignments stable: the centres are the means of this assignment
+        lab_prev = lab
+        key = (rows * k + lab).ravel()
+        wsum = np.bincount(key, weights=m.ravel(), minlength=n * k).reshape(n, k)
+        sx = np.bincount(key, weights=mx, minlength=n * k).reshape(n, k)
+        sy = np.bincount(key, weights=my, minlength=n * k).reshape(n, k)
+        safe = np.where(wsum > 0, wsum, 1.0)
+        new = np.where((wsum > 0)[..., None], np.stack([sx, sy], axis=-1) / safe[..., None],
+                       centres)
+        empty = wsum <= 0
+        if empty.any():  # re-seed one empty cluster per pixel at its costliest cell
+            who = np.flatnonzero(empty.any(axis=1))
+            cost = m[who] * np.take_along_axis(d2[who], lab[who, :, None], axis=2)[..., 0]
+            new[who, empty[who].argmax(axis=1)] = pts[cost.argmax(axis=1)]
+        centres = new
+    return centres, wsum / wsum.sum(axis=1, keepdims=True)
+
+
+def canonical_order(x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reorder samples x (n, k, 2), weights (n, k) so that sample j of every node sits near
+    point j of one reference pattern (a Vogel spiral of unit covariance) in the node's
+    whitened coordinates: optimal assignment (Hungarian) per node. Nodes of similar
+    distributions then agree on what sample j is, so blending sample j of neighbouring
+    nodes (bilinear interpolation) does not shrink the distribution."""
+    n, k = w.shape
+    ref = sunflower_disk(k) * 2.0  # the unit disk's Vogel spiral has per-axis variance 1/4
+    mu = np.einsum("nk,nki->ni", w, x)
+    d = x - mu[:, None]
+    c = np.einsum("nk,nki,nkj->nij", w, d, d) + 1e-12 * np.eye(2)
+    white = np.einsum("nij,nkj->nki", _sqrtm(c, inverse=True), d)
+    cost = ((white[:, :, None, :] - ref[None, None, :, :]) ** 2).sum(-1)  # (n, sample, ref)
+    order = np.empty((n, k), dtype=np.int64)
+    for i in range(n):
+        rows, cols = linear_sum_assignment(cost[i])
+        order[i, cols] = rows
+    return np.take_along_axis(x, order[..., None], axis=1), np.take_along_axis(w, order, axis=1)
+
+
+def _sqrtm(c: np.ndarray, inverse: bool = False) -> np.ndarray:
+    val, vec = np.linalg.eigh(c)
+    val = np.maximum(val, 1e-18)
+    f = val**-0.5 if inverse else np.sqrt(val)
+    return np.einsum("nij,nj,nkj->nik", vec, f, vec)
+
+
+def match_moments(
+    x: np.ndarray, w: np.ndarray, mean: np.ndarray, cov: np.ndarray
+) -> np.ndarray:
+    """Affine map of samples x (n, k, 2) with weights w (n, k) about their mean so that their
+    weighted mean and covariance become ``mean`` (n, 2) and ``cov`` (n, 2, 2)."""
+    mu = np.einsum("nk,nki->ni", w, x)
+    d = x - mu[:, None]
+    c = np.einsum("nk,nki,nkj->nij", w, d, d)
+    t = _sqrtm(cov) @ _sqrtm(c, inverse=True)
+    return mean[:, None] + np.einsum("nij,nkj->nki", t, d)

@@ -1,0 +1,298 @@
+"""Grey-scale centroids and second moments of every pixel's LTC at every depth (OPTICS.md 6.1).
+
+A pixel's LTC window is searched for its peak (after a 3 x 3 box smoothing); the region is
+the connected set of smoothed weights above a noise threshold that holds the peak, grown
+by a margin. Over that region
+
+    x_g = sum x h / sum h,   var(x_g) = sigma_h^2 sum (x - x_g)^2 / (sum h)^2
+
+with ``sigma_h`` the store's per-weight noise estimate, and the central second moments
+``m_xx, m_yy, m_xy``. A region, not the whole P x P window: the noise of a centroid grows
+with the area summed over (OPTICS.md section 5). Station-frame points are
+``(x_g * pitch, y_g * pitch, z)`` mm with ``z`` the stage reading of the depth
+(``fakes/bench.py`` documents the frame: the LCD plane lies at ``z = stage reading``).
+
+The LTC store writes NaN windows for pixels without signal; such a pixel is "no signal" at
+that depth. A window mixing NaN and finite weights, or one whose weights sum to <= 0, is a
+broken store and raises. (``station/ltc/spi.py`` of issue 3 will offer its own ``centroid``;
+it did not exist when this was written, so the centroid lives here.)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from station.ltc.store import LtcStoreError, open_ltc_store
+
+STATUS_OK = 0
+STATUS_NO_SIGNAL = 1  # NaN window, or no weight above the noise threshold
+STATUS_TRUNCATED = 2  # the region reaches the window border: LTC folded or cut off
+NOISE_SIGMAS = 3.0  # region threshold on the 3x3-smoothed weights, in their noise stds
+PEAK_FRACTION = 0.02  # ...and at least this fraction of the smoothed peak
+REGION_MARGIN_PX = 2  # the region is grown by this many LCD pixels
+READ_BUDGET_BYTES = 1 << 27  # LTC windows read at once (float64), bytes
+WINDOWS_PER_BATCH = 4096  # windows analysed at once (temporaries ~ 10 x this x P^2 x 8 B)
+
+
+class LtcVolumeError(ValueError):
+    """An LTC volume is unusable; the message names the source, array and element."""
+
+
+@dataclass(frozen=True)
+class LtcVolume:
+    """The LTC of every pixel at every depth; arrays may be numpy or zarr (read by rows).
+
+    ltc : (D, H, W, P, P) weights, each window summing to 1, NaN where no signal.
+    origin : (D, H, W, 2) int, LCD (column, row) of window element [0, 0].
+    gain : (D, H, W) response to full white, ADU above black (relative transmittance).
+    noise : (D, H, W) std of one LTC weight.
+    depths_mm : (D,) stage readings, mm; pitch_mm : LCD pixel pitch, mm.
+    camera_matrix, dist_coeffs : the camera's K (3x3) and OpenCV distortion, if known.
+    name : where it came from, for error messages.
+    """
+
+    ltc: Any
+    origin: Any
+    gain: Any
+    noise: Any
+    depths_mm: np.ndarray
+    pitch_mm: float
+    camera_matrix: np.ndarray | None = None
+    dist_coeffs: np.ndarray | None = None
+    name: str = "<memory>"
+
+    def __post_init__(self) -> None:
+        depths = np.asarray(self.depths_mm, dtype=np.float64).ravel()
+        object.__setattr__(self, "depths_mm", depths)
+        n = self.name
+        if len(depths) < 2:
+            raise LtcVolumeError(f"{n}: depths_mm has {len(depths)} depth(s); the lens "
+                                 "derivation needs at least 2 depths (better 5-6)")
+        if not np.all(np.isfinite(depths)) or len(np.unique(depths)) != len(depths):
+            raise LtcVolumeError(f"{n}: depths_mm must be finite and distinct, got {depths}")
+        if not (np.isfinite(self.pitch_mm) and self.pitch_mm > 0):
+            raise LtcVolumeError(f"{n}: pitch_mm must be > 0, got {self.pitch_mm}")
+        shape = tuple(self.ltc.shape)
+        if len(shape) != 5 or shape[0] != len(depths) or shape[3] != shape[4]:
+            raise LtcVolumeError(f"{n}: ltc has shape {shape}, expected (D={len(depths)}, H, W, "
+                                 "P, P)")
+        for field, want in (("origin", shape[:3] + (2,)), ("gain", shape[:3]),
+                            ("noise", shape[:3])):
+            got = tuple(getattr(self, field).shape)
+            if got != want:
+                raise LtcVolumeError(f"{n}: {field} has shape {got}, expected {want}")
+        if self.camera_matrix is not None:
+            k = np.asarray(self.camera_matrix, dtype=np.float64)
+            if k.shape != (3, 3) or not np.all(np.isfinite(k)) or k[0, 0] <= 0 or k[1, 1] <= 0:
+                raise LtcVolumeError(f"{n}: camera_matrix must be a finite 3x3 K with "
+                                     f"fx, fy > 0, got {k.tolist()}")
+            object.__setattr__(self, "camera_matrix", k)
+
+    @property
+    def camera_size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return int(self.ltc.shape[2]), int(self.ltc.shape[1])
+
+    def rows(self, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``ltc, origin, gain, noise`` of camera rows ``r0:r1`` as float64/int64 arrays."""
+        return (
+            np.asarray(self.ltc[:, r0:r1], dtype=np.float64),
+            np.asarray(self.origin[:, r0:r1], dtype=np.int64),
+            np.asarray(self.gain[:, r0:r1], dtype=np.float64),
+            np.asarray(self.noise[:, r0:r1], dtype=np.float64),
+        )
+
+
+def open_ltc_volume(path: str | Path) -> LtcVolume:
+    """An ``LtcVolume`` reading from an LTC store (``station/ltc/store.py``) on demand.
+
+    Optional attributes ``camera_matrix`` (3x3) and ``dist_coeffs`` (5) give the camera's K.
+    """
+    g = open_ltc_store(path)
+    a = g.attrs
+    for key in ("depths_mm", "pitch_mm"):
+        if key not in a:
+            raise LtcStoreError(f"{path}: attribute {key!r} is missing")
+    k = a.get("camera_matrix")
+    d = a.get("dist_coeffs")
+    return LtcVolume(
+        ltc=g["ltc"], origin=g["origin"], gain=g["gain"], noise=g["noise"],
+        depths_mm=np.asarray(a["depths_mm"], dtype=np.float64), pitch_mm=float(a["pitch_mm"]),
+        camera_matrix=None if k is None else np.asarray(k, dtype=np.float64),
+        dist_coeffs=None if d is None else np.asarray(d, dtype=np.float64),
+        name=str(path),
+    )
+
+
+@dataclass(frozen=True)
+class WindowStats:
+    """Per window (n of them): centroid and moments in window pixel coordinates.
+
+    centroid : (n, 2) (col, row) = (x, y); centroid_std : (n, 2) its std.
+    moments : (n, 3) central second moments m_xx, m_yy, m_xy, px^2; trace_std : (n,) std of
+    m_xx + m_yy. region : (n, P, P) bool; status : (n,) STATUS_*.
+    """
+
+    centroid: np.ndarray
+    centroid_std: np.ndarray
+    moments: np.ndarray
+    trace_std: np.ndarray
+    region: np.ndarray
+    status: np.ndarray
+
+
+def _check_windows(h: np.ndarray, sigma: np.ndarray, where: np.ndarray | None, name: str) -> None:
+    finite = np.isfinite(h).reshape(len(h), -1)
+    mixed = finite.any(axis=1) & ~finite.all(axis=1)
+    full = finite.all(axis=1)
+    sums = np.where(full, np.nansum(h.reshape(len(h), -1), axis=1), 1.0)
+    for bad, what in ((mixed, ("mixes NaN and finite weights; expected all finite or all NaN "
+                               "(no signal)")),
+                      (sums <= 0, ("has finite weights summing to <= 0; expected an LTC "
+                                   "normalised to sum 1 (or NaN for no signal)")),
+                      (full & ~(np.isfinite(sigma) & (sigma >= 0)),
+                       "has a finite LTC but its noise estimate is NaN or negative")):
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            loc = f"[{', '.join(str(int(v)) for v in where[i])}]" if where is not None else f"[{i}]"
+            raise LtcVolumeError(f"{name}: ltc{loc} {what} ({int(bad.sum())} window(s))")
+
+
+def window_stats(
+    h: np.ndarray, sigma: np.ndarray, *, where: np.ndarray | None = None,
+    name: str = "window_stats"
+) -> WindowStats:
+    """Centroid, its std and second moments of n LTC windows ``h`` (n, P, P) with per-weight
+    noise std ``sigma`` (n,). ``where`` (n, k) int labels windows in error messages."""
+    h = np.asarray(h, dtype=np.float64)
+    sigma = np.asarray(sigma, dtype=np.float64).ravel()
+    n, p = h.shape[0], h.shape[1]
+    _check_windows(h, sigma, where, name)
+    signal = np.isfinite(h).reshape(n, -1).all(axis=1)
+    hz = np.where(signal[:, None, None], h, 0.0)
+    sm = ndimage.uniform_filter(hz, size=(1, 3, 3), mode="constant")
+    peak = sm.reshape(n, -1).max(axis=1)
+    thr = np.maximum(NOISE_SIGMAS * np.where(signal, sigma, 0.0) / 3.0, PEAK_FRACTION * peak)
+    above = (sm > thr[:, None, None]) & signal[:, None, None] & (peak > 0)[:, None, None]
+    labels, _ = ndimage.label(above, structure=np.array([np.zeros((3, 3)), np.ones((3, 3)),
+                                                         np.zeros((3, 3))], dtype=bool))
+    ipk = sm.reshape(n, -1).argmax(axis=1)
+    lab_pk = labels.reshape(n, -1)[np.arange(n), ipk]
+    core = (labels == lab_pk[:, None, None]) & (lab_pk > 0)[:, None, None]
+    # truncated: weights clearly above the noise (unsmoothed) on the window's border
+    raw_thr = np.maximum(NOISE_SIGMAS * np.where(signal, sigma, 0.0),
+                         PEAK_FRACTION * hz.reshape(n, -1).max(axis=1))
+    strong = core & (hz > raw_thr[:, None, None])
+    edge = (strong[:, 0].any(1) | strong[:, -1].any(1) | strong[:, :, 0].any(1)
+            | strong[:, :, -1].any(1))
+    disk = np.hypot(*np.mgrid[-REGION_MARGIN_PX:REGION_MARGIN_PX + 1,
+                              -REGION_MARGIN_PX:REGION_MARGIN_PX + 1]) <= REGION_MARGIN_PX + 0.5
+    region = ndimage.binary_dilation(core, structure=disk[None]) if n else core
+    hr = np.where(region, hz, 0.0)
+    s = hr.sum(axis=(1, 2))
+    npx = region.sum(axis=(1, 2))
+    # signal: the region's sum clearly above its noise (and positive when noise-free)
+    ok = signal & (lab_pk > 0) & (s > NOISE_SIGMAS * sigma * np.sqrt(np.maximum(npx, 1)))
+    safe = np.where(ok, s, 1.0)
+    y, x = np.mgrid[0:p, 0:p].astype(np.float64)
+    cx = (hr * x).sum(axis=(1, 2)) / safe
+    cy = (hr * y).sum(axis=(1, 2)) / safe
+    dx = np.where(region, x - cx[:, None, None], 0.0)
+    dy = np.where(region, y - cy[:, None, None], 0.0)
+    mxx = (hr * dx * dx).sum(axis=(1, 2)) / safe
+    myy = (hr * dy * dy).sum(axis=(1, 2)) / safe
+    mxy = (hr * dx * dy).sum(axis=(1, 2)) / safe
+    sig = np.where(ok, sigma, 0.0) / safe
+    std = np.stack([sig * np.sqrt((dx * dx).sum(axis=(1, 2))),
+                    sig * np.sqrt((dy * dy).sum(axis=(1, 2)))], axis=1)
+    r2 = dx * dx + dy * dy
+    tr = mxx + myy
+    tr_std = sig * np.sqrt((np.where(region, r2 - tr[:, None, None], 0.0) ** 2).sum(axis=(1, 2)))
+    status = np.where(ok, np.where(edge, STATUS_TRUNCATED, STATUS_OK), STATUS_NO_SIGNAL)
+    nan2 = np.where(ok[:, None], 0.0, np.nan)
+    return WindowStats(
+        centroid=np.stack([cx, cy], axis=1) + nan2,
+        centroid_std=std + nan2,
+        moments=np.stack([mxx, myy, mxy], axis=1) + nan2[:, :1],
+        trace_std=tr_std + nan2[:, 0],
+        region=region & ok[:, None, None],
+        status=status.astype(np.int8),
+    )
+
+
+@dataclass(frozen=True)
+class Centroids:
+    """Centroids of every pixel at every depth.
+
+    xy_lcd_px : (D, H, W, 2) LCD (x, y) pixels; std_lcd_px : (D, H, W, 2).
+    moments_px2 : (D, H, W, 3) m_xx, m_yy, m_xy in LCD px^2; trace_std_px2 : (D, H, W).
+    status : (D, H, W) int8 STATUS_*; valid : status == STATUS_OK.
+    depths_mm : (D,); pitch_mm.
+    """
+
+    xy_lcd_px: np.ndarray
+    std_lcd_px: np.ndarray
+    moments_px2: np.ndarray
+    trace_std_px2: np.ndarray
+    status: np.ndarray
+    depths_mm: np.ndarray
+    pitch_mm: float
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.status == STATUS_OK
+
+    def points_mm(self) -> np.ndarray:
+        """Station-frame points (D, H, W, 3): ``(x_g pitch, y_g pitch, z)`` mm (NaN if invalid)."""
+        d = self.xy_lcd_px.shape[0]
+        z = np.broadcast_to(self.depths_mm.reshape(d, 1, 1, 1), self.xy_lcd_px.shape[:3] + (1,))
+        return np.concatenate([self.xy_lcd_px * self.pitch_mm, z], axis=-1)
+
+    def std_mm(self) -> np.ndarray:
+        """Centroid std (D, H, W, 2) in mm."""
+        return self.std_lcd_px * self.pitch_mm
+
+
+def rows_per_read(volume: LtcVolume) -> int:
+    """Camera rows whose LTC windows (all depths, float64) fit in ``READ_BUDGET_BYTES``."""
+    d, p = len(volume.depths_mm), volume.ltc.shape[-1]
+    per_row = d * volume.camera_size[0] * p * p * 8
+    return max(1, READ_BUDGET_BYTES // per_row)
+
+
+def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None) -> Centroids:
+    """Centroids of all pixels at all depths, reading ``rows_per_tile`` camera rows at a time
+    (default: as many as fit the read budget) and processing ``WINDOWS_PER_BATCH`` windows
+    at once, so memory does not grow with the sensor."""
+    d = len(volume.depths_mm)
+    w, h = volume.camera_size
+    rows = rows_per_tile or rows_per_read(volume)
+    out = {"xy": np.full((d, h, w, 2), np.nan), "std": np.full((d, h, w, 2), np.nan),
+           "mom": np.full((d, h, w, 3), np.nan), "tstd": np.full((d, h, w), np.nan),
+           "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        ltc, origin, _, noise = volume.rows(r0, r1)
+        p = ltc.shape[-1]
+        where = np.stack(np.meshgrid(np.arange(d), np.arange(r0, r1), np.arange(w),
+                                     indexing="ij"), axis=-1).reshape(-1, 3)
+        flat_ltc, flat_noise = ltc.reshape(-1, p, p), noise.ravel()
+        parts = [window_stats(flat_ltc[k : k + WINDOWS_PER_BATCH],
+                              flat_noise[k : k + WINDOWS_PER_BATCH],
+                              where=where[k : k + WINDOWS_PER_BATCH], name=volume.name)
+                 for k in range(0, len(flat_ltc), WINDOWS_PER_BATCH)]
+        shp = (d, r1 - r0, w)
+        out["xy"][:, r0:r1] = np.concatenate([q.centroid for q in parts]).reshape(
+            shp + (2,)) + origin
+        out["std"][:, r0:r1] = np.concatenate([q.centroid_std for q in parts]).reshape(
+            shp + (2,))
+        out["mom"][:, r0:r1] = np.concatenate([q.moments for q in parts]).reshape(shp + (3,))
+        out["tstd"][:, r0:r1] = np.concatenate([q.trace_std for q in parts]).reshape(shp)
+        out["status"][:, r0:r1] = np.concatenate([q.status for q in parts]).reshape(shp)
+    return Centroids(out["xy"], out["std"], out["mom"], out["tstd"], out["status"],
+                     volume.depths_mm.copy(), float(volume.pitch_mm))

@@ -1,0 +1,270 @@
+"""The measured lens from an LTC volume: geometry (``station.lens.geometry``), then every node
+pixel's LTC at the optical centre (``station.lens.aperture``), K samples, and the lens model file
+(``sim.optics.measured_lens``).
+
+Nodes: every ``grid_step``-th pixel in u and v, plus the last column and row. A node without
+a usable principal ray (flagged) or without a fused distribution takes the samples of the
+nearest node that has one; the file's metadata lists how many were filled.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from sim.optics.measured_lens import MeasuredLens
+from station.lens import aperture as ap
+from station.lens.centroids import LtcVolume, rows_per_read, window_stats
+from station.lens.geometry import (
+    LensFitConfig,
+    LensFitError,
+    LensGeometry,
+    fit_geometry,
+    footprint_mm,
+)
+from station.lens.rays import FLAG_BAD_FIT, FLAG_FEW_DEPTHS, FLAG_OUTLIER
+
+GRID_MARGIN = 1.2  # aperture grid half-width over the largest pupil extent seen
+EXTENT_PERCENTILE = 99.5
+MIN_COVERAGE = 0.5  # a depth whose resampled LTC falls mostly off the grid is not fused
+
+
+@dataclass(frozen=True)
+class ApertureSet:
+    """Aperture-plane distributions of n pixels (flat indices ``pixels``).
+
+    per_depth : (n, D, G, G) each depth's normalised masses (0 where not used);
+    weight : (n, D) fusion weights (0: not used); coverage : (n, D) mass that fell on the grid;
+    fused : (n, G, G) normalised (0 where no depth was usable); ok : (n,);
+    mean : (n, 2) mm and cov : (n, 2, 2) mm^2 target moments of the samples.
+    """
+
+    pixels: np.ndarray
+    per_depth: np.ndarray | None
+    weight: np.ndarray
+    coverage: np.ndarray
+    fused: np.ndarray
+    ok: np.ndarray
+    mean: np.ndarray
+    cov: np.ndarray
+
+
+def aperture_grid(geom: LensGeometry, cfg: LensFitConfig) -> ap.ApertureGrid:
+    """A grid covering every usable pixel's scaled LTC (robust maximum extent, with margin)."""
+    c, rays = geom.centroids, geom.rays
+    d = len(c.depths_mm)
+    zc = float(geom.centre.position[2])
+    s = ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, zc)
+    use = rays.used & rays.usable[None]  # not empty: the centre needed usable rays
+    mom = c.moments_px2.reshape(d, -1, 3) * c.pitch_mm**2 * (s**2)[:, None, None]
+    lam = 0.5 * (mom[..., 0] + mom[..., 1]) + np.hypot(0.5 * (mom[..., 0] - mom[..., 1]),
+                                                       mom[..., 2])
+    a = rays.xy_at(zc) - geom.centre.position[:2]
+    reach = np.abs(a).max(axis=1)[None] + 2.0 * np.sqrt(np.maximum(lam, 0.0))
+    reach = reach + 0.5 * c.pitch_mm * np.abs(s)[:, None]
+    half = GRID_MARGIN * float(np.percentile(reach[use], EXTENT_PERCENTILE))
+    return ap.ApertureGrid(half, cfg.aperture_cells)
+
+
+def _row_blocks(pixels: np.ndarray, width: int,
+                max_rows: int) -> Iterator[tuple[int, int, np.ndarray]]:
+    """Blocks of at most ``max_rows`` camera rows holding the pixels: (r0, r1, indices)."""
+    rows = pixels // width
+    start = 0
+    order = np.argsort(rows, kind="stable")
+    while start < len(order):
+        r0 = rows[order[start]]
+        stop = start
+        while stop < len(order) and rows[order[stop]] < r0 + max_rows:
+            stop += 1
+        yield int(r0), int(rows[order[stop - 1]]) + 1, order[start:stop]
+        start = stop
+
+
+def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
+                 pixels: np.ndarray, cfg: LensFitConfig | None = None,
+                 keep_depths: bool = False) -> ApertureSet:
+    """Scale, resample and fuse the LTC of the given flat pixels onto the aperture plane."""
+    cfg = cfg or LensFitConfig()
+    pixels = np.asarray(pixels, dtype=np.int64).ravel()
+    c, rays = geom.centroids, geom.rays
+    d, n, g = len(c.depths_mm), len(pixels), grid.cells
+    w_cam = volume.camera_size[0]
+    zc = float(geom.centre.position[2])
+    s = ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, zc)
+    fp = footprint_mm(c.depths_mm, zc, geom.camera_matrix)
+    rot2 = geom.rotation[:2, :2]
+    u, _, vt = np.linalg.svd(rot2)
+    rot2 = u @ vt  # in-plane part of the station-to-camera rotation
+    per_depth = np.zeros((n, d, g, g)) if keep_depths else None
+    weight = np.zeros((n, d))
+    coverage = np.zeros((n, d))
+    fused = np.zeros((n, g, g))
+    at_centre = rays.xy_at(zc) - geom.centre.position[:2]
+    mom = c.moments_px2.reshape(d, -1, 3)
+    for r0, r1, sel in _row_blocks(pixels, w_cam, rows_per_read(volume)):
+        ltc, origin, _, noise = volume.rows(r0, r1)
+        ltc = ltc.reshape(d, -1, *ltc.shape[-2:])
+        origin = origin.reshape(d, -1, 2)
+        noise = noise.reshape(d, -1)
+        for k0 in range(0, len(sel), cfg.nodes_per_chunk):
+            idx = sel[k0 : k0 + cfg.nodes_per_chunk]
+            pix = pixels[idx]
+            loc = pix - r0 * w_cam
+            m_all = np.zeros((len(idx), d, g, g))
+            for i in range(d):
+                used = rays.used[i, pix] & rays.usable[pix]
+                if not used.any():
+                    continue
+                h = ltc[i, loc]
+                st = window_stats(np.where(used[:, None, None], h, np.nan), noise[i, loc])
+                hh = np.where(st.region, h, 0.0)
+                at_depth = rays.xy_ref[pix] + rays.slope[pix] * (c.depths_mm[i]
+                                                                 - rays.z_ref[pix])[:, None]
+                m = ap.resample(hh, origin[i, loc], at_depth, at_centre[pix], s[i], c.pitch_mm,
+                                grid, rot2, cfg.supersample)
+                cov_i = m.sum(axis=(1, 2))
+                coverage[idx, i] = np.where(used, cov_i, 0.0)
+                m_all[:, i] = m / np.where(cov_i > 0, cov_i, 1.0)[:, None, None]
+            mm = mom[:, pix] * (c.pitch_mm * s)[:, None, None] ** 2
+            none = ~np.isfinite(mm[..., 0]).any(axis=0)  # no depth with signal: any cov
+            mm[:, none] = [1.0, 1.0, 0.0]
+            cov2 = np.nanmedian(np.stack([mm[..., 0], mm[..., 2], mm[..., 2], mm[..., 1]],
+                                         axis=-1), axis=0).reshape(-1, 2, 2)
+            blur, nse = ap.depth_errors(noise[:, loc].T, s, c.pitch_mm, fp, cov2, grid.cell_mm)
+            wd = ap.fusion_weights(blur, nse, coverage[idx] > MIN_COVERAGE)
+            weight[idx] = wd
+            acc = np.einsum("nd,ndij->nij", wd, m_all)
+            tot = wd.sum(axis=1)
+            fused[idx] = acc / np.where(tot > 0, tot, 1.0)[:, None, None]
+            if per_depth is not None:
+                per_depth[idx] = m_all
+    ok = weight.sum(axis=1) > 0
+    mean, cov = ap.grid_moments(fused, grid)
+    cov = cov + np.eye(2) * grid.cell_mm**2 / 12.0
+    if cfg.deblur:
+        wn = weight / np.where(ok, weight.sum(axis=1), 1.0)[:, None]
+        blur = ((c.pitch_mm * s) ** 2 + (fp * s) ** 2) / 12.0
+        cov = cov - np.eye(2) * (wn @ blur)[:, None, None]
+        val, vec = np.linalg.eigh(cov)
+        val = np.maximum(val, 1e-6 * np.maximum(val.max(axis=1, keepdims=True), 1e-12))
+        cov = np.einsum("nij,nj,nkj->nik", vec, val, vec)
+    return ApertureSet(pixels, per_depth, weight, coverage, fused, ok, mean, cov)
+
+
+def node_positions(size: int, step: int) -> np.ndarray:
+    """Node coordinates along one axis: every ``step``-th pixel and the last one."""
+    a = np.arange(0, size, step)
+    return a if a[-1] == size - 1 else np.append(a, size - 1)
+
+
+@dataclass
+class LensResult:
+    """The derivation's result: geometry, grid, nodes, fused distributions, the lens."""
+
+    config: LensFitConfig
+    geometry: LensGeometry
+    grid: ap.ApertureGrid
+    node_u: np.ndarray
+    node_v: np.ndarray
+    apertures: ApertureSet
+    lens: MeasuredLens
+    filled_nodes: int
+
+    def summary(self) -> dict:
+        """A JSON-able report of what was measured."""
+        g = self.geometry
+        r = g.rays
+        res = r.residual_norm()
+        res = res[np.isfinite(res) & r.usable[None]]
+        fl = r.flags
+        out = {
+            "optical_centre_mm": g.centre.position.tolist(),
+            "optical_centre_std_mm": g.centre.std.tolist(),
+            "optical_centre_method": g.centre.method,
+            "principal_ray_intersection_mm": g.centre_rays.position.tolist(),
+            "principal_ray_intersection_std_mm": g.centre_rays.std.tolist(),
+            "focus_plane_z_mm": g.focus_plane_z_mm,
+            "focus_distance_mm": g.focus_distance_mm,
+            "focus_distance_fitted_mm": g.focus_distance_fit_mm,
+            "focus_distance_config_mm": g.focus_distance_config_mm,
+            "focus_fit_spread_mm": None if g.focus is None else g.focus.spread_mm,
+            "ray_residual_mean_mm": float(res.mean()) if res.size else None,
+            "ray_residual_std_mm": float(res.std()) if res.size else None,
+            "ray_residual_count": int(res.size),
+            "pixels": len(fl),
+            "pixels_usable": int(r.usable.sum()),
+            "pixels_few_depths": int(((fl & FLAG_FEW_DEPTHS) > 0).sum()),
+            "pixels_outlier_removed": int(((fl & FLAG_OUTLIER) > 0).sum()),
+            "pixels_bad_fit": int(((fl & FLAG_BAD_FIT) > 0).sum()),
+            "depths_mm": g.centroids.depths_mm.tolist(),
+            "samples": self.lens.samples,
+            "nodes": [len(self.node_v), len(self.node_u)],
+            "nodes_filled": self.filled_nodes,
+            "aperture_half_width_mm": self.grid.half_width_mm,
+            "aperture_cells": self.grid.cells,
+            "camera_matrix_known": g.camera_matrix is not None,
+            "notes": list(g.notes),
+        }
+        if g.centre_pinhole is not None:
+            out["camera_rotation_deg"] = float(np.degrees(np.arccos(
+                np.clip((np.trace(g.rotation) - 1) / 2, -1, 1))))
+        return out
+
+
+def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,
+                K: np.ndarray | None = None, dist: np.ndarray | None = None) -> LensResult:
+    """The measured lens of an LTC volume (see the module docstrings for every step)."""
+    cfg = config or LensFitConfig()
+    geom = fit_geometry(volume, cfg, K, dist)
+    grid = aperture_grid(geom, cfg)
+    w, h = volume.camera_size
+    nu, nv = node_positions(w, cfg.grid_step), node_positions(h, cfg.grid_step)
+    pix = (nv[:, None] * w + nu[None, :]).ravel()
+    aps = aperture_set(volume, geom, grid, pix, cfg)
+    good = aps.ok & geom.rays.usable[pix]
+    if not good.any():
+        raise LensFitError(f"{volume.name}: no node pixel has a usable LTC at any depth")
+    x = np.zeros((len(pix), cfg.samples, 2))
+    wk = np.zeros((len(pix), cfg.samples))
+    gi = np.flatnonzero(good)
+    for k0 in range(0, len(gi), cfg.nodes_per_chunk):
+        sl = gi[k0 : k0 + cfg.nodes_per_chunk]
+        xs, ws = ap.kmeans_samples(aps.fused[sl], grid, cfg.samples, cfg.kmeans_iterations)
+        x[sl], wk[sl] = ap.canonical_order(ap.match_moments(xs, ws, aps.mean[sl], aps.cov[sl]),
+                                           ws)
+    shape = (len(nv), len(nu))
+    bad = ~good.reshape(shape)
+    if bad.any():
+        near = ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)
+        flat = (near[0] * len(nu) + near[1]).ravel()
+        x, wk = x[flat], wk[flat]
+    gain = np.where(geom.centroids.valid, _gain(volume), np.nan)
+    tg = np.nanmedian(np.where(np.isfinite(gain).any(axis=0), gain, 0.0), axis=0)
+    tg = np.nan_to_num(tg)
+    norm = float(ndimage.median_filter(tg, size=3).max())
+    trans = (tg / norm if norm > 0 else np.ones_like(tg))[nv][:, nu]
+    meta = {"source": volume.name, "config": cfg.model_dump(mode="json"),
+            "summary_at_fit": None}
+    lens = MeasuredLens(
+        focus_distance_mm=geom.focus_distance_mm, optical_centre_mm=geom.centre.position,
+        camera_size=volume.camera_size, node_u=nu.astype(np.float64),
+        node_v=nv.astype(np.float64), aperture_x_mm=x[..., 0].reshape(shape + (-1,)),
+        aperture_y_mm=x[..., 1].reshape(shape + (-1,)), weights=wk.reshape(shape + (-1,)),
+        transmittance=trans, interpolation=cfg.interpolation,
+        camera_matrix=geom.camera_matrix, dist_coeffs=geom.dist_coeffs, metadata=meta,
+    )
+    result = LensResult(cfg, geom, grid, nu, nv, aps, lens, int(bad.sum()))
+    meta["summary_at_fit"] = result.summary()
+    return result
+
+
+def _gain(volume: LtcVolume) -> np.ndarray:
+    w, h = volume.camera_size
+    out = np.empty((len(volume.depths_mm), h, w))
+    for r0 in range(0, h, 64):
+        out[:, r0 : r0 + 64] = np.asarray(volume.gain[:, r0 : r0 + 64], dtype=np.float64)
+    return out

@@ -1,0 +1,218 @@
+"""Principal rays (OPTICS.md 6.2) and the optical centre (6.3), vectorised over pixels.
+
+A pixel's principal ray is the line through its LTC centroids at the depths:
+``x(z) = c_x + s_x (z - z_ref)``, ``y(z) = c_y + s_y (z - z_ref)`` (station frame, mm). The
+depths are exact (stage readings) and the centroids noisy, so the fit is a weighted linear
+regression of x and y on z, weights ``1 / (sigma_centroid^2 + floor^2)``; residuals are the
+lateral misfits at each depth. Points whose normalised residual exceeds ``outlier_sigma`` are
+dropped one at a time (at most ``max_outliers``), refitting each time.
+
+Flags (bitmask per pixel; a flagged pixel is never used silently):
+
+* ``FLAG_FEW_DEPTHS``: fewer than ``min_depths`` depths with signal; no ray.
+* ``FLAG_OUTLIER``: outlier depth(s) removed; the ray uses the rest and stays usable.
+* ``FLAG_BAD_FIT``: outliers remain after ``max_outliers`` removals; not used.
+
+The optical centre here is the least-squares intersection of the usable rays, iteratively
+reweighted (Huber weights on the ray-to-centre distance over a robust scale), with the
+covariance ``s^2 (sum_n w_n (I - d_n d_n^T))^-1`` where ``s^2`` is the weighted residual
+variance. With field-dependent vignetting the centroid ray of a pixel follows the centroid of
+its clipped pupil, not the pupil centre, and these rays meet behind the pupil;
+``station.lens.geometry`` explains and corrects that with the camera matrix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+FLAG_FEW_DEPTHS = 1
+FLAG_OUTLIER = 2
+FLAG_BAD_FIT = 4
+UNUSABLE = FLAG_FEW_DEPTHS | FLAG_BAD_FIT
+HUBER_K = 2.0  # Huber threshold in robust-scale units for the ray intersection
+
+
+class RayFitError(ValueError):
+    """Not enough usable principal rays; the message says how many and why."""
+
+
+@dataclass(frozen=True)
+class PrincipalRays:
+    """Per-pixel lines, N pixels, D depths.
+
+    z_ref : (N,) weighted mean depth, mm; xy_ref : (N, 2) line position there, mm;
+    slope : (N, 2) dx/dz, dy/dz; var_ref, var_slope : (N,) per-axis variances of those from
+    the a-priori weights. residual : (D, N, 2) measured minus fitted, mm (NaN where no point);
+    used : (D, N) points in the fit; weight : (D, N) their weights, 1/mm^2; flags : (N,).
+    """
+
+    z_ref: np.ndarray
+    xy_ref: np.ndarray
+    slope: np.ndarray
+    var_ref: np.ndarray
+    var_slope: np.ndarray
+    residual: np.ndarray
+    used: np.ndarray
+    weight: np.ndarray
+    flags: np.ndarray
+
+    @property
+    def usable(self) -> np.ndarray:
+        """(N,) rays fit for use (not FEW_DEPTHS, not BAD_FIT)."""
+        return (self.flags & UNUSABLE) == 0
+
+    def xy_at(self, z_mm: float | np.ndarray) -> np.ndarray:
+        """Ray positions (N, 2) mm on the plane(s) ``z = z_mm`` (scalar or (N,))."""
+        dz = np.asarray(z_mm, dtype=np.float64) - self.z_ref
+        return self.xy_ref + self.slope * np.asarray(dz)[..., None]
+
+    def var_at(self, z_mm: float | np.ndarray) -> np.ndarray:
+        """Per-axis variance (N,) of ``xy_at(z_mm)``, mm^2."""
+        dz = np.asarray(z_mm, dtype=np.float64) - self.z_ref
+        return self.var_ref + dz**2 * self.var_slope
+
+    def directions(self) -> np.ndarray:
+        """Unit direction vectors (N, 3), z > 0."""
+        d = np.concatenate([self.slope, np.ones((len(self.slope), 1))], axis=1)
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def residual_norm(self) -> np.ndarray:
+        """Lateral residual length (D, N), mm, NaN where the point is not used."""
+        return np.where(self.used, np.linalg.norm(self.residual, axis=-1), np.nan)
+
+
+def _line_fit(z: np.ndarray, xy: np.ndarray, w: np.ndarray):
+    """Weighted regression of xy (D, N, 2) on z (D, 1) with weights w (D, N), 0 = unused."""
+    sw = w.sum(axis=0)
+    safe = np.where(sw > 0, sw, 1.0)
+    z_ref = (w * z).sum(axis=0) / safe
+    dz = z - z_ref
+    szz = (w * dz * dz).sum(axis=0)
+    xyw = np.where(w[..., None] > 0, xy, 0.0)
+    c = (w[..., None] * xyw).sum(axis=0) / safe[:, None]
+    szz_safe = np.where(szz > 0, szz, 1.0)
+    s = (w[..., None] * dz[..., None] * (xyw - c)).sum(axis=0) / szz_safe[:, None]
+    return z_ref, c, s, 1.0 / safe, 1.0 / szz_safe
+
+
+def fit_principal_rays(
+    points_mm: np.ndarray,
+    std_mm: np.ndarray,
+    valid: np.ndarray,
+    *,
+    min_depths: int = 3,
+    outlier_sigma: float = 6.0,
+    max_outliers: int = 1,
+    floor_mm: float = 0.005,
+) -> PrincipalRays:
+    """Fit a principal ray per pixel.
+
+    points_mm : (D, N, 3) centroids ``(x, y, z)``; std_mm : (D, N, 2) or (D, N) their std;
+    valid : (D, N) bool, depth has signal. floor_mm : std added in quadrature (model error:
+    LCD pixelation of the LTC), which also keeps noise-free data finite.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    d, n = pts.shape[:2]
+    if d < 2:
+        raise RayFitError(f"principal rays need points at >= 2 depths, got {d}")
+    if min_depths < 2:
+        raise RayFitError(f"min_depths must be >= 2 (a line needs two points), got {min_depths}")
+    std = np.asarray(std_mm, dtype=np.float64)
+    var = np.sum(std**2, axis=-1) / 2.0 if std.ndim == 3 else std**2
+    valid = np.asarray(valid, dtype=bool) & np.isfinite(pts).all(axis=-1) & np.isfinite(var)
+    w0 = np.where(valid, 1.0 / (np.where(valid, var, 0.0) + floor_mm**2), 0.0)
+    z = pts[..., 2]
+    xy = pts[..., :2]
+    used = valid.copy()
+    flags = np.where(valid.sum(axis=0) < min_depths, FLAG_FEW_DEPTHS, 0)
+    for attempt in range(max_outliers + 1):
+        w = np.where(used, w0, 0.0)
+        z_ref, c, s, vr, vs = _line_fit(z, xy, w)
+        res = xy - (c + s * (z - z_ref)[..., None])
+        # normalised residual; a point's own leverage is removed so that an outlier with a
+        # large weight does not hide by pulling the line onto itself
+        lev = w * (1.0 / np.where(w.sum(0) > 0, w.sum(0), 1.0)
+                   + (z - z_ref) ** 2 * vs)
+        score = np.where(used, np.linalg.norm(res, axis=-1)
+                         * np.sqrt(w0 / np.maximum(1.0 - lev, 1e-9) / 2.0), 0.0)
+        worst = score.argmax(axis=0)
+        bad = (score[worst, np.arange(n)] > outlier_sigma) & ((flags & FLAG_FEW_DEPTHS) == 0)
+        if not bad.any():
+            break
+        can = bad & (used.sum(axis=0) > min_depths) & (attempt < max_outliers)
+        flags = np.where(bad & ~can, flags | FLAG_BAD_FIT, flags)
+        used[worst[can], np.flatnonzero(can)] = False
+        flags = np.where(can, flags | FLAG_OUTLIER, flags)
+        if not can.any():
+            break
+    res = np.where(used[..., None], res, np.nan)
+    return PrincipalRays(z_ref, c, s, vr, vs, res, used, np.where(used, w0, 0.0),
+                         flags.astype(np.int8))
+
+
+@dataclass(frozen=True)
+class OpticalCentre:
+    """position : (3,) mm station frame; covariance : (3, 3) mm^2; weights : (N,) final
+    robust weights (0 for unused rays); distance : (N,) ray-to-centre distance, mm;
+    method : how it was found."""
+
+    position: np.ndarray
+    covariance: np.ndarray
+    weights: np.ndarray
+    distance: np.ndarray
+    method: str
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.covariance))
+
+
+def _huber(r: np.ndarray) -> np.ndarray:
+    a = np.abs(r)
+    return np.where(a <= HUBER_K, 1.0, HUBER_K / np.maximum(a, 1e-300))
+
+
+def intersect_rays(rays: PrincipalRays, use: np.ndarray | None = None,
+                   iterations: int = 20) -> OpticalCentre:
+    """Robust least-squares intersection of the usable rays (``use`` restricts further)."""
+    ok = rays.usable if use is None else rays.usable & np.asarray(use, dtype=bool)
+    if ok.sum() < 2:
+        raise RayFitError(f"optical centre: {int(ok.sum())} usable principal ray(s); need >= 2 "
+                          f"({int((rays.flags & FLAG_FEW_DEPTHS).astype(bool).sum())} pixels "
+                          "have too few depths with signal)")
+    dirs = rays.directions()[ok]
+    a = np.concatenate([rays.xy_ref[ok], rays.z_ref[ok, None]], axis=1)
+    m = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]
+    robust = np.ones(ok.sum())
+    z_c = float(np.mean(rays.z_ref[ok]))
+    o = np.full(3, np.inf)
+    for _ in range(iterations):
+        # a-priori lateral variance of each ray where it passes the current centre
+        prior = 1.0 / rays.var_at(np.full(len(ok), z_c))[ok]
+        w = prior * robust
+        mat = (w[:, None, None] * m).sum(axis=0)
+        rhs = (w[:, None, None] * m @ a[:, :, None]).sum(axis=0)[:, 0]
+        o_prev, o = o, np.linalg.solve(mat, rhs)
+        z_c = float(o[2])
+        r = np.einsum("nij,nj->ni", m, o - a)
+        dist = np.linalg.norm(r, axis=1)
+        scaled = dist * np.sqrt(prior)
+        # a 2-D Gaussian miss has a Rayleigh length, median sigma * sqrt(ln 4)
+        scale = np.median(scaled) / np.sqrt(np.log(4.0))
+        new = _huber(scaled / max(scale, 1e-300))
+        done = np.allclose(new, robust, atol=1e-10) and np.allclose(o, o_prev, atol=1e-9, rtol=0)
+        robust = new
+        if done:
+            break
+    w = prior * robust
+    mat = (w[:, None, None] * m).sum(axis=0)
+    dof = max(2 * len(w) - 3, 1)
+    s2 = float((w * dist**2).sum() / dof)
+    cov = s2 * np.linalg.inv(mat)
+    weights = np.zeros(len(ok))
+    weights[ok] = w
+    distance = np.full(len(ok), np.nan)
+    distance[ok] = dist
+    return OpticalCentre(o, cov, weights, distance, "principal-ray intersection")

@@ -1,0 +1,392 @@
+"""Fourier single-pixel LTC reconstruction (OPTICS.md section 5).
+
+Per camera pixel: n-step demodulation of the Fourier frames into the P x P spectrum
+``G(k, l) = S F(k, l) = S sum_xy h(x, y) exp(-2 pi j (k x + l y) / P)`` (ADU; conjugate
+symmetry fills the other half), inverse 2-D DFT to the LTC folded onto P x P
+(``folded[y mod P, x mod P]``), unfolding into a P x P window around the pixel's centre,
+normalisation to sum 1. ``gain = G(0, 0)`` is the response to full white above black.
+
+Centre used for unfolding: the coarse centre ``c`` from the localisation patterns, refined
+by the first harmonic of the measured spectrum (the LTC's circular mean at period P,
+``x' = -P arg G(1, 0) / 2 pi``) snapped to the period nearest ``c``:
+``x = x' + P round((c_x - x') / P)``. The window origin centres the window on that point,
+so the coarse centre only has to pick the right period (error < P/2) and the window sits
+on the LTC itself; pixels whose first harmonic is too weak keep the coarse centre.
+
+Noise: the mean of each regular frequency's n frames is ``a S sum h + A`` for every
+frequency, so their scatter gives the frame noise ``sigma_D`` (``n var(means)``); it
+propagates to one normalised LTC weight as
+``sigma_h = sigma_D / (P^2 b gain) sqrt(s / 2 + 4 (P^2 - s) / n)``, s self-conjugate terms.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import time
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from station.ltc.localise import lcd_coordinates
+from station.ltc.store import centred_origins, create_ltc_store, write_ltc_tile
+from station.acquisition.patterns import (
+    FourierPatternSet,
+    StationPatternPlan,
+    apply_lut,
+    shown_luminance,
+)
+from station.acquisition.run_store import RunStore, RunStoreError, software_versions
+
+PIXELS_PER_BLOCK = 1024  # pixels demodulated at once: bounds memory whatever the tile size
+
+
+@dataclass(frozen=True)
+class LtcBlock:
+    """Reconstruction of n pixels.
+
+    ltc : (n, P, P) float64, normalised windows (NaN where invalid); [r, s] is LCD pixel
+        ``(origin_x + s, origin_y + r)``.
+    origin : (n, 2) int32 LCD (x, y) of window element [0, 0] (0 where invalid).
+    gain : (n,) response to full white, ADU.  noise : (n,) std of one LTC weight.
+    lcd_xy : (n, 2) coarse LCD (x, y) from the localisation patterns.
+    valid : (n,) bool.  edge_mass : (n,) LTC mass in the window's outer ring (fit check).
+    """
+
+    ltc: np.ndarray
+    origin: np.ndarray
+    gain: np.ndarray
+    noise: np.ndarray
+    lcd_xy: np.ndarray
+    valid: np.ndarray
+    edge_mass: np.ndarray
+
+
+def demodulate(frames: np.ndarray, plan: StationPatternPlan) -> np.ndarray:
+    """Spectrum ``G[l, k]`` (n, P, P) complex128 in ADU from frames (patterns, n)."""
+    f = plan.fourier
+    p, n_steps, b = f.period, f.steps, f.amplitude
+    idx = plan.indices
+    reg, sc = f.frequencies
+    d = np.asarray(frames, dtype=np.float64)
+    e = np.exp(2j * np.pi * np.arange(n_steps) / n_steps)
+    g_reg = (2.0 / (n_steps * b)) * np.einsum("fmp,m->pf", d[idx["regular"]], e)
+    sci = idx["self_conjugate"]
+    g_sc = (d[sci[:, 0]] - d[sci[:, 1]]).T / (2.0 * b)
+    spec = np.zeros((d.shape[1], p, p), dtype=np.complex128)
+    spec[:, reg[:, 1], reg[:, 0]] = g_reg
+    spec[:, (-reg[:, 1]) % p, (-reg[:, 0]) % p] = np.conj(g_reg)
+    spec[:, sc[:, 1], sc[:, 0]] = g_sc
+    return spec
+
+
+@dataclass(frozen=True)
+class LevelHarmonics:
+    """How the levels actually shown distort the demodulated spectrum.
+
+    With shown levels ``rho_u`` (u on the grid of ``FourierPatternSet.grid``, L points) and
+    their DFT ``c_h``, a regular coefficient measures
+    ``G'(k, l) = sum_{h = -1 mod n} gamma_h F(-h k, -h l)``, ``gamma_h = 2 c_h / b``
+    (``gamma_{L-1}`` is the main term, 1 for ideal levels); a self-conjugate one measures
+    ``gamma_sc F(k, l)``, ``gamma_sc = (rho(a + b) - rho(a - b)) / 2 b``.
+    h : (H,) int harmonic numbers in [0, L); gamma : (H,) complex; gamma_sc : float.
+    """
+
+    h: np.ndarray
+    gamma: np.ndarray
+    gamma_sc: float
+
+
+def level_harmonics(fourier: FourierPatternSet, lut: np.ndarray | None = None) -> LevelHarmonics:
+    """The harmonics of the levels shown after the LUT and 8-bit rounding, assuming the
+    display's response is the exact inverse of ``lut`` (identity: a linear display)."""
+    big, n, a, b = fourier.grid, fourier.steps, fourier.offset, fourier.amplitude
+    rho = shown_luminance(apply_lut(fourier.level_table(), lut), lut)
+    c = np.fft.fft(rho) / big
+    h = np.arange(big)[(np.arange(big) + 1) % n == 0]
+    ends = shown_luminance(apply_lut(np.array([a + b, a - b]), lut), lut)
+    gamma, gamma_sc = 2.0 * c[h] / b, float(ends[0] - ends[1]) / (2 * b)
+    main = abs(gamma[h == big - 1][0])
+    if gamma_sc < 0.5 or main < 0.5 or np.abs(gamma).sum() - main >= 0.5 * main:
+        raise ValueError(
+            f"the shown levels do not carry the patterns (main harmonic {main:.3f}, "
+            f"self-conjugate gain {gamma_sc:.3f}, both ~1 expected): check the LUT and the "
+            "pattern offset/amplitude")
+    return LevelHarmonics(h=h, gamma=gamma, gamma_sc=gamma_sc)
+
+
+def correct_levels(
+    spectrum: np.ndarray, fourier: FourierPatternSet, harmonics: LevelHarmonics,
+    max_iterations: int = 8, rtol: float = 1e-7,
+) -> np.ndarray:
+    """Undo the shown levels' harmonics (see :class:`LevelHarmonics`) by a fixed-point
+    iteration on the regular coefficients; each iteration gains a factor
+    ``sum |gamma_side| / |gamma_main|`` (about 1e-2 for 8-bit rounding); stops when the update
+    is below ``rtol`` of every pixel's DC term. spectrum (n, P, P) complex as from
+    :func:`demodulate`; returns a corrected copy."""
+    p, big = fourier.period, fourier.grid
+    reg, sc = fourier.frequencies
+    k, l = reg[:, 0], reg[:, 1]
+    n = spectrum.shape[0]
+    spec = np.ascontiguousarray(np.asarray(spectrum, dtype=np.complex128).reshape(n, p * p).T)
+    spec[sc[:, 1] * p + sc[:, 0]] /= harmonics.gamma_sc  # frequency-major: rows are cheap
+    main = harmonics.gamma[harmonics.h == big - 1][0]
+    here, mirror = l * p + k, ((-l) % p) * p + (-k) % p
+    side = [(((-h * l) % p) * p + (-h * k) % p, g)
+            for h, g in zip(harmonics.h, harmonics.gamma) if h != big - 1 and abs(g) > 1e-15]
+    measured = spec[here]
+    est = measured / main
+    dc = np.abs(spec[0])  # per pixel; dark pixels judged against a floor
+    scale = rtol * np.maximum(dc, 1e-3 * dc.max(initial=0.0) + 1e-300)
+    acc, term = np.empty_like(measured), np.empty_like(measured)
+    for _ in range(max_iterations if side else 0):
+        spec[here], spec[mirror] = est, np.conj(est)
+        acc[...] = measured
+        for target, g in side:
+            np.take(spec, target, axis=0, out=term)
+            term *= g
+            acc -= term
+        new = acc / main
+        done = bool(np.all(np.abs(new - est).max(axis=0, initial=0.0) <= scale))
+        est = new
+        if done:
+            break
+    spec[here], spec[mirror] = est, np.conj(est)
+    return np.ascontiguousarray(spec.T).reshape(n, p, p)
+
+
+def fold(spectrum: np.ndarray) -> np.ndarray:
+    """Folded LTC (n, P, P) float64 ``[y mod P, x mod P]`` from the spectrum (n, P, P)."""
+    return np.fft.ifft2(spectrum, axes=(-2, -1)).real
+
+
+def frame_noise(frames: np.ndarray, plan: StationPatternPlan) -> np.ndarray:
+    """Per-pixel frame noise std ``sigma_D`` (n,) from the scatter of the regular
+    frequencies' frame means (frames (patterns, n))."""
+    means = np.asarray(frames, dtype=np.float64)[plan.indices["regular"]].mean(axis=1)
+    return np.sqrt(plan.fourier.steps * means.var(axis=0, ddof=1))
+
+
+def ltc_noise(sigma_frame: np.ndarray, gain: np.ndarray, fourier: FourierPatternSet) -> np.ndarray:
+    """Std of one normalised LTC weight (n,) from frame noise and gain (n,), ADU."""
+    p, n, b = fourier.period, fourier.steps, fourier.amplitude
+    s = len(fourier.frequencies[1])
+    factor = np.sqrt(s / 2.0 + 4.0 * (p * p - s) / n) / (p * p * b)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(gain > 0, factor * sigma_frame / gain, np.nan)
+
+
+def refine_centre(
+    spectrum: np.ndarray, coarse_xy: np.ndarray, min_harmonic: float = 0.05
+) -> np.ndarray:
+    """Centre (n, 2) LCD (x, y): the first-harmonic circular mean of each LTC at period P,
+    in the period nearest the coarse centre (n, 2); the coarse centre where
+    ``|G(1, 0)| / G(0, 0)`` (or the y twin) is below ``min_harmonic``."""
+    p = spectrum.shape[-1]
+    g0 = spectrum[:, 0, 0].real
+    out = np.array(coarse_xy, dtype=np.float64, copy=True)
+    for axis, g1 in enumerate((spectrum[:, 0, 1], spectrum[:, 1, 0])):
+        xp = np.mod(-np.angle(g1) * p / (2 * np.pi), p)
+        c = out[:, axis]
+        fine = xp + p * np.round((c - xp) / p)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            strong = np.abs(g1) >= min_harmonic * g0
+        out[:, axis] = np.where(strong & np.isfinite(c), fine, c)
+    return out
+
+
+def unfold(folded: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Windows (n, P, P): element [r, s] = ``folded[(o_y + r) mod P, (o_x + s) mod P]``,
+    i.e. LCD pixel ``(o_x + s, o_y + r)``; origin (n, 2) int (x, y)."""
+    n, p = folded.shape[0], folded.shape[-1]
+    o = np.asarray(origin, dtype=np.int64)
+    rows = (o[:, 1, None] + np.arange(p)) % p
+    cols = (o[:, 0, None] + np.arange(p)) % p
+    return folded[np.arange(n)[:, None, None], rows[:, :, None], cols[:, None, :]]
+
+
+def centroid(
+    window: np.ndarray, origin: np.ndarray, region: int | None = None
+) -> np.ndarray:
+    """Grey-scale centroid (..., 2) LCD (x, y) of LTC windows (..., P, P) with origins (..., 2).
+
+    region : None for the whole window; an int r for the (2r+1) x (2r+1) square of the window
+        that holds the most weight (the peak of the LTC), whose noise is far lower when it is
+        only as large as the LTC. NaN where the weight summed is not positive.
+    """
+    w = np.asarray(window, dtype=np.float64)
+    o = np.asarray(origin, dtype=np.float64)
+    if w.ndim < 2 or o.shape != w.shape[:-2] + (2,):
+        raise ValueError(f"window (..., P, P) and origin (..., 2) do not match: "
+                         f"{w.shape} and {o.shape}")
+    ph, pw = w.shape[-2:]
+    if region is not None:
+        r = int(region)
+        size = 2 * r + 1
+        if r < 0 or size > min(ph, pw):
+            raise ValueError(f"region must be 0..{(min(ph, pw) - 1) // 2} (a (2r+1)^2 square "
+                             f"inside the {ph}x{pw} window), got {region}")
+        c = np.zeros(w.shape[:-2] + (ph + 1, pw + 1))
+        c[..., 1:, 1:] = np.nan_to_num(w).cumsum(-2).cumsum(-1)
+        box = (c[..., size:, size:] - c[..., :-size, size:] - c[..., size:, :-size]
+               + c[..., :-size, :-size])
+        best = box.reshape(box.shape[:-2] + (-1,)).argmax(-1)
+        r0, c0 = np.divmod(best, box.shape[-1])
+        rr, cc = np.arange(ph), np.arange(pw)
+        mask = ((rr >= r0[..., None]) & (rr < r0[..., None] + size))[..., :, None] & \
+               ((cc >= c0[..., None]) & (cc < c0[..., None] + size))[..., None, :]
+        w = np.where(mask, w, 0.0)
+    total = w.sum(axis=(-2, -1))
+    xs = (w.sum(axis=-2) * np.arange(pw)).sum(-1)
+    ys = (w.sum(axis=-1) * np.arange(ph)).sum(-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ok = total > 0
+        xy = np.stack([xs / total, ys / total], axis=-1) + o
+    return np.where(ok[..., None], xy, np.nan)
+
+
+def peak_region(window: np.ndarray, origin: np.ndarray) -> int:
+    """Radius r for :func:`centroid` that covers a depth's LTC: ``round(2 sigma + 1/4)``,
+    sigma the median over pixels of the larger per-axis std of the windows (n, P, P) with
+    origins (n, 2) (a uniform disk of std sigma has radius 2 sigma), at least 1 and at most
+    what fits the window."""
+    w = np.asarray(window, dtype=np.float64)
+    p = w.shape[-1]
+    c = centroid(w, origin)
+    o = np.asarray(origin, dtype=np.float64)
+    x = np.arange(p)
+    vx = (w.sum(-2) * (x + o[:, :1] - c[:, :1]) ** 2).sum(-1)
+    vy = (w.sum(-1) * (x + o[:, 1:] - c[:, 1:]) ** 2).sum(-1)
+    var = np.maximum(vx, vy)
+    var = var[np.isfinite(var) & (var > 0)]
+    if var.size == 0:
+        raise ValueError("peak_region: no window with a positive, finite second moment")
+    r = int(np.round(2.0 * np.sqrt(np.median(var)) + 0.25))
+    return min(max(r, 1), (p - 1) // 2)
+
+
+def reconstruct_frames(
+    frames: np.ndarray, plan: StationPatternPlan, *, lut: np.ndarray | None = None,
+    level_correction: bool = True, min_snr: float = 10.0, min_harmonic: float = 0.05,
+) -> LtcBlock:
+    """Reconstruct n pixels from their responses (patterns, n) to every pattern of ``plan``.
+
+    lut : the inverse response LUT the patterns were shown through (None: none).
+    level_correction : undo the harmonics of the levels actually shown (8-bit rounding after
+        the LUT; :func:`correct_levels`), assuming the LUT inverts the display exactly.
+    A pixel is valid when its gain exceeds ``min_snr`` times the gain's noise and its
+    localisation decoded. Pure function: the tiled :func:`reconstruct` calls it per block.
+    """
+    d = np.asarray(frames, dtype=np.float64)
+    if d.ndim != 2 or d.shape[0] != len(plan):
+        raise ValueError(f"frames must be (patterns={len(plan)}, pixels), got {d.shape}")
+    f = plan.fourier
+    spec = demodulate(d, plan)
+    if level_correction:
+        spec = correct_levels(spec, f, level_harmonics(f, lut))
+    gain = spec[:, 0, 0].real.copy()
+    sigma_d = frame_noise(d, plan)
+    lmap = lcd_coordinates(d, plan)
+    centre = refine_centre(spec, lmap.xy, min_harmonic)
+    valid = (gain > 0) & (gain > min_snr * sigma_d / (np.sqrt(2.0) * f.amplitude))
+    valid &= np.all(np.isfinite(centre), axis=1)
+    origin = centred_origins(np.where(valid[:, None], centre, 0.0), f.period)
+    origin[~valid] = 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ltc = unfold(fold(spec), origin) / gain[:, None, None]
+    ltc[~valid] = np.nan
+    ring = ltc.sum(axis=(1, 2)) - ltc[:, 1:-1, 1:-1].sum(axis=(1, 2))
+    return LtcBlock(ltc=ltc, origin=origin, gain=gain, noise=ltc_noise(sigma_d, gain, f),
+                    lcd_xy=lmap.xy, valid=valid, edge_mass=ring)
+
+
+def reconstruct(
+    run_path: str | Path, out_path: str | Path, tile_px: int | None = None,
+    progress: bool = True, *, min_snr: float = 10.0,
+) -> dict:
+    """Reconstruct every depth of a complete run store into a new LTC store, tile by tile.
+
+    tile_px : camera tile edge (default: the run store's inner chunk); memory depends on it
+    and on the pattern count, not on the sensor size. Returns a JSON-able summary; per-depth
+    statistics are medians / maxima over tiles of per-tile values (bounded memory).
+    """
+    t_start = time.perf_counter()
+    store = RunStore.open(run_path)
+    todo = store.first_incomplete()
+    if todo is not None:
+        raise RunStoreError(f"{store.path}: run is incomplete (first frame not done: depth "
+                            f"{todo[0]}, pattern {todo[1]}); finish it with --resume first")
+    plan, p, lut = store.plan, store.plan.fourier.period, store.display_lut
+    t = store.tile_px if tile_px is None else int(tile_px)
+    if t < 1:
+        raise RunStoreError(f"{store.path}: tile_px must be >= 1, got {tile_px}")
+    w, h = store.camera_size
+    out = create_ltc_store(
+        out_path, depths_mm=store.depths_mm, camera_size=store.camera_size, period=p,
+        pitch_mm=store.lcd_pitch_mm, lcd_size=store.lcd_size, tile_px=t,
+        attrs={"run_store": str(store.path), "pattern_set": plan.model_dump(mode="json"),
+               "camera_matrix": store.config.get("camera", {}).get("matrix"),
+               "config": store.config,
+               "software": software_versions(),
+               "created": _dt.datetime.now(_dt.timezone.utc).isoformat()},
+    )
+    n_tiles = -(-h // t) * -(-w // t)
+    per_depth = []
+    with tqdm(total=store.n_depths * n_tiles, desc="reconstruct", unit="tile",
+              disable=None if progress else True) as bar:
+        for di in range(store.n_depths):
+            stats: dict[str, list] = {"valid": [], "gain": [], "noise": [], "edge": []}
+            code_mask = store.code_mask(di)
+            for tile in store.iter_tiles(di, t):
+                _, th, tw = tile.frames.shape
+                flat = tile.frames.reshape(len(plan), th * tw)
+                parts = [reconstruct_frames(flat[:, i : i + PIXELS_PER_BLOCK], plan,
+                                            lut=lut, min_snr=min_snr)
+                         for i in range(0, th * tw, PIXELS_PER_BLOCK)]
+                blk = LtcBlock(*(np.concatenate([getattr(q, fld.name) for q in parts])
+                                 for fld in fields(LtcBlock)))
+                seen_code = code_mask[tile.row0 : tile.row0 + th, tile.col0 : tile.col0 + tw]
+                blk = _exclude(blk, seen_code.ravel())
+                write_ltc_tile(
+                    out, di, tile.row0, tile.col0,
+                    ltc=blk.ltc.reshape(th, tw, p, p), origin=blk.origin.reshape(th, tw, 2),
+                    gain=blk.gain.reshape(th, tw), noise=blk.noise.reshape(th, tw),
+                    lcd_xy=blk.lcd_xy.reshape(th, tw, 2),
+                )
+                v = blk.valid
+                stats["valid"].append(int(v.sum()))
+                if v.any():
+                    stats["gain"].append(float(np.median(blk.gain[v])))
+                    stats["noise"].append(float(np.median(blk.noise[v])))
+                    stats["edge"].append(float(np.percentile(np.abs(blk.edge_mass[v]), 95)))
+                bar.update(1)
+            per_depth.append({
+                "depth_mm": store.depths_mm[di],
+                "valid_fraction": sum(stats["valid"]) / (w * h),
+                "gain_median_adu": _median(stats["gain"]),
+                "noise_median": _median(stats["noise"]),
+                "edge_mass_p95": max(stats["edge"], default=None),
+            })
+    out.attrs["noise_median"] = [q["noise_median"] for q in per_depth]
+    seconds = time.perf_counter() - t_start
+    return {
+        "run": str(store.path), "out": str(out_path), "camera_size": list(store.camera_size),
+        "lcd_size": list(store.lcd_size), "period": p, "steps": plan.fourier.steps,
+        "patterns_per_depth": len(plan), "tile_px": t, "depths": per_depth,
+        "seconds": seconds, "pixels_per_second": store.n_depths * w * h / max(seconds, 1e-9),
+    }
+
+
+def _exclude(blk: LtcBlock, mask: np.ndarray) -> LtcBlock:
+    """The block with the pixels in ``mask`` (n,) bool made invalid (LTC NaN, origin 0)."""
+    if not mask.any():
+        return blk
+    ltc, origin, valid = blk.ltc.copy(), blk.origin.copy(), blk.valid & ~mask
+    ltc[mask] = np.nan
+    origin[mask] = 0
+    return replace(blk, ltc=ltc, origin=origin, valid=valid)
+
+
+def _median(values: list[float]) -> float | None:
+    return float(np.median(values)) if values else None

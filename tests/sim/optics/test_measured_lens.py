@@ -1,0 +1,209 @@
+"""The measured-lens model file: exact round trip, ray geometry, interpolation, validation."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+from sim.optics.lens import hit_plane
+from sim.optics.measured_lens import FORMAT, LensFileError, MeasuredLens, load_lens, save_lens
+from sim.optics.projection import pixel_to_normalized
+
+K = np.array([[500.0, 0.0, 9.5], [0.0, 500.0, 7.5], [0.0, 0.0, 1.0]])
+
+
+def make_lens(**over) -> MeasuredLens:
+    """A 20 x 16 camera with nodes every 4th pixel (plus the last), K = 5 samples per node
+    whose x, y encode the node (x = u / 10 + k, y = v / 10 - k) and weights (1..5) / 15."""
+    nu = np.array([0.0, 4, 8, 12, 16, 19])
+    nv = np.array([0.0, 4, 8, 12, 15])
+    k = np.arange(5)
+    x = nu[None, :, None] / 10 + k + 0 * nv[:, None, None]
+    y = nv[:, None, None] / 10 - k + 0 * nu[None, :, None]
+    w = np.broadcast_to((k + 1) / 15.0, x.shape).copy()
+    args = {"focus_distance_mm": 250.0, "optical_centre_mm": np.array([1.0, 2.0, -100.0]),
+            "camera_size": (20, 16), "node_u": nu, "node_v": nv, "aperture_x_mm": x,
+            "aperture_y_mm": y, "weights": w, "transmittance": np.full((5, 6), 0.8),
+            "interpolation": "bilinear", "camera_matrix": K, "dist_coeffs": np.zeros(5),
+            "metadata": {"source": "test"}}
+    args.update(over)
+    return MeasuredLens(**args)
+
+
+def test_round_trip_is_identical(tmp_path):
+    lens = make_lens()
+    back = load_lens(save_lens(tmp_path / "lens.npz", lens))
+    for name in ("optical_centre_mm", "node_u", "node_v", "aperture_x_mm", "aperture_y_mm",
+                 "weights", "transmittance", "camera_matrix", "dist_coeffs"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(lens, name), err_msg=name)
+    assert (back.focus_distance_mm, back.camera_size, back.interpolation, back.metadata) == (
+        lens.focus_distance_mm, lens.camera_size, lens.interpolation, lens.metadata)
+    uv = np.array([[3.3, 5.1], [19.0, 15.0]])
+    b1, b2 = lens.bundle(pixel_to_normalized(uv, K), uv), back.bundle(
+        pixel_to_normalized(uv, K), uv)
+    np.testing.assert_array_equal(b1.directions, b2.directions)
+
+
+def test_round_trip_without_optional_fields(tmp_path):
+    lens = make_lens(camera_matrix=None, dist_coeffs=None, interpolation="nearest")
+    back = load_lens(save_lens(tmp_path / "lens.npz", lens))
+    assert back.camera_matrix is None and back.dist_coeffs is None
+    np.testing.assert_array_equal(back.aperture_x_mm, lens.aperture_x_mm)
+
+
+def test_bundle_rays_start_on_samples_and_meet_at_the_in_focus_point():
+    lens = make_lens()
+    uv = np.array([[4.0, 8.0], [12.0, 0.0]])  # exactly on nodes
+    xy_n = pixel_to_normalized(uv, K)
+    b = lens.bundle(xy_n, uv)
+    k = np.arange(5)
+    np.testing.assert_allclose(b.origins[..., 0], uv[:, :1] / 10 + k, atol=1e-12)
+    np.testing.assert_allclose(b.origins[..., 1], uv[:, 1:] / 10 - k, atol=1e-12)
+    np.testing.assert_array_equal(b.origins[..., 2], 0.0)
+    at_focus = hit_plane(b.origins, b.directions, 250.0)
+    np.testing.assert_allclose(at_focus, np.broadcast_to(xy_n[:, None] * 250.0, at_focus.shape),
+                               atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(b.directions, axis=-1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(b.weights, 0.8 * (k + 1) / 15.0 + 0 * uv[:, :1], atol=1e-15)
+    # uv from K when omitted
+    b2 = lens.bundle(xy_n)
+    np.testing.assert_allclose(b2.origins, b.origins, atol=1e-9)
+
+
+def test_bilinear_and_nearest_between_nodes():
+    uv = np.array([[6.0, 10.0], [17.5, 15.0], [-3.0, 40.0]])  # mid-cell, last span, outside
+    x, y, w = make_lens().samples_at(uv)
+    # x is linear in u: bilinear reproduces it exactly inside the grid; outside it clamps
+    np.testing.assert_allclose(x[:, 0], [0.6, 1.75, 0.0], atol=1e-12)
+    np.testing.assert_allclose(y[:, 1], [1.0 - 1, 1.5 - 1, 1.5 - 1], atol=1e-12)
+    np.testing.assert_allclose(w.sum(axis=1), 0.8, atol=1e-12)
+    xn, yn, _ = make_lens(interpolation="nearest").samples_at(uv)
+    np.testing.assert_allclose(xn[:, 0], [0.4, 1.6, 0.0], atol=1e-12)  # u nodes 4 (tie), 16, 0
+    np.testing.assert_allclose(yn[:, 0], [0.8, 1.5, 1.5], atol=1e-12)  # v nodes 8 (tie), 15, 15
+
+
+def write_npz(path, **fields):
+    with open(path, "wb") as f:
+        np.savez(f, **fields)
+    return path
+
+
+def lens_fields(**over):
+    lens = make_lens()
+    d = {"format": np.array(FORMAT), "format_version": np.array(1),
+         "focus_distance_mm": np.array(250.0), "optical_centre_mm": lens.optical_centre_mm,
+         "camera_size": np.array([20, 16]), "node_u": lens.node_u, "node_v": lens.node_v,
+         "aperture_x_mm": lens.aperture_x_mm, "aperture_y_mm": lens.aperture_y_mm,
+         "weights": lens.weights, "transmittance": lens.transmittance,
+         "interpolation": np.array("bilinear")}
+    d.update(over)
+    return {k: v for k, v in d.items() if v is not None}
+
+
+def test_corrupted_and_missing_files(tmp_path):
+    with pytest.raises(LensFileError, match="no such measured-lens file"):
+        load_lens(tmp_path / "nope.npz")
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"PK\x03\x04 this is not really a zip file")
+    with pytest.raises(LensFileError, match=r"bad\.npz: not a readable measured-lens"):
+        load_lens(bad)
+    good = save_lens(tmp_path / "good.npz", make_lens())
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(LensFileError, match=r"cut\.npz: not a readable"):
+        load_lens(cut)
+    assert zipfile.is_zipfile(good)
+
+
+@pytest.mark.parametrize(
+    ("over", "message"),
+    [
+        ({"format": np.array("something-else")}, "field 'format' is 'something-else'"),
+        ({"format_version": np.array(2)}, "field 'format_version' is 2; this reader supports"),
+        ({"format_version": np.array([1, 1])}, "field 'format_version' must be a scalar"),
+        ({"focus_distance_mm": np.array("far")}, "field 'focus_distance_mm' is not a float"),
+        ({"weights": None}, r"missing field\(s\) \['weights'\]"),
+        ({"extra_thing": np.zeros(2)}, r"unknown field\(s\) \['extra_thing'\]"),
+        ({"metadata_json": np.array("{not json")}, "field 'metadata_json' is not JSON"),
+        ({"node_u": np.array(["a", "b"])}, "field 'node_u' must be numeric"),
+    ],
+)
+def test_file_level_errors_name_file_and_field(tmp_path, over, message):
+    path = write_npz(tmp_path / "lens.npz", **lens_fields(**over))
+    with pytest.raises(LensFileError, match=rf"lens\.npz: {message}"):
+        load_lens(path)
+
+
+def _bad(name, fn):
+    lens = make_lens()
+    a = np.array(getattr(lens, name), dtype=np.float64, copy=True)
+    return {name: fn(a)}
+
+
+def _nan(a):
+    a.flat[min(3, a.size - 1)] = np.nan
+    return a
+
+
+def _zero_node(a):
+    a[1, 2] = 0.0
+    return a
+
+
+def _neg(a):
+    a.flat[0] = -a.flat[0] - 1
+    return a
+
+
+@pytest.mark.parametrize(
+    ("over", "message"),
+    [
+        (_bad("aperture_x_mm", _nan), r"field 'aperture_x_mm' has 1 NaN"),
+        (_bad("weights", _nan), r"field 'weights' has 1 NaN"),
+        (_bad("weights", _zero_node),
+         r"field 'weights' must sum to 1 per node; node \(row 1, col 2\) sums to 0.0"),
+        (_bad("weights", _neg), "field 'weights' has negative values"),
+        (_bad("transmittance", _neg), "field 'transmittance' has negative values"),
+        (_bad("transmittance", _nan), "field 'transmittance' has 1 NaN"),
+        (_bad("optical_centre_mm", _nan), "field 'optical_centre_mm' has 1 NaN"),
+        (_bad("node_u", _nan), "field 'node_u' has 1 NaN"),
+        ({"node_u": np.array([0.0, 8, 4, 12, 16, 19])}, "field 'node_u' must increase strictly"),
+        ({"node_v": np.array([0.0, 4, 8, 12, 16])},
+         r"field 'node_v' must increase strictly within \[0, 15\]"),
+        ({"node_v": np.zeros((0,))}, "field 'node_v' must be a non-empty 1-D array"),
+        ({"weights": np.full((5, 6, 4), 0.25)}, "field 'aperture_x_mm' must have the shape of"),
+        ({"weights": np.full((6, 5, 5), 0.2)}, r"field 'weights' must have shape \(len\(node_v\)"),
+        ({"transmittance": np.ones((6, 5))}, r"field 'transmittance' must have shape \(5, 6\)"),
+        ({"focus_distance_mm": np.array(-1.0)}, "field 'focus_distance_mm' must be > 0"),
+        ({"camera_size": np.array([20, 16, 3])}, "field 'camera_size' must be"),
+        ({"camera_size": np.array([0, 16])}, "field 'camera_size' must be"),
+        ({"optical_centre_mm": np.zeros(2)}, r"field 'optical_centre_mm' must have shape \(3,\)"),
+        ({"interpolation": np.array("cubic")}, "field 'interpolation' must be one of"),
+        ({"camera_matrix": np.eye(2)}, "field 'camera_matrix' must be 3x3"),
+        ({"camera_matrix": np.full((3, 3), np.nan)}, "field 'camera_matrix' has 9 NaN"),
+        ({"dist_coeffs": np.zeros(4)}, "field 'dist_coeffs' must have 5 values"),
+        ({"dist_coeffs": np.full(5, np.inf)}, "field 'dist_coeffs' has 5 NaN or infinite"),
+    ],
+)
+def test_value_errors_name_file_and_field(tmp_path, over, message):
+    path = write_npz(tmp_path / "lens.npz", **lens_fields(**over))
+    with pytest.raises(LensFileError, match=rf"lens\.npz: {message}"):
+        load_lens(path)
+
+
+def test_bundle_errors():
+    lens = make_lens(camera_matrix=None)
+    with pytest.raises(LensFileError, match="needs uv .pixel coordinates.: the lens has no "
+                       "camera_matrix"):
+        lens.bundle(np.zeros((2, 2)))
+    with pytest.raises(LensFileError, match="xy_n has 2 rows but uv has 1"):
+        lens.bundle(np.zeros((2, 2)), np.zeros((1, 2)))
+
+
+def test_metadata_is_json(tmp_path):
+    path = save_lens(tmp_path / "lens.npz", make_lens(metadata={"a": [1, 2], "b": None}))
+    with np.load(path, allow_pickle=False) as z:
+        assert json.loads(str(z["metadata_json"])) == {"a": [1, 2], "b": None}

@@ -1,0 +1,46 @@
+"""`ltc check`: the whole fake bench end to end, and honest failure reports."""
+
+import json
+from pathlib import Path
+
+from station.cli import main
+from station.acquisition.config import example_text
+
+
+def test_check_fake_json_is_ok_and_writes_contact_sheet(tmp_path, capsys):
+    assert main(["check", "--fake", "--json", "--out", str(tmp_path)]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["ok"] is True
+    names = [s["name"] for s in report["steps"]]
+    assert names[:2] == ["open devices", "home stage"]
+    assert sum(n.startswith("crosshair") for n in names) == 3
+    moves = [s for s in report["steps"] if s["name"].startswith("move to")]
+    assert all(abs(s["measured_mm"] - s["target_mm"]) <= 0.001 for s in moves)
+    png = Path(report["contact_sheet"])
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_check_reports_a_camera_that_sees_nothing(tmp_path, capsys):
+    cfg = tmp_path / "dark.toml"
+    cfg.write_text(example_text("fake").replace("[fake.noise]", "[fake.noise]\nwhite_fraction = 0.001"))
+    assert main(["check", str(cfg), "--json", "--out", str(tmp_path)]) == 1
+    report = json.loads(capsys.readouterr().out)
+    assert report["ok"] is False
+    bad = [s for s in report["steps"] if not s["ok"]]
+    assert bad and all("pattern not seen" in s["warning"] for s in bad)
+
+
+def test_check_reports_a_missing_stage_port(tmp_path, capsys):
+    cfg = tmp_path / "real.toml"
+    text = example_text("real").replace('port = "/dev/ttyUSB0"', f'port = "{tmp_path}/nope"')
+    cfg.write_text(text)
+    assert main(["check", str(cfg), "--out", str(tmp_path)]) == 1
+    out = capsys.readouterr().out
+    assert "FAILED" in out and "open devices" in out and "nope" in out
+
+
+def test_check_needs_config_or_fake(capsys, tmp_path):
+    assert main(["check"]) == 2
+    assert "either a CONFIG.toml or --fake" in capsys.readouterr().err
+    assert main(["check", str(tmp_path / "none.toml")]) == 2
+    assert "cannot read config" in capsys.readouterr().err

@@ -1,0 +1,125 @@
+"""``ltc lens``: from an LTC store on disk to a lens file, a JSON report and figures."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from fakes.bench import BenchConfig, FakeBench
+from sim.optics.measured_lens import load_lens
+from sim.optics.rig import Rig, small_rig
+from station.cli import main
+from station.ltc.store import centred_origins, create_ltc_store, windows_from_sparse
+
+P = 24
+DEPTHS = [0.0, 30.0, 60.0, 250.0, 290.0]
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def bench() -> FakeBench:
+    return FakeBench(BenchConfig.small(lcd_size=(120, 96), lcd_distance_at_zero_mm=100.0,
+                                       pupil_samples=150, subpixels=1))
+
+
+def write_store(path, bench: FakeBench, with_k: bool = True):
+    """An LTC store of the bench's true LTC plus noise of std 6e-4 per weight."""
+    c = bench.config
+    w, h = c.camera_size
+    g = create_ltc_store(path, depths_mm=DEPTHS, camera_size=c.camera_size, period=P,
+                         pitch_mm=c.lcd_pitch_mm, lcd_size=c.lcd_size,
+                         attrs={"camera_matrix": bench.K.tolist()} if with_k else None)
+    rng = np.random.default_rng(0)
+    for i, z in enumerate(DEPTHS):
+        org = centred_origins(bench.true_centroids_lcd_px(z).reshape(-1, 2), P)
+        win = windows_from_sparse(bench.true_ltc(z, normalise=True), c.lcd_size, P, org)
+        win = win + rng.normal(0.0, 6e-4, win.shape)
+        g["ltc"][i] = (win / win.sum(axis=(1, 2), keepdims=True)).reshape(h, w, P, P)
+        g["origin"][i] = org.reshape(h, w, 2)
+        g["gain"][i] = np.full((h, w), 3000.0)
+        g["noise"][i] = np.full((h, w), 6e-4)
+    return path
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory, bench):
+    return write_store(tmp_path_factory.mktemp("cli") / "ltc.zarr", bench)
+
+
+def test_lens_json_figures_and_file(tmp_path, store, bench, capsys):
+    out, figs = tmp_path / "lens.npz", tmp_path / "figs"
+    assert main(["lens", str(store), "--out", str(out), "--json", "--figures", str(figs),
+                 "--grid-step", "2"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    lens = load_lens(out)
+    assert report["out"] == str(out) and report["samples"] == 32 == lens.samples
+    assert report["nodes"] == [16, 21] and lens.weights.shape == (16, 21, 32)
+    np.testing.assert_array_equal(lens.camera_matrix, bench.K)
+    np.testing.assert_allclose(report["optical_centre_mm"], lens.optical_centre_mm)
+    assert np.linalg.norm(lens.optical_centre_mm - bench.optical_centre_station_mm()) < 0.5
+    assert report["focus_distance_mm"] == pytest.approx(lens.focus_distance_mm)
+    assert report["ray_residual_mean_mm"] > 0 and report["ray_residual_std_mm"] > 0
+    assert sorted(p.name for p in figs.iterdir()) == [
+        "aperture.png", "ltc_depths.png", "principal_rays.png", "ray_residuals.png"]
+    for p in figs.iterdir():
+        assert p.read_bytes()[:8] == PNG and p.stat().st_size > 10_000
+    assert report["figures"] == [str(figs / n) for n in ("ltc_depths.png", "principal_rays.png",
+                                                        "aperture.png", "ray_residuals.png")]
+
+
+def test_lens_options_and_text_report(tmp_path, store, capsys):
+    out = tmp_path / "lens.npz"
+    rc = main(["lens", str(store), "--out", str(out), "--samples", "12", "--grid-step", "10",
+               "--interpolation", "nearest", "--focus-mm", "250"])
+    text = capsys.readouterr().out
+    assert rc == 0
+    lens = load_lens(out)
+    assert lens.samples == 12 and lens.interpolation == "nearest"
+    np.testing.assert_array_equal(lens.node_u, [0, 10, 20, 30, 39])
+    np.testing.assert_array_equal(lens.node_v, [0, 10, 20, 29])
+    assert lens.focus_distance_mm == pytest.approx(250.0)
+    assert "optical centre" in text and "configured 250.0" in text
+    assert "focus distance: configured 250.000 mm (used), fitted" in text
+
+
+def test_rig_gives_the_camera_matrix(tmp_path, bench, capsys):
+    store = write_store(tmp_path / "nok.zarr", bench, with_k=False)
+    base = small_rig()
+    cam = base.cameras[0].model_copy(update={"K": bench.K.tolist(), "dist": [0.0] * 5,
+                                             "size": bench.config.camera_size})
+    rig = Rig(cameras=[cam, base.cameras[1]], projector=base.projector)
+    rig_path = tmp_path / "rig.json"
+    rig.save(rig_path)
+    out = tmp_path / "lens.npz"
+    assert main(["lens", str(store), "--out", str(out), "--json", "--grid-step", "8",
+                 "--rig", str(rig_path), "--rig-camera", cam.name]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["camera_matrix_known"] and report["optical_centre_method"].startswith("pinhole")
+    np.testing.assert_array_equal(load_lens(out).camera_matrix, bench.K)
+    assert main(["lens", str(store), "--out", str(tmp_path / "b.npz"), "--rig",
+                 str(rig_path), "--rig-camera", "nope"]) == 2
+    assert "no camera named 'nope'; cameras are" in capsys.readouterr().err
+    assert main(["lens", str(store), "--out", str(tmp_path / "b.npz"), "--rig",
+                 str(rig_path), "--rig-camera", base.cameras[1].name]) == 2
+    assert "is (164, 87) pixels but the LTC store's camera is (40, 30)" in capsys.readouterr().err
+    assert main(["lens", str(store), "--out", str(tmp_path / "c.npz"), "--json",
+                 "--grid-step", "8"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert not report["camera_matrix_known"]
+    assert any("principal-ray intersection" in n for n in report["notes"])
+
+
+def test_errors_are_reported_not_raised(tmp_path, store, capsys):
+    out = tmp_path / "lens.npz"
+    assert main(["lens", str(tmp_path / "none.zarr"), "--out", str(out)]) == 2
+    assert "ltc lens: error:" in (err := capsys.readouterr().err) and "no such LTC store" in err
+    out.write_bytes(b"x")
+    assert main(["lens", str(store), "--out", str(out)]) == 2
+    assert f"{out} exists; pass --force to overwrite it" in capsys.readouterr().err
+    assert main(["lens", str(store), "--out", str(out), "--force", "--samples", "0"]) == 2
+    assert "--samples: Input should be greater than or equal to 1" in capsys.readouterr().err
+    assert main(["lens", str(store), "--out", str(out), "--force", "--focus-mm", "250",
+                 "--centre", "rays", "--grid-step", "10"]) == 0
+    assert load_lens(out).focus_distance_mm == pytest.approx(250.0)
