@@ -1,5 +1,5 @@
 """The fake bench's physical world: an LCD, and a camera carried by the stage along the
-LCD's normal, looking through the ground-truth lens (``sim.lens.AberratedLens``).
+LCD's normal, looking through the ground-truth lens (``sim.optics.lens.AberratedLens``).
 
 Frames (all mm):
 
@@ -22,8 +22,8 @@ import numpy as np
 import scipy.sparse as sp
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from sim.lens import AberratedLens
-from sim.plane_ltc import plane_ltc
+from sim.optics.lens import AberratedLens
+from sim.optics.plane_ltc import plane_ltc
 
 
 class BenchConfig(BaseModel):
