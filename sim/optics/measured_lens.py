@@ -34,6 +34,7 @@ metadata_json          () str          optional: how it was measured (free JSON)
 from __future__ import annotations
 
 import json
+import os
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -149,6 +150,15 @@ class MeasuredLens:
                                     f"{self.dist_coeffs.shape}")
             _finite("dist_coeffs", self.dist_coeffs)
 
+    def save(self, path: str | Path) -> Path:
+        """Write this lens as a lens file (``save_lens``); returns the path written."""
+        return save_lens(path, self)
+
+    @classmethod
+    def load(cls, path: str | Path) -> MeasuredLens:
+        """Read and validate a lens file (``load_lens``)."""
+        return load_lens(path)
+
     @property
     def samples(self) -> int:
         """K, aperture samples per pixel."""
@@ -234,6 +244,8 @@ def save_lens(path: str | Path, lens: MeasuredLens) -> Path:
         arrays["dist_coeffs"] = lens.dist_coeffs
     with open(path, "wb") as f:
         np.savez_compressed(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
     return path
 
 

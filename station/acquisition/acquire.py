@@ -95,7 +95,7 @@ def config_differences(stored: object, current: object, path: str = "") -> list[
 
 def run_record(config: StationConfig, lut: np.ndarray | None) -> dict:
     """What a run store keeps of the config: the config itself and the display LUT in use."""
-    return {**config.model_dump(mode="json"),
+    return {**config.model_dump(mode="json", exclude={"sequence"}),
             "display_lut": None if lut is None else [int(v) for v in lut]}
 
 

@@ -144,6 +144,18 @@ class AcquireConfig(_Strict):
     )
 
 
+class SequenceConfig(_Strict):
+    """What ``ltc run`` (``station.run_sequence``) does besides check, acquire, reconstruct
+    and derive the lens."""
+
+    gamma: bool = Field(False, description="measure the display response first and use its "
+                        "inverse LUT for the run (written as lut.npy in the run folder)")
+    align: bool = Field(True, description="image a crosshair at every depth and write the "
+                        "alignment report (align.json) before acquiring")
+    lens_samples: int = Field(32, ge=1, description="aperture samples K per node pixel")
+    lens_grid_step: int = Field(1, ge=1, description="lens node spacing, camera pixels")
+
+
 class StationConfig(_Strict):
     """The whole station: hardware, depths, patterns. ``fake`` holds the fake bench's settings
     (validated by the fake backend) and is used only with ``backend = "fake"``."""
@@ -156,6 +168,7 @@ class StationConfig(_Strict):
     patterns: PatternConfig = PatternConfig()
     frame_check: FrameCheckConfig = FrameCheckConfig()
     acquire: AcquireConfig = AcquireConfig()
+    sequence: SequenceConfig = SequenceConfig()
     fake: dict[str, Any] = Field(default_factory=dict, description="fake bench settings")
 
     @model_validator(mode="after")

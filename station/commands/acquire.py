@@ -5,13 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
+import shutil
 from pathlib import Path
 
-from drivers.interfaces import DeviceError
-from station.acquisition.acquire import AcquisitionError, acquire
-from station.acquisition.config import ConfigError, load_config
-from station.acquisition.run_store import RunStoreError
+from station.errors import UsageError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,29 +22,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="run store to create (RUN.zarr)")
     p.add_argument("--resume", action="store_true",
                    help="finish the run in --out (its config must be the same)")
+    p.add_argument("--force", action="store_true",
+                   help="delete an existing run store in --out and start again")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from station.api import acquire, load_config
+
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.INFO, format="ltc acquire: %(levelname)s: %(message)s")
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        print(f"ltc acquire: {exc}", file=sys.stderr)
-        return 2
-    try:
-        summary = acquire(config, args.out, resume=args.resume, progress=not args.quiet)
-    except KeyboardInterrupt:
-        print(f"ltc acquire: interrupted; finish with: ltc acquire {args.config} --out "
-              f"{args.out} --resume", file=sys.stderr)
-        return 130
-    except (AcquisitionError, RunStoreError, ConfigError, DeviceError) as exc:
-        notes = "".join(f"\n  {n}" for n in getattr(exc, "__notes__", []))
-        print(f"ltc acquire: {type(exc).__name__}: {exc}{notes}", file=sys.stderr)
-        return 1
+    args.resume_hint = (f"; finish with: ltc acquire {args.config} --out {args.out} --resume")
+    config = load_config(args.config)
+    if args.out.exists() and not args.resume:
+        if not args.force:
+            raise UsageError(f"--out {args.out} exists; pass --resume to finish that run, "
+                             "--force to delete it and start again, or choose another path")
+        shutil.rmtree(args.out) if args.out.is_dir() else args.out.unlink()
+    summary = acquire(config, args.out, resume=args.resume, progress=not args.quiet)
     if args.json:
         print(json.dumps(summary))
     else:

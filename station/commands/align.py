@@ -4,12 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-from drivers.interfaces import DeviceError
-from station.acquisition.align import AlignError, format_align, run_align
-from station.acquisition.config import ConfigError, load_config
+from station.commands import at_least
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,25 +20,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         "code ([frame_check]) is in the camera's view at every depth.",
     )
     p.add_argument("config", type=Path, help="station config (TOML)")
-    p.add_argument("--shift", type=int, default=None, metavar="PX",
+    p.add_argument("--shift", type=at_least(1), default=None, metavar="PX",
                    help="crosshair shift for the scale, LCD pixels (default: LCD height / 12)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        print(f"ltc align: {exc}", file=sys.stderr)
-        return 2
-    if args.shift is not None and args.shift < 1:
-        print(f"ltc align: --shift must be >= 1 LCD pixel, got {args.shift}", file=sys.stderr)
-        return 2
-    try:
-        report = run_align(config, shift_px=args.shift)
-    except (AlignError, DeviceError) as exc:
-        print(f"ltc align: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return 1
+    from station.acquisition.align import format_align, run_align
+    from station.api import load_config
+
+    report = run_align(load_config(args.config), shift_px=args.shift)
     print(json.dumps(report) if args.json else format_align(report))
     return 0

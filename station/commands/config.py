@@ -6,8 +6,6 @@ import argparse
 import sys
 from pathlib import Path
 
-from station.acquisition.config import ConfigError, example_text, load_config
-
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -24,14 +22,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from station.acquisition.config import example_text, load_config
+
     if args.example:
         sys.stdout.write(example_text(args.example))
         return 0
-    try:
-        config = load_config(args.check)
-    except ConfigError as exc:
-        print(f"ltc config: {exc}", file=sys.stderr)
-        return 2
+    config = load_config(args.check)
     print(f"{args.check}: valid {config.backend} station config: {len(config.depths_mm)} depths "
           f"{config.depths_mm} mm, P = {config.patterns.period}, {config.patterns.steps}-step")
     return 0

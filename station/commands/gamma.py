@@ -4,14 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-import numpy as np
-
-from drivers.interfaces import DeviceError
-from station.acquisition.config import ConfigError, load_config
-from station.acquisition.gamma import GammaError, measure_lut, save_lut
+from station.commands import at_least
+from station.errors import check_output
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,25 +21,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("config", type=Path, help="station config (TOML)")
     p.add_argument("--out", type=Path, required=True,
                    help="LUT file to write: .npy, or text with one value per line")
-    p.add_argument("--levels", type=int, default=65, help="grey levels to show (>= 64; default 65)")
+    p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    p.add_argument("--levels", type=at_least(64), default=65,
+                   help="grey levels to show (>= 64; default 65)")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        print(f"ltc gamma: {exc}", file=sys.stderr)
-        return 2
-    if args.levels < 64:
-        print(f"ltc gamma: --levels must be >= 64, got {args.levels}", file=sys.stderr)
-        return 2
-    try:
-        summary = measure_lut(config, n_levels=args.levels)
-    except (GammaError, DeviceError) as exc:
-        print(f"ltc gamma: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return 1
+    import numpy as np
+
+    from station.acquisition.gamma import measure_lut, save_lut
+    from station.api import load_config
+
+    check_output(args.out, args.force)
+    config = load_config(args.config)
+    summary = measure_lut(config, n_levels=args.levels)
     save_lut(args.out, np.array(summary["lut"]))
     summary["out"] = str(args.out)
     if args.json:

@@ -1,29 +1,18 @@
 """``ltc lens LTC.zarr --out LENS.npz [--figures DIR] [--json] [--focus-mm Z] [--samples K]``.
 
-Derives the measured lens from an LTC store (``station.lens.derive``) and writes the lens
-model file (``sim.optics.measured_lens``). The camera matrix comes from the store's
-``camera_matrix`` attribute or from ``--rig RIG --rig-camera NAME`` (``sim.optics.rig`` file).
+Derives the measured lens from an LTC store (``station.derive_lens``) and writes the lens
+model file (``sim.MeasuredLens``). The camera matrix comes from the store's
+``camera_matrix`` attribute or from ``--rig RIG --rig-camera NAME`` (a rig file).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-import numpy as np
-from pydantic import ValidationError
-
-from sim.optics.measured_lens import LensFileError, save_lens
-from sim.optics.rig import Rig
-from station.acquisition.backend import fake_truth
-from station.lens.centroids import LtcVolumeError, open_ltc_volume
-from station.lens.derive import derive_lens
-from station.lens.figures import write_figures
-from station.lens.geometry import LensFitConfig, LensFitError
-from station.ltc.store import LtcStoreError, open_ltc_store
-from station.lens.rays import RayFitError
+from station.commands import at_least
+from station.errors import check_output
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -39,69 +28,38 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     p.add_argument("--figures", type=Path, help="folder for the figures (PNG)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--focus-mm", type=float, help="focus distance from the optical centre, mm "
                    "(used instead of the fitted one; both are reported)")
-    p.add_argument("--samples", type=int, default=32, help="aperture samples K (default 32)")
-    p.add_argument("--grid-step", type=int, default=1,
+    p.add_argument("--samples", type=at_least(1), default=32,
+                   help="aperture samples K (default 32)")
+    p.add_argument("--grid-step", type=at_least(1), default=1,
                    help="node spacing in pixels (default 1: every pixel)")
     p.add_argument("--interpolation", choices=("bilinear", "nearest"), default="bilinear",
                    help="how samples are read between nodes (default bilinear)")
     p.add_argument("--centre", choices=("auto", "pinhole", "rays"), default="auto",
                    help="optical centre: pinhole (needs K), principal-ray intersection, or "
                    "auto (pinhole when K is known)")
-    p.add_argument("--rig", type=Path, help="rig calibration (sim.optics.rig JSON/YAML) giving K")
+    p.add_argument("--rig", type=Path, help="rig calibration (JSON/YAML) giving K")
     p.add_argument("--rig-camera", help="camera name in --rig (default: the first camera)")
     p.set_defaults(func=run)
 
 
-def _camera(args: argparse.Namespace, size: tuple[int, int]):
-    """K and distortion from --rig, checked against the store's camera size."""
-    if args.rig is None:
-        return None, None
-    rig = Rig.load(args.rig)
-    cams = {c.name: c for c in rig.cameras}
-    name = args.rig_camera or rig.cameras[0].name
-    if name not in cams:
-        raise ValueError(f"{args.rig}: no camera named {name!r}; cameras are {list(cams)}")
-    if tuple(cams[name].size) != tuple(size):
-        raise ValueError(f"{args.rig}: camera {name!r} is {tuple(cams[name].size)} pixels but "
-                         f"the LTC store's camera is {tuple(size)}")
-    return cams[name].K_array, cams[name].dist_array
-
-
 def run(args: argparse.Namespace) -> int:
-    if args.out.exists() and not args.force:
-        print(f"ltc lens: error: {args.out} exists; pass --force to overwrite it",
-              file=sys.stderr)
-        return 2
-    try:
-        config = LensFitConfig(samples=args.samples, grid_step=args.grid_step,
-                               interpolation=args.interpolation, centre_method=args.centre,
-                               focus_distance_mm=args.focus_mm)
-        volume = open_ltc_volume(args.store)
-        K, dist = _camera(args, volume.camera_size)
-        result = derive_lens(volume, config, K, dist)
-        save_lens(args.out, result.lens)
-        figures = [] if args.figures is None else write_figures(volume, result, args.figures)
-    except ValidationError as exc:
-        msg = "; ".join(f"--{'-'.join(str(p) for p in e['loc'])}: {e['msg']}"
-                        for e in exc.errors())
-        print(f"ltc lens: error: {msg}", file=sys.stderr)
-        return 2
-    except (LtcStoreError, LtcVolumeError, LensFitError, RayFitError, LensFileError,
-            FileNotFoundError, ValueError) as exc:
-        print(f"ltc lens: error: {exc}", file=sys.stderr)
-        return 2
-    report = {**result.summary(), "out": str(args.out), "figures": [str(f) for f in figures]}
-    truth = fake_truth(dict(open_ltc_store(args.store).attrs.get("config") or {}))
-    if truth is not None:
-        err = np.subtract(report["optical_centre_mm"], truth["optical_centre_mm"])
-        report["fake_truth"] = {**truth, "optical_centre_error_mm": err.tolist(),
-                                "optical_centre_error_norm_mm": float(np.linalg.norm(err))}
-    if args.json:
-        print(json.dumps(report))
-    else:
-        print(format_report(report))
+    from station.api import derive_lens
+
+    check_output(args.out, args.force)
+    if args.figures is not None:
+        check_output(args.figures, args.force, "--figures")
+    result = derive_lens(args.store, samples=args.samples, grid_step=args.grid_step,
+                         interpolation=args.interpolation, centre=args.centre,
+                         focus_distance_mm=args.focus_mm, rig=args.rig,
+                         rig_camera=args.rig_camera, figures=args.figures,
+                         progress=not args.quiet)
+    result.lens.save(args.out)
+    report = {**result.summary(), "out": str(args.out),
+              "figures": [str(f) for f in result.figures]}
+    print(json.dumps(report) if args.json else format_report(report))
     return 0
 
 
@@ -124,12 +82,6 @@ def format_report(r: dict) -> str:
         (f"lens model      {r['samples']} samples x {r['nodes'][0]}x{r['nodes'][1]} nodes "
          f"({r['nodes_filled']} filled from a neighbour) -> {r['out']}"),
     ]
-    if "fake_truth" in r:
-        t = r["fake_truth"]
-        c = t["optical_centre_mm"]
-        lines.append(f"fake bench truth optical centre ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f}) mm: "
-                     f"error {t['optical_centre_error_norm_mm']:.4f} mm; paraxial focus "
-                     f"{t['focus_distance_mm']:.3f} mm")
     lines += [f"note            {n}" for n in r["notes"]]
     lines += [f"figure          {f}" for f in r["figures"]]
     return "\n".join(lines)

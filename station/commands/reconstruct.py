@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
+import shutil
+from pathlib import Path
 
-from station.ltc.store import LtcStoreError
-from station.acquisition.run_store import RunStoreError
-from station.ltc.spi import reconstruct
+from station.commands import at_least
+from station.errors import check_output
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -19,22 +19,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Demodulate the Fourier frames of a run store, unfold with the "
         "localisation map and write an LTC store, tile by tile (bounded memory).",
     )
-    p.add_argument("run", metavar="RUN.zarr", help="run store written by 'ltc acquire'")
-    p.add_argument("--out", required=True, metavar="LTC.zarr",
-                   help="LTC store to create (must not exist)")
-    p.add_argument("--tile", type=int, default=None, metavar="N",
+    p.add_argument("run", type=Path, metavar="RUN.zarr", help="run store written by 'ltc acquire'")
+    p.add_argument("--out", type=Path, required=True, metavar="LTC.zarr",
+                   help="LTC store to create")
+    p.add_argument("--force", action="store_true", help="replace --out if it exists")
+    p.add_argument("--tile", type=at_least(1), default=None, metavar="N",
                    help="camera tile edge in pixels (default: the run store's chunk)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the command; returns the exit code (1 on a store error, message on stderr)."""
-    try:
-        summary = reconstruct(args.run, args.out, tile_px=args.tile, progress=not args.json)
-    except (RunStoreError, LtcStoreError) as exc:
-        print(f"ltc reconstruct: error: {exc}", file=sys.stderr)
-        return 1
+    """Run the command; returns the exit code."""
+    from station.api import reconstruct_ltc
+
+    if check_output(args.out, args.force).exists():
+        shutil.rmtree(args.out) if args.out.is_dir() else args.out.unlink()
+    summary = reconstruct_ltc(args.run, args.out, tile_px=args.tile, progress=not args.quiet)
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0

@@ -15,13 +15,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
+import shutil
 from pathlib import Path
 
-import numpy as np
-
-from sim.render.images import RenderResult, write_pngs, write_zarr
-from sim.render.scene import LoadedScene, load_scene_file
+from station.errors import check_output
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -29,10 +26,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "render",
         help="render fringe images of a scene file with the virtual scanner",
-        description=__doc__.split("\n\n")[0],
+        description="Render the fringe images of a scene file (rig, lenses, objects, pattern set) "
+        "with the virtual scanner; write PNGs per camera, render.zarr with the truth maps, and "
+        "summary.json.",
     )
     p.add_argument("scene", type=Path, help="scene file (TOML, see sim.render.scene)")
     p.add_argument("--out", type=Path, required=True, help="output directory (created)")
+    p.add_argument("--force", action="store_true", help="replace --out if it exists")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--radiance", action="store_true",
@@ -40,8 +40,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def summarize(loaded: LoadedScene, result: RenderResult, out: Path, png_dirs: list[str | None]) -> dict:
-    """The JSON-able summary of a rendering."""
+def summarize(loaded, result, out: Path, png_dirs: list[str | None]) -> dict:
+    """The JSON-able summary of a rendering (a ``LoadedScene`` and its ``RenderResult``)."""
+    import numpy as np
+
     cfg = loaded.config
     cams = []
     for i, (c, dev) in enumerate(zip(result.cameras, loaded.rig.cameras)):
@@ -64,15 +66,16 @@ def summarize(loaded: LoadedScene, result: RenderResult, out: Path, png_dirs: li
 
 
 def run(args: argparse.Namespace) -> int:
-    """Load, render, write; returns the exit code (2 for a bad scene)."""
-    try:
-        loaded = load_scene_file(args.scene)
-        result = loaded.render(progress=not args.quiet)
-    except (ValueError, OSError) as exc:
-        print(f"ltc render: error: {exc}", file=sys.stderr)
-        return 2
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    """Load, render, write."""
+    from sim.render.images import write_pngs, write_zarr
+    from sim.render.scene import load_scene_file
+
+    out: Path = check_output(args.out, args.force)
+    loaded = load_scene_file(args.scene)
+    result = loaded.render(progress=not args.quiet)
+    if out.exists():
+        shutil.rmtree(out) if out.is_dir() else out.unlink()
+    out.mkdir(parents=True)
     cam_cfg = loaded.config.render.camera
     png_dirs: list[str | None] = []
     for i, c in enumerate(result.cameras):

@@ -1,0 +1,232 @@
+"""The unattended station sequence (``ltc run``): check, gamma (if asked), alignment report,
+acquisition at every depth, LTC reconstruction and lens derivation, one step after another
+into one folder, resumable at any step.
+
+The folder ``out`` holds ``config.toml`` (the config the sequence was started with),
+``run.log`` (every step's start, end and outcome, appended across re-runs), ``summary.json``
+(rewritten atomically after every step), and each step's output: ``check/``, ``lut.npy``,
+``align.json``, ``run.zarr``, ``ltc.zarr``, ``lens.npz`` and ``figures/``.
+
+Re-running on the same folder skips the steps recorded as done whose outputs exist and
+continues with the first one that is not: the acquisition resumes frame by frame
+(``acquire(resume=True)``), the reconstruction and the lens are rebuilt whole (each is
+written under a temporary name and renamed into place when complete, so a killed step
+leaves no half output under the final name). A different config refuses to continue.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import logging
+import os
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import tomli_w
+
+from station.acquisition.config import StationConfig, load_config, parse_config
+from station.errors import StationError, UsageError
+
+STEPS = ("check", "gamma", "align", "acquire", "reconstruct", "lens")
+log = logging.getLogger("station.sequence")
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _write_json(path: Path, data: dict) -> None:
+    """Write JSON durably: temporary file, fsync, atomic rename."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(data, f, indent=2)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir():
+        shutil.rmtree(path)
+    elif path.exists():
+        path.unlink()
+
+
+class Sequence:
+    """One sequence folder: its config, its summary, and the steps still to do."""
+
+    def __init__(self, config: StationConfig | str | Path, out: str | Path, *,
+                 progress: bool = True):
+        self.out = Path(out)
+        self.progress = progress
+        self.config_path = self.out / "config.toml"
+        self.summary_path = self.out / "summary.json"
+        text = _config_text(config)
+        if self.config_path.exists():
+            if self.config_path.read_text(encoding="utf-8") != text:
+                raise UsageError(f"{self.out} holds a sequence started with another config "
+                                 f"({self.config_path}); use a new --out, or the same config")
+        elif self.out.exists() and any(self.out.iterdir()):
+            raise UsageError(f"--out {self.out} exists and is not a sequence folder; choose a "
+                             "new folder")
+        self.out.mkdir(parents=True, exist_ok=True)
+        if not self.config_path.exists():
+            self.config_path.write_text(text, encoding="utf-8")
+        self.config = parse_config(text, str(self.config_path))
+        self.summary = (json.loads(self.summary_path.read_text()) if self.summary_path.exists()
+                        else {"config": str(self.config_path), "steps": {}})
+
+    def outputs(self, step: str) -> list[Path]:
+        """The files a step leaves behind when it is done."""
+        o = self.out
+        return {"check": [o / "check"], "gamma": [o / "lut.npy"], "align": [o / "align.json"],
+                "acquire": [o / "run.zarr"], "reconstruct": [o / "ltc.zarr"],
+                "lens": [o / "lens.npz"]}[step]
+
+    def done(self, step: str) -> bool:
+        """Whether ``step`` is recorded as done and its outputs exist."""
+        rec = self.summary["steps"].get(step, {})
+        return rec.get("status") == "done" and all(p.exists() for p in self.outputs(step))
+
+    def wanted(self, step: str) -> bool:
+        """Whether the config asks for ``step``."""
+        s = self.config.sequence
+        return {"gamma": s.gamma, "align": s.align}.get(step, True)
+
+    def _record(self, step: str, **fields: object) -> None:
+        self.summary["steps"].setdefault(step, {}).update(fields)
+        self.summary["updated"] = _now()
+        _write_json(self.summary_path, self.summary)
+
+    def run(self) -> dict:
+        """Run every step not yet done; returns the summary (``status`` "complete" or the
+        step that failed). Raises the failing step's error after recording it."""
+        handler = logging.FileHandler(self.out / "run.log", encoding="utf-8")
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+        log.addHandler(handler)
+        log.setLevel(logging.INFO)
+        try:
+            log.info("sequence %s: start (steps done: %s)", self.out,
+                     [s for s in STEPS if self.done(s)] or "none")
+            for step in STEPS:
+                if not self.wanted(step):
+                    self._record(step, status="skipped", reason="not asked for by [sequence]")
+                    continue
+                if self.done(step):
+                    log.info("%s: done in an earlier run, skipped", step)
+                    continue
+                self._step(step)
+            self.summary["status"] = "complete"
+            _write_json(self.summary_path, self.summary)
+            log.info("sequence %s: complete", self.out)
+            return self.summary
+        finally:
+            log.removeHandler(handler)
+            handler.close()
+
+    def _step(self, step: str) -> None:
+        log.info("%s: start", step)
+        self._record(step, status="running", started=_now())
+        self.summary["status"] = f"running {step}"
+        t0 = time.perf_counter()
+        try:
+            result = getattr(self, f"_{step}")()
+        except BaseException as exc:
+            status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+            self.summary["status"] = f"{status} at {step}"
+            self._record(step, status=status, error=str(exc) or type(exc).__name__,
+                         seconds=round(time.perf_counter() - t0, 3))
+            log.error("%s: %s: %s", step, status, exc)
+            raise
+        self._record(step, status="done", ended=_now(),
+                     seconds=round(time.perf_counter() - t0, 3), result=result)
+        log.info("%s: done in %.1f s", step, time.perf_counter() - t0)
+
+    def _check(self) -> dict:
+        from station.acquisition.check import run_check
+
+        report = run_check(self.config, self.out / "check")
+        if not report["ok"]:
+            failed = [s["name"] + (f" ({s['error']})" if s["error"] else "")
+                      for s in report["steps"] if not s["ok"]]
+            raise StationError(f"bench check failed: {'; '.join(failed) or 'no steps ran'}; "
+                               f"see {self.out / 'check'}")
+        return {"ok": True, "contact_sheet": report.get("contact_sheet")}
+
+    def _gamma(self) -> dict:
+        from station.acquisition.gamma import measure_lut, save_lut
+
+        result = measure_lut(self.config)
+        save_lut(self.out / "lut.npy", result["lut"])
+        return {"gamma_fit": result["gamma_fit"], "lut": str(self.out / "lut.npy")}
+
+    def _run_config(self) -> StationConfig:
+        """The config the acquisition runs with: the sequence's own LUT when it measured one."""
+        if self.config.sequence.gamma:
+            display = self.config.display.model_copy(
+                update={"lut_path": str(self.out / "lut.npy")})
+            return self.config.model_copy(update={"display": display})
+        return self.config
+
+    def _align(self) -> dict:
+        from station.acquisition.align import run_align
+
+        report = run_align(self._run_config())
+        _write_json(self.out / "align.json", report)
+        return {"report": str(self.out / "align.json"),
+                **{k: report[k] for k in ("tilt_deg",) if k in report}}
+
+    def _acquire(self) -> dict:
+        from station.acquisition.acquire import acquire
+
+        run = self.out / "run.zarr"
+        return acquire(self._run_config(), run, resume=run.exists(), progress=self.progress)
+
+    def _reconstruct(self) -> dict:
+        from station.ltc.spi import reconstruct
+
+        return _atomic(self.out / "ltc.zarr", lambda tmp: reconstruct(
+            self.out / "run.zarr", tmp, progress=self.progress))
+
+    def _lens(self) -> dict:
+        from station.api import derive_lens
+
+        s = self.config.sequence
+        figures = self.out / "figures"
+        _remove(figures)
+        result = derive_lens(self.out / "ltc.zarr", samples=s.lens_samples,
+                             grid_step=s.lens_grid_step, figures=figures,
+                             progress=self.progress)
+        _atomic(self.out / "lens.npz", lambda tmp: result.lens.save(tmp), suffix=".npz")
+        summary = result.summary()
+        return {k: summary[k] for k in ("optical_centre_mm", "focus_distance_mm",
+                                        "pixels_usable", "pixels", "notes")}
+
+
+def _atomic(final: Path, write: Callable[[Path], dict | None], suffix: str = "") -> dict:
+    """Write an output under a temporary name, then rename it into place."""
+    tmp = final.with_name(final.stem + ".partial" + (suffix or final.suffix))
+    _remove(tmp)
+    result = write(tmp)
+    _remove(final)
+    os.replace(tmp, final)
+    return result if isinstance(result, dict) else {"out": str(final)}
+
+
+def _config_text(config: StationConfig | str | Path) -> str:
+    """The config as TOML text to keep beside the outputs (a file's own text when given)."""
+    if isinstance(config, (str, Path)):
+        path = Path(config)
+        load_config(path)  # validate first: errors name the file and field
+        return path.read_text(encoding="utf-8")
+    return tomli_w.dumps(config.model_dump(mode="json", exclude_none=True))
+
+
+def run_sequence(config: StationConfig | str | Path, out: str | Path, *,
+                 progress: bool = True) -> dict:
+    """Run (or continue) the whole station sequence into the folder ``out``; see the module
+    docstring. Returns the summary (also in ``out/summary.json``)."""
+    return Sequence(config, out, progress=progress).run()
