@@ -12,7 +12,7 @@ raises :class:`CameraFrameDropped`, no frame by the deadline raises
 :class:`~drivers.camera.CameraTimeout`, and a camera that stopped answering raises
 :class:`CameraLost`. A bad frame is never returned. Frames carry the device's frame id and
 timestamp (seconds on the device's clock; the host's ``time.monotonic()`` at arrival is in
-``meta``).
+``meta``). Frame images are read-only views of the copy PyGObject makes of each buffer.
 
 Control calls (settings, trigger, stop) run on one worker thread and are waited for with a
 deadline, because Aravis retries an unanswered GigE Vision command for about 2.5 s and leaving
@@ -520,11 +520,10 @@ class GenICamCamera(Camera):
             raise CameraFrameError(
                 f"camera {self._name}: frame {frame_id} has {len(data)} bytes for {width} x "
                 f"{height} {self._format}", "SIZE_MISMATCH", frame_id)
+        # a read-only view of the one copy PyGObject made (copy it to modify it in place)
         image = np.frombuffer(data, self._dtype).reshape(height, width)
-        if self._dtype.byteorder == "<":
-            image = image.astype(np.uint16)  # native, writeable copy
-        else:
-            image = image.copy()
+        if image.dtype.byteorder not in ("=", "|") and not image.dtype.isnative:
+            image = image.astype(image.dtype.newbyteorder("="))
         return Frame(image=image, timestamp=buffer.get_timestamp() * 1e-9,
                      exposure_ms=self._frame_exposure_ms, frame_id=frame_id,
                      meta={"host_time": arrived,
