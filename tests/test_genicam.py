@@ -181,3 +181,12 @@ def test_unknown_camera_is_camera_not_found(fake):
     with pytest.raises(CameraNotFound, match=r"camera 'Nobody-None-0': cannot open: Device "
                        r"'Nobody-None-0' not found"):
         GenICamCamera("Nobody-None-0")
+
+
+def test_missing_pygobject_names_the_packages_to_install(monkeypatch):
+    from drivers.genicam import AravisUnavailable
+
+    monkeypatch.setitem(__import__("sys").modules, "gi", None)  # import gi -> ImportError
+    with pytest.raises(AravisUnavailable, match=r"need PyGObject \(module 'gi'\): install "
+                       r"Debian's gir1.2-aravis-0.8 .*libgirepository1.0-dev libcairo2-dev"):
+        GenICamCamera("127.0.0.1")
