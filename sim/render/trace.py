@@ -235,25 +235,6 @@ def _occluded(geom: TraceGeometry, so: np.ndarray, sd: np.ndarray, far: np.ndarr
     return geom.embree.run(so[:s], sd[:s], dists=far[:s], query="OCCLUDED")
 
 
-def trace_rays(geom: TraceGeometry, proj: _Projector, o: np.ndarray, d: np.ndarray) -> dict:
-    """Shade world rays given as (3, m) origins and unit directions (see the module docstring).
-
-    Returns ``point`` (3, m) hit points (NaN for misses), ``u``, ``v`` (m,) projector
-    coordinates, ``shade`` (m,) albedo x N.L x V, ``lit`` (m,) bool, ``object`` (m,) int32.
-    """
-    W = np.concatenate([np.asarray(o, dtype=np.float64), np.asarray(d, dtype=np.float64)])
-    m = W.shape[1]
-    res = geom.embree.run(np.ascontiguousarray(W[:3].T, dtype=np.float32),
-                          np.ascontiguousarray(W[3:].T, dtype=np.float32), output=1)
-    point, u, v, shade = np.empty((m, 3)), np.empty(m), np.empty(m), np.empty(m)
-    obj, lit = np.empty(m, np.int32), np.empty(m, np.bool_)
-    so, sd, far, sidx = _shadow_buffers(m)
-    s = kern.shade_rays(W, res["primID"], res["tfar"], res["u"], res["v"], *geom.kernel_arrays,
-                        proj.model, SHADOW_OFFSET_MM, point, u, v, shade, obj, so, sd, far, sidx)
-    kern.shadow_rays(_occluded(geom, so, sd, far, s), sidx[:s], shade, lit)
-    return {"point": point.T, "u": u, "v": v, "shade": shade, "lit": lit, "object": obj}
-
-
 _GRIDS: dict[str, np.ndarray] = {}  # undistorted normalised coordinates of every pixel, by camera
 GRID_CACHE_CAMERAS = 4
 

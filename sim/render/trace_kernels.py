@@ -365,17 +365,6 @@ def _shade_block(b0, n, W, prim, tfar, bu, bv, face_table, faces, vertex_normals
     _surface(n, W[0, b0:e], W[1, b0:e], W[2, b0:e], W[3, b0:e], W[4, b0:e], W[5, b0:e], S, P)
 
 
-@nb.njit(**_INLINE)
-def _shadow_ray(s, b, S, offset, so, sd, far):
-    """Shadow ray s of block hit b: from ``offset`` mm off the surface, along its facing
-    geometric normal, towards the projector centre."""
-    so[s, 0] = S[10, b] + offset * S[13, b]
-    so[s, 1] = S[11, b] + offset * S[14, b]
-    so[s, 2] = S[12, b] + offset * S[15, b]
-    sd[s, 0], sd[s, 1], sd[s, 2] = S[16, b], S[17, b], S[18, b]
-    far[s] = S[19, b] - 2 * offset
-
-
 @nb.njit(**_JIT)
 def shade_chunk(W, dest, nk, n_lens, all_live, pinhole, cam, prim, tfar, bu, bv, face_table,
                 faces, vertex_normals, spheres, P, offset, wts, proj_uv, weight, depth,
@@ -467,41 +456,3 @@ def shadow_chunk(occluded, sidx, nk, pinhole, weight, lit):
             lit[e - nk] = False
             if pinhole:
                 weight[e - nk] = 0.0
-
-
-@nb.njit(**_JIT)
-def shade_rays(W, prim, tfar, bu, bv, face_table, faces, vertex_normals, spheres, P, offset,
-               point, u, v, shade, obj, so, sd, far, sidx):
-    """Shade world rays ``W`` (6, m) from their Embree hits: ``point`` (m, 3) (NaN: miss),
-    ``u, v``, ``shade`` = albedo x N.L where the point faces the projector inside its image
-    (before shadowing), ``obj`` (-1: miss); shadow rays as ``shade_chunk`` with ``sidx`` the
-    ray index. Returns their number."""
-    S = np.empty((_SCRATCH_ROWS, BLOCK + _SCRATCH_PAD))
-    m = prim.shape[0]
-    s = 0
-    for b0 in range(0, m, BLOCK):
-        n = min(BLOCK, m - b0)
-        _shade_block(b0, n, W, prim, tfar, bu, bv, face_table, faces, vertex_normals, spheres, P,
-                     S)
-        for b in range(n):
-            r = b0 + b
-            point[r, 0], point[r, 1], point[r, 2] = S[10, b], S[11, b], S[12, b]
-            u[r], v[r], shade[r] = S[22, b], S[23, b], S[20, b]
-            obj[r] = S[24, b]
-            if S[21, b] != 0.0:
-                _shadow_ray(s, b, S, offset, so, sd, far)
-                sidx[s] = r
-                s += 1
-    return s
-
-
-@nb.njit(**_JIT)
-def shadow_rays(occluded, sidx, shade, lit):
-    """``lit`` (m,): True for the rays ``sidx`` whose shadow ray is free (``occluded`` -1);
-    ``shade`` becomes 0 for those whose shadow ray is blocked."""
-    lit[:] = False
-    for s in range(sidx.shape[0]):
-        if occluded[s] == -1:
-            lit[sidx[s]] = True
-        else:
-            shade[sidx[s]] = 0.0
