@@ -1,6 +1,6 @@
-"""Compiled per-ray loops of ``sim.render.trace`` (numba): lens ray directions (for ``sim.optics.lens``),
-world rays, hit refinement and shading, projector coordinates, shadow rays, and the
-transport written in place.
+"""Compiled per-ray loops of ``sim.render.trace`` (numba): world rays, hit refinement and
+shading, projector coordinates, shadow rays, and the transport written in place. (The lens
+bundles' ray geometry is ``sim.optics.lens_kernels``.)
 
 The arithmetic is OPTICS.md section 4 in float64, as the vectorised numpy it replaced did it
 (results agree to a few ulps; the float32 transport is unchanged). The loops release the GIL
@@ -42,30 +42,6 @@ BLOCK = 1024  # rays shaded per block (the block's scratch stays in the L2 cache
 _SCRATCH_ROWS = 25
 _SCRATCH_PAD = 8  # rows BLOCK + 8 long: not a multiple of 4 kB apart (no 4k aliasing)
 _NO_WEIGHTS = np.zeros(0)  # a pinhole's ray: its weight is its shade
-
-
-@nb.njit(**_JIT)
-def aimed_directions(xy_n, pupil, z_aim, coma, out):
-    """Unit directions (n, K, 3) into ``out`` of rays from the aperture points ``pupil`` (K, 2)
-    mm (z = 0) through the aim points ``(x z_k + c_k x, y z_k + c_k y, z_k)`` of pixels with
-    normalised coordinates ``xy_n`` (n, 2), for per-sample aim depths ``z_aim`` and lateral
-    factors ``coma`` (K,): the ray geometry of ``sim.optics.lens`` bundles. The loop over samples
-    is vectorised (contiguous arrays), then interleaved into ``out``."""
-    k = pupil.shape[0]
-    px, py = pupil[:, 0].copy(), pupil[:, 1].copy()
-    ax, ay, az = np.empty(k), np.empty(k), np.empty(k)
-    for i in range(xy_n.shape[0]):
-        x, y = xy_n[i, 0], xy_n[i, 1]
-        for j in range(k):
-            z = z_aim[j]
-            dx = x * z + coma[j] * x - px[j]
-            dy = y * z + coma[j] * y - py[j]
-            inv = 1.0 / math.sqrt(dx * dx + dy * dy + z * z)
-            ax[j] = dx * inv
-            ay[j] = dy * inv
-            az[j] = z * inv
-        for j in range(k):
-            out[i, j, 0], out[i, j, 1], out[i, j, 2] = ax[j], ay[j], az[j]
 
 
 @nb.njit(**_INLINE)
