@@ -29,7 +29,7 @@ from pydantic import TypeAdapter, ValidationError
 
 from sim.fpp.cloud import write_ply
 from sim.render.fringe_patterns import PatternSet
-from sim.fpp.scan import DecodeSettings, reconstruct
+from sim.fpp.decode import DecodeSettings, scan
 from sim.optics.rig import Rig, format_validation_error
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
         stacks, pset = load_scan_input(args.images, args.patterns)
         settings = DecodeSettings(min_modulation=args.min_modulation, unwrap=args.unwrap)
         t_read = time.perf_counter() - t0
-        cloud = reconstruct(stacks, pset, rig, settings, camera=args.camera)
+        cloud = scan(stacks, pset, rig, settings, camera=args.camera)
     except (ValueError, OSError) as exc:
         print(f"ltc scan: error: {exc}", file=sys.stderr)
         return 2

@@ -1,7 +1,7 @@
 """From fringe images to projector-coordinate maps and point clouds (the scanner's pipeline).
 
 ``decode_view`` turns one camera's image stack, taken with a ``sim.render.fringe_patterns`` set, into
-per-axis projector-coordinate maps (NaN where invalid) and a modulation map; ``reconstruct``
+per-axis projector-coordinate maps (NaN where invalid) and a modulation map; ``scan``
 matches the two cameras of a rig (``sim.fpp.stereo.stereo_cloud``) or triangulates one camera
 against the projector (``sim.fpp.stereo.camera_projector_cloud``).
 """
@@ -202,7 +202,7 @@ def _check_camera(view_images: np.ndarray, cam: DeviceCalibration, where: str) -
         )
 
 
-def reconstruct(
+def scan(
     images: list[np.ndarray],
     patterns: PhaseShiftSet | GrayCodeSet,
     rig: Rig,
