@@ -28,8 +28,8 @@ from sim.fpp.phase import (
 )
 from sim.optics.rig import DeviceCalibration, Rig
 from sim.fpp.stereo import PointCloud, camera_projector_cloud, grid_normals, stereo_cloud
+from sim.tolerances import EDGE_MARGIN_PX
 
-EDGE_MARGIN_PX = 0.5  # decoded coordinates this close to the outer pixel centres are dropped
 
 
 class DecodeSettings(BaseModel):

@@ -32,10 +32,9 @@ from tqdm import tqdm
 from sim.render import trace_kernels as kern
 from sim.optics.lens import LensModel, PinholeLens
 from sim.optics.rig import DeviceCalibration
+from sim.tolerances import PROJECTOR_GUARD, SHADOW_OFFSET_MM, VERTEX_NORMAL_SAME_TOL
 
-SHADOW_OFFSET_MM = 1e-3  # shadow rays start this far off the surface, along its normal
 CHUNK_RAYS = 1 << 15  # rays per work item (a pinhole's: half; smaller or larger is slower)
-PROJECTOR_GUARD = 1.2  # distortion is trusted up to this multiple of the image's largest radius
 
 
 @dataclass(frozen=True)
@@ -90,7 +89,7 @@ class TraceGeometry:
     def face_smooth(self) -> np.ndarray:
         """(F,) bool: the face's vertex normals differ (interpolate them); not for sphere faces."""
         vn = self.vertex_normals[self.faces]
-        same = np.all(np.abs(vn - vn[:, :1]) <= 1e-9, axis=(1, 2))
+        same = np.all(np.abs(vn - vn[:, :1]) <= VERTEX_NORMAL_SAME_TOL, axis=(1, 2))
         return ~same & (self.face_sphere < 0)
 
     @cached_property
