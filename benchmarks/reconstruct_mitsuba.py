@@ -3,7 +3,7 @@ renderer (Mitsuba 3), decoded and triangulated by our scanner pipeline, and the 
 
 Same scene as ``render_vs_mitsuba.py`` (``_bench_scene.py``): the 50.8007 mm sphere at 760 mm, a
 plane behind it, one 2048 x 1088 camera and one projector; 12 images (4-step phase shift at
-periods 1920, 240, 30 px). The images go through ``sim.fpp.scan.reconstruct`` (``sim.fpp.phase``:
+periods 1920, 240, 30 px). The images go through ``sim.fpp.decode.scan`` (``sim.fpp.phase``:
 wrapped phase, hierarchical unwrapping; ``sim.fpp.stereo.camera_projector_cloud``: camera against
 projector), the sphere is found with ``sim.metrology.spheres.find_spheres`` (RANSAC on the nominal
 radius, then the least-squares fit with outlier rejection) and compared with the truth.
@@ -40,7 +40,7 @@ from _bench_scene import (  # noqa: E402
 from _mitsuba_scene import MitsubaFringeRenderer, irradiance_scale_at, unavailable_reason  # noqa: E402
 
 from sim.metrology.spheres import find_spheres  # noqa: E402
-from sim.fpp.scan import DecodeSettings, reconstruct  # noqa: E402
+from sim.fpp.decode import DecodeSettings, scan  # noqa: E402
 from sim.render.images import (  # noqa: E402
     CameraResponse, ProjectorResponse, project_patterns, render_camera,
 )
@@ -57,7 +57,7 @@ def measure_sphere(images: np.ndarray, cfg: BenchConfig) -> dict:
     """Decode, triangulate (camera 0 against the projector) and fit the sphere; errors in mm."""
     rig = bench_rig(cfg)
     ps, _ = bench_patterns(rig)
-    cloud = reconstruct([np.asarray(images, dtype=np.float64)], ps, rig, DECODE, camera=0)
+    cloud = scan([np.asarray(images, dtype=np.float64)], ps, rig, DECODE, camera=0)
     fit = find_spheres(cloud.points, 1, SPHERE_DIAMETER_MM / 2, inlier_mm=0.2)[0]
     return dict(points=int(len(cloud.points)), sphere_points=int(fit.inliers.size),
                 inliers=int(fit.inliers.sum()), diameter_mm=fit.diameter,
@@ -97,7 +97,7 @@ def load_or_render(cfg: BenchConfig, images_dir: Path | None, case: str) -> np.n
 def report_markdown(rows: dict, cfg: BenchConfig, date: str, host: str) -> str:
     L = ["`benchmarks/reconstruct_mitsuba.py` (issue 6): the 12 images of the scene above, rendered "
          "by Mitsuba (and, for reference, by ours), go through our scanner pipeline "
-         "(`sim.fpp.scan.reconstruct`: `sim.fpp.phase` wrapped phase and hierarchical unwrapping, "
+         "(`sim.fpp.decode.scan`: `sim.fpp.phase` wrapped phase and hierarchical unwrapping, "
          "`sim.fpp.stereo.camera_projector_cloud` triangulation of the camera against the projector); "
          "`sim.metrology.spheres.find_spheres` finds the sphere (RANSAC on the nominal radius, least-squares "
          "fit with 3-sigma outlier rejection). `--images DIR` reuses `render_vs_mitsuba.py --save DIR`.",

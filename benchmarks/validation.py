@@ -20,7 +20,7 @@ large defocus? (OPTICS.md section 1, "paper's result"; section 7, the Gaussian b
   comparison, (d) the true lens itself with only as many samples as the measured one.
 * **Scenes**: the 50.8007 mm sphere near the focus distance (slight defocus) and far from it
   (large defocus). Same fringe patterns, no noise, same quantisation for every lens.
-* **Comparison**: each virtual cloud (``sim.fpp.scan.reconstruct``, stereo) against the
+* **Comparison**: each virtual cloud (``sim.fpp.decode.scan``, stereo) against the
   real one, ``sim.metrology.compare.compare_clouds`` *without* ICP: all clouds share the rig's
   world frame, so a shift is a difference to report, not an alignment to remove. Mean and
   RMSE of the signed distances; the sphere fit (``sim.metrology.spheres.fit_sphere``) of each cloud.
@@ -56,7 +56,7 @@ from sim.render.fringe_patterns import PhaseShiftSet
 from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens, sunflower_disk
 from sim.optics.measured_lens import MeasuredLens, load_lens, save_lens
 from sim.metrology.spheres import fit_sphere
-from sim.fpp.scan import reconstruct
+from sim.fpp.decode import scan as fpp_scan
 from sim.render.images import CameraResponse, ProjectorResponse, RenderSettings, render_views
 from sim.optics.rig import DeviceCalibration, Rig, small_rig
 from sim.render.scene import Scene, SphereObject
@@ -289,7 +289,7 @@ def scan(rig: Rig, geom: TraceGeometry, lens: LensModel, patterns: PhaseShiftSet
     """Render the fringes on both cameras through ``lens`` and reconstruct by stereo: (n, 3) mm."""
     images = patterns.images(rig.projector.size)
     result = render_views(geom, rig, [lens, lens], images, RENDER)
-    return reconstruct([c.images for c in result.cameras], patterns, rig).points
+    return fpp_scan([c.images for c in result.cameras], patterns, rig).points
 
 
 def sphere_metrics(points: np.ndarray, centre_mm: np.ndarray) -> dict:
@@ -541,7 +541,7 @@ def readme_section(cfg: ValidationConfig, rows: list[dict], station: dict | None
         the focus distance and {n_large} far from it (x = 0; depth along camera 0's axis; defocus
         = depth - {cfg.focus_distance_mm:g} mm); 4-step fringes at periods
         {', '.join(f'{p:g}' for p in cfg.periods_px)} projector px, no noise, 12-bit
-        quantisation, the same for every lens; stereo reconstruction (`sim.fpp.scan`). Each
+        quantisation, the same for every lens; stereo reconstruction (`sim.fpp.decode`). Each
         virtual cloud against the real one with `sim.metrology.compare.compare_clouds(align=False)`:
         the clouds share the rig's world frame, so a shift is a difference to report, not an
         alignment to remove (ICP would hide a sphere's shift). Positive distance: the virtual

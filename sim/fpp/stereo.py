@@ -23,6 +23,7 @@ import numpy as np
 
 from sim.optics.projection import camera_to_world, project_points
 from sim.optics.rig import DeviceCalibration
+from sim.tolerances import STEREO_STEP
 
 
 @dataclass(frozen=True)
@@ -173,7 +174,7 @@ def _refine_cubic(key: np.ndarray, k: np.ndarray, t: np.ndarray, q: np.ndarray) 
     tt = t.copy()
     for _ in range(4):
         f = np.sum(_cubic_weights(tt) * nodes, axis=1) - q
-        eps = 1e-6
+        eps = STEREO_STEP
         df = (np.sum(_cubic_weights(tt + eps) * nodes, axis=1) - q - f) / eps
         tt = np.clip(tt - f / np.where(df > 0, df, np.inf), 0.0, 1.0)
     return np.where(has, tt, t)

@@ -14,8 +14,8 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from sim.metrology.spheres import finite_points
+from sim.tolerances import BALL_QUERY_SLACK_MM, ICP_RCOND, QUADRIC_RIDGE
 
-ICP_RCOND = 1e-3  # singular values below this fraction of the largest count as unconstrained
 
 
 @dataclass(frozen=True)
@@ -152,7 +152,7 @@ def signed_distance_to_cloud(
     q = ref[j] - origin[:, None, :]
     x, y, h = (np.einsum("nki,ni->nk", q, e) for e in (e1, e2, n))
     a = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=2)
-    ata = np.einsum("nki,nkj->nij", a, a) + 1e-12 * np.eye(6)
+    ata = np.einsum("nki,nkj->nij", a, a) + QUADRIC_RIDGE * np.eye(6)
     coef = np.linalg.solve(ata, np.einsum("nki,nk->ni", a, h)[..., None])[..., 0]
     if k < 6:
         coef[:, 3:] = 0.0
@@ -205,7 +205,7 @@ def mesh_signed_distance(points: np.ndarray, mesh: trimesh.Trimesh) -> np.ndarra
     j0 = j0.reshape(len(p), -1)
     c0 = trimesh.triangles.closest_point(tri[j0.ravel()], np.repeat(p, j0.shape[1], axis=0))
     ub = np.linalg.norm(c0 - np.repeat(p, j0.shape[1], axis=0), axis=1).reshape(len(p), -1).min(1)
-    lists = tree.query_ball_point(p, ub + reach + 1e-9)
+    lists = tree.query_ball_point(p, ub + reach + BALL_QUERY_SLACK_MM)
     counts = np.array([len(x) for x in lists])
     cand = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists])
     owner = np.repeat(np.arange(len(p)), counts)

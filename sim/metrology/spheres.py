@@ -14,6 +14,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from sim.tolerances import SPHERE_DEGENERATE_REL, SPHERE_REJECT_FLOOR_MM
+
 MAD_TO_SIGMA = 1.4826
 RANSAC_POINTS = 4000  # sphere detection samples and scores on a random subset this large
 
@@ -110,7 +112,7 @@ def fit_sphere(
             break
         med = np.median(d[inl])
         sigma = MAD_TO_SIGMA * np.median(np.abs(d[inl] - med))
-        new = np.abs(d - med) <= max(reject_sigma * sigma, 1e-12)
+        new = np.abs(d - med) <= max(reject_sigma * sigma, SPHERE_REJECT_FLOOR_MM)
         if new.sum() < 4:
             raise ValueError("outlier rejection left fewer than 4 points: no sphere in the data")
         if np.array_equal(new, inl):
@@ -126,7 +128,7 @@ def _sphere_through_4(p4: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a = 2.0 * q[:, 1:]
     b = np.sum(q[:, 1:] ** 2, axis=2)
     det = np.linalg.det(a)
-    ok = np.abs(det) > 1e-9 * np.maximum(np.abs(a).max(axis=(1, 2)), 1e-300) ** 3
+    ok = np.abs(det) > SPHERE_DEGENERATE_REL * np.maximum(np.abs(a).max(axis=(1, 2)), 1e-300) ** 3
     a[~ok] = np.eye(3)
     c = np.linalg.solve(a, b[..., None])[..., 0]
     r = np.where(ok, np.linalg.norm(c, axis=1), np.nan)

@@ -74,9 +74,9 @@ def _aimed_directions(xy_n: np.ndarray, pupil: np.ndarray, z_aim: np.ndarray,
     """Unit directions (n, K, 3) into ``out`` of rays from the aperture points ``pupil`` (K, 2)
     mm (z = 0) through the aim points ``(x z_k + c_k x, y z_k + c_k y, z_k)`` of pixels with
     normalised coordinates ``xy_n`` (n, 2), for per-sample aim depths ``z_aim`` and lateral
-    factors ``coma`` (K,): ``sim.render.trace_kernels.aimed_directions``, a compiled loop (imported
+    factors ``coma`` (K,): ``sim.optics.lens_kernels.aimed_directions``, a compiled loop (imported
     here on first use, so importing this module does not load numba)."""
-    from sim.render.trace_kernels import aimed_directions
+    from sim.optics.lens_kernels import aimed_directions
 
     aimed_directions(xy_n, pupil, z_aim, coma, out)
 

@@ -43,10 +43,10 @@ import numpy as np
 
 from sim.optics.lens import RayBundle
 from sim.optics.projection import normalized_to_pixel
+from sim.tolerances import WEIGHT_SUM_TOL
 
 FORMAT = "ltc-fpp-measured-lens"
 FORMAT_VERSION = 1
-WEIGHT_SUM_TOL = 1e-6
 INTERPOLATIONS = ("nearest", "bilinear")
 REQUIRED = ("format", "format_version", "focus_distance_mm", "optical_centre_mm", "camera_size",
             "node_u", "node_v", "aperture_x_mm", "aperture_y_mm", "weights", "transmittance",

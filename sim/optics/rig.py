@@ -42,9 +42,9 @@ from sim.optics.projection import (
     pixel_to_normalized,
     project_points,
 )
+from sim.tolerances import LOOK_AT_PARALLEL_TOL, ROTATION_TOL
 
 YAML_SUFFIXES = (".yaml", ".yml", ".xml")
-ROTATION_TOL = 1e-6
 DEVICE_NODES = ("camera_0", "camera_1", "projector")
 
 
@@ -304,7 +304,7 @@ def look_at(centre_mm: np.ndarray, target_mm: np.ndarray) -> tuple[np.ndarray, n
     z = np.asarray(target_mm, dtype=np.float64) - c
     z /= np.linalg.norm(z)
     x = np.cross([0.0, 1.0, 0.0], z)
-    if np.linalg.norm(x) < 1e-9:
+    if np.linalg.norm(x) < LOOK_AT_PARALLEL_TOL:
         raise ValueError("look_at: the optical axis is parallel to world y; choose another target")
     x /= np.linalg.norm(x)
     R = np.stack([x, np.cross(z, x), z])

@@ -16,6 +16,8 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from sim.tolerances import PATTERN_RANGE_TOL
+
 Direction = Literal["u", "v", "both"]
 
 
@@ -61,7 +63,8 @@ class _Fringes(BaseModel):
 
     @model_validator(mode="after")
     def _in_range(self):
-        if self.offset - self.amplitude < -1e-12 or self.offset + self.amplitude > 1 + 1e-12:
+        tol = PATTERN_RANGE_TOL
+        if self.offset - self.amplitude < -tol or self.offset + self.amplitude > 1 + tol:
             raise ValueError(
                 f"offset A={self.offset} and amplitude B={self.amplitude} must keep A +- B in [0, 1]"
             )

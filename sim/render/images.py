@@ -23,7 +23,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Sequence
 
 import cv2
 import numpy as np
@@ -261,6 +261,7 @@ class CameraImages:
     object_id: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
     n_rays: int = 0
+    transport: tuple[Transport, ...] | None = None  # the traced tiles, when kept (render_camera)
 
 
 @dataclass
@@ -274,10 +275,18 @@ class RenderResult:
 def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
                   projected: np.ndarray | PatternStack,
                   camera: CameraResponse, rng: np.random.Generator | None, progress: bool = False,
-                  where: str = "scene", out: CameraImages | None = None) -> CameraImages:
+                  where: str = "scene", out: CameraImages | None = None,
+                  transport: Transport | Sequence[Transport] | None = None,
+                  keep_transport: bool = False) -> CameraImages:
     """Trace camera ``index`` of the rig tile by tile (``TILE_RAYS`` rays: memory stays bounded
     whatever the lens), gather the projected patterns (``project_patterns``) from each tile's
     transport, then apply the camera response. Errors name ``where``.
+
+    ``keep_transport``: the result keeps the traced tiles in ``.transport`` (memory then grows
+    with the lens's rays). ``transport``: such tiles (or one ``Transport``) of this camera
+    covering every pixel, from an earlier call with the same scene, lens and projector: nothing
+    is traced, the patterns are gathered from it (trace once, render many pattern sets; the
+    result carries it on).
 
     ``out``: an earlier result of the same camera, pattern count and camera response, whose
     arrays are overwritten and which is returned: a sequence of renders (scene poses, lenses)
@@ -290,22 +299,24 @@ def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
     rad = res.radiance.reshape(len(projected), w * h)
     depth, pmap = res.depth.reshape(-1), res.projector_map.reshape(-1, 2)
     lit, obj = res.lit.reshape(-1), res.object_id.reshape(-1)
-    k = lens.bundle(np.zeros((1, 2)), np.zeros((1, 2))).weights.shape[1]
-    step = max(1, TILE_RAYS // (k + 1))
+    tiles = _transport_tiles(transport, cam.name, (w, h), tuple(rig.projector.size))
     t_trace = t_gather = 0.0
     n_rays = 0
     bar = tqdm(total=w * h, desc=f"render {cam.name}", unit="px", unit_scale=True,
                disable=not progress)
-    for s in range(0, w * h, step):  # every pixel is written: tiles cover the frame
-        tile = slice(s, min(s + step, w * h))
-        tr = trace_camera(geom, cam, rig.projector, lens, pixels=np.arange(tile.start, tile.stop))
+    kept: list[Transport] = []
+    for tr in tiles if tiles is not None else _traced_tiles(geom, rig, index, lens):
         t0 = time.perf_counter()
         gather_into(tr, projected, rad)
         t_gather += time.perf_counter() - t0
-        t_trace += tr.seconds
+        t_trace += tr.seconds if tiles is None else 0.0
         n_rays += tr.rays
-        depth[tile], pmap[tile], lit[tile], obj[tile] = tr.depth, tr.proj_chief, tr.lit, tr.object_id
-        bar.update(tile.stop - tile.start)
+        p = tr.pixels if tiles is not None else slice(int(tr.pixels[0]),
+                                                       int(tr.pixels[0]) + len(tr.pixels))
+        depth[p], pmap[p], lit[p], obj[p] = tr.depth, tr.proj_chief, tr.lit, tr.object_id
+        if keep_transport and tiles is None:
+            kept.append(tr)
+        bar.update(len(tr.pixels))
     bar.close()
     if not np.any(obj >= 0):
         raise ValueError(f"{where}: camera {index} ('{cam.name}') sees none of the scene objects; "
@@ -315,7 +326,43 @@ def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
     res.timings = {"trace_s": t_trace, "gather_s": t_gather,
                    "response_s": time.perf_counter() - t0}
     res.n_rays = n_rays
+    res.transport = tiles if tiles is not None else tuple(kept) if keep_transport else None
     return res
+
+
+def _traced_tiles(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel):
+    """The transports of camera ``index``, tile by tile (``TILE_RAYS`` rays each), in pixel
+    order; they cover the frame."""
+    cam = rig.cameras[index]
+    w, h = cam.size
+    k = lens.bundle(np.zeros((1, 2)), np.zeros((1, 2))).weights.shape[1]
+    step = max(1, TILE_RAYS // (k + 1))
+    for s in range(0, w * h, step):
+        yield trace_camera(geom, cam, rig.projector, lens, pixels=np.arange(s, min(s + step, w * h)))
+
+
+def _transport_tiles(transport: Transport | Sequence[Transport] | None, name: str,
+                     camera_size: tuple[int, int],
+                     projector_size: tuple[int, int]) -> tuple[Transport, ...] | None:
+    """``transport`` as a tuple of tiles, checked to be of this camera and projector and to
+    cover each of the camera's pixels once; None stays None."""
+    if transport is None:
+        return None
+    tiles = (transport,) if isinstance(transport, Transport) else tuple(transport)
+    w, h = camera_size
+    seen = np.zeros(w * h, np.int64)
+    for tr in tiles:
+        if tuple(tr.camera_size) != tuple(camera_size) or \
+                tuple(tr.projector_size) != tuple(projector_size):
+            raise ValueError(f"render_camera transport: it is of a {tr.camera_size} camera and "
+                             f"{tr.projector_size} projector, camera '{name}' is {camera_size} "
+                             f"and the projector {projector_size}")
+        np.add.at(seen, tr.pixels, 1)
+    if not np.all(seen == 1):
+        raise ValueError(f"render_camera transport: its tiles must cover each pixel of camera "
+                         f"'{name}' once ({int(np.sum(seen == 0))} missing, "
+                         f"{int(np.sum(seen > 1))} repeated)")
+    return tiles
 
 
 def _camera_outputs(out: CameraImages | None, name: str, n: int, w: int, h: int,

@@ -39,6 +39,7 @@ from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens
 from sim.render.images import RenderResult, RenderSettings, render_views
 from sim.optics.rig import DeviceCalibration, Rig, _matrix, format_validation_error
 from sim.render.trace import TraceGeometry
+from sim.tolerances import ROTATION_TOL
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
 
@@ -54,7 +55,7 @@ class Pose(BaseModel):
     @classmethod
     def _rot(cls, v):
         R = np.asarray(_matrix(v, (3, 3), "R"))
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
+        if not np.allclose(R @ R.T, np.eye(3), atol=ROTATION_TOL) or np.linalg.det(R) <= 0:
             raise ValueError(f"R must be a proper rotation matrix, got {R.tolist()}")
         return R.tolist()
 

@@ -23,7 +23,6 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import NamedTuple
 
 import numpy as np
 from embreex import rtcore_scene
@@ -33,10 +32,9 @@ from tqdm import tqdm
 from sim.render import trace_kernels as kern
 from sim.optics.lens import LensModel, PinholeLens
 from sim.optics.rig import DeviceCalibration
+from sim.tolerances import PROJECTOR_GUARD, SHADOW_OFFSET_MM, VERTEX_NORMAL_SAME_TOL
 
-SHADOW_OFFSET_MM = 1e-3  # shadow rays start this far off the surface, along its normal
 CHUNK_RAYS = 1 << 15  # rays per work item (a pinhole's: half; smaller or larger is slower)
-PROJECTOR_GUARD = 1.2  # distortion is trusted up to this multiple of the image's largest radius
 
 
 @dataclass(frozen=True)
@@ -91,7 +89,7 @@ class TraceGeometry:
     def face_smooth(self) -> np.ndarray:
         """(F,) bool: the face's vertex normals differ (interpolate them); not for sphere faces."""
         vn = self.vertex_normals[self.faces]
-        same = np.all(np.abs(vn - vn[:, :1]) <= 1e-9, axis=(1, 2))
+        same = np.all(np.abs(vn - vn[:, :1]) <= VERTEX_NORMAL_SAME_TOL, axis=(1, 2))
         return ~same & (self.face_sphere < 0)
 
     @cached_property
@@ -101,20 +99,21 @@ class TraceGeometry:
 
     @cached_property
     def face_table(self) -> np.ndarray:
-        """(F, 10) float64, per face what shading reads, in one row: geometric normal (3),
-        plane offset, shading normal (3), albedo, object, and the kind of face: -1 flat, -2
-        smooth (``face_smooth``), or the index of its exact sphere."""
+        """(F, ``trace_kernels.FACE_COLUMNS``) float64, per face what shading reads, in one
+        row: geometric normal (3), plane offset, shading normal (3), albedo, object, and the
+        kind of face: ``FACE_FLAT``, ``FACE_SMOOTH`` (``face_smooth``), or the index of its
+        exact sphere."""
         kind = np.where(self.face_sphere >= 0, self.face_sphere,
-                        np.where(self.face_smooth, -2, -1))
+                        np.where(self.face_smooth, kern.FACE_SMOOTH, kern.FACE_FLAT))
         return np.ascontiguousarray(np.column_stack(
             [self.face_normals, self.face_offset, self.face_shading, self.face_albedo,
              self.face_object, kind]), dtype=np.float64)
 
     @cached_property
-    def kernel_arrays(self) -> tuple:
+    def kernel_arrays(self) -> kern.FaceArrays:
         """The arrays ``trace_kernels`` shading reads, contiguous and typed: ``face_table``,
         faces (F, 3) int64, vertex normals (V, 3) and spheres (S, 4) float64."""
-        return (self.face_table, np.ascontiguousarray(self.faces, dtype=np.int64),
+        return kern.FaceArrays(self.face_table, np.ascontiguousarray(self.faces, dtype=np.int64),
                 np.ascontiguousarray(self.vertex_normals, dtype=np.float64),
                 np.ascontiguousarray(self.spheres, dtype=np.float64).reshape(-1, 4))
 
@@ -200,12 +199,12 @@ class _Projector:
                    dev.size, r2 * PROJECTOR_GUARD**2)
 
     @cached_property
-    def model(self) -> tuple:
-        """The projector tuple ``P`` of ``sim.render.trace_kernels`` (29 floats)."""
+    def model(self) -> kern.ProjectorModel:
+        """The projector as ``sim.render.trace_kernels`` reads it."""
         K, w, h = self.K, *self.size
-        return tuple(float(x) for x in (*self.R.ravel(), *self.T, K[0, 0], K[0, 1], K[0, 2],
+        return kern.ProjectorModel(*(float(x) for x in (*self.R.ravel(), *self.T, K[0, 0], K[0, 1], K[0, 2],
                                         K[1, 1], K[1, 2], *self.dist, bool(np.any(self.dist)),
-                                        w, h, self.guard_r2, *self.centre))
+                                        w, h, self.guard_r2, *self.centre)))
 
     def coordinates(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Projector pixels ``(u, v)``, each (m,), of world points (3, m); NaN outside the image.
@@ -220,38 +219,19 @@ class _Projector:
         return u, v
 
 
-def _shadow_buffers(m: int) -> tuple[np.ndarray, ...]:
+def _shadow_buffers(m: int) -> kern.ShadowRays:
     """Room for up to m shadow rays: origins, directions (m, 3) float32, far (m,) float32,
     and what each belongs to (m,) int64."""
-    return (np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32),
+    return kern.ShadowRays(np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32),
             np.empty(m, np.int64))
 
 
-def _occluded(geom: TraceGeometry, so: np.ndarray, sd: np.ndarray, far: np.ndarray,
-              s: int) -> np.ndarray:
+def _occluded(geom: TraceGeometry, shadow: kern.ShadowRays, s: int) -> np.ndarray:
     """Embree occlusion of the first s shadow rays: -1 where nothing is in the way."""
     if s == 0:
         return np.empty(0, np.int32)
-    return geom.embree.run(so[:s], sd[:s], dists=far[:s], query="OCCLUDED")
-
-
-def trace_rays(geom: TraceGeometry, proj: _Projector, o: np.ndarray, d: np.ndarray) -> dict:
-    """Shade world rays given as (3, m) origins and unit directions (see the module docstring).
-
-    Returns ``point`` (3, m) hit points (NaN for misses), ``u``, ``v`` (m,) projector
-    coordinates, ``shade`` (m,) albedo x N.L x V, ``lit`` (m,) bool, ``object`` (m,) int32.
-    """
-    W = np.concatenate([np.asarray(o, dtype=np.float64), np.asarray(d, dtype=np.float64)])
-    m = W.shape[1]
-    res = geom.embree.run(np.ascontiguousarray(W[:3].T, dtype=np.float32),
-                          np.ascontiguousarray(W[3:].T, dtype=np.float32), output=1)
-    point, u, v, shade = np.empty((m, 3)), np.empty(m), np.empty(m), np.empty(m)
-    obj, lit = np.empty(m, np.int32), np.empty(m, np.bool_)
-    so, sd, far, sidx = _shadow_buffers(m)
-    s = kern.shade_rays(W, res["primID"], res["tfar"], res["u"], res["v"], *geom.kernel_arrays,
-                        proj.model, SHADOW_OFFSET_MM, point, u, v, shade, obj, so, sd, far, sidx)
-    kern.shadow_rays(_occluded(geom, so, sd, far, s), sidx[:s], shade, lit)
-    return {"point": point.T, "u": u, "v": v, "shade": shade, "lit": lit, "object": obj}
+    return geom.embree.run(shadow.origin[:s], shadow.direction[:s], dists=shadow.far[:s],
+                           query="OCCLUDED")
 
 
 _GRIDS: dict[str, np.ndarray] = {}  # undistorted normalised coordinates of every pixel, by camera
@@ -283,46 +263,26 @@ def normalized_grid(cam: DeviceCalibration, threads: int | None = None) -> np.nd
     return _GRIDS[key]
 
 
-def _camera_model(cam: DeviceCalibration) -> tuple:
-    """The camera tuple ``cam`` of ``sim.render.trace_kernels`` (16 floats)."""
+def _camera_model(cam: DeviceCalibration) -> kern.CameraFrame:
+    """The camera's pose as ``sim.render.trace_kernels`` reads it."""
     R, T = cam.R_array, cam.T_array
-    return tuple(float(x) for x in (*R.T.ravel(), *(-R.T @ T), *R[2], T[2]))
+    return kern.CameraFrame(*(float(x) for x in (*R.T.ravel(), *(-R.T @ T), *R[2], T[2])))
 
 
-class _Chunk(NamedTuple):
-    """A chunk's rays as ``sim.render.trace_kernels.chunk_rays`` takes them: the lens bundle's flat
-    weights (n K,) and K, camera-frame origins ((K, 3) when ``shared`` by every pixel, else
-    (n, K, 3)) and directions (n, K, 3) (n = 0 for a pinhole); the chief rays' normalised
-    coordinates (2, n), or (2, 0) and the pixels (float64) of an undistorted camera."""
-
-    weights: np.ndarray
-    k: int
-    o_cam: np.ndarray
-    shared: bool
-    d_cam: np.ndarray
-    xy: np.ndarray
-    pixels: np.ndarray
-    run: tuple[int, int]
-    pinhole: bool
-
-    @property
-    def n_rays(self) -> int:
-        """Room for every ray of the chunk: lens rays and chief rays."""
-        return len(self.weights) + max(self.xy.shape[1], len(self.pixels), self.run[1])
-
+_Chunk = kern.ChunkRays
 
 _NO_BUNDLE = (np.zeros(0), 1, np.zeros((1, 3)), True, np.zeros((0, 1, 3)))
 _NO_XY, _NO_PIXELS, _NO_RUN = np.zeros((2, 0)), np.zeros(0), (0, 0)
 
 
-def _intrinsics(cam: DeviceCalibration) -> tuple:
-    """The tuple ``A`` of ``trace_kernels._pixel_xy``."""
+def _intrinsics(cam: DeviceCalibration) -> kern.Intrinsics:
+    """The camera's intrinsics as ``trace_kernels._pixel_xy`` reads them."""
     K = cam.K_array
-    return (float(cam.width), 1.0 / cam.width, 1.0 / K[0, 0], K[0, 1], K[0, 2], 1.0 / K[1, 1],
+    return kern.Intrinsics(float(cam.width), 1.0 / cam.width, 1.0 / K[0, 0], K[0, 1], K[0, 2], 1.0 / K[1, 1],
             K[1, 2])
 
 
-def _chunk(cam: DeviceCalibration, A: tuple, lens: LensModel, pixels: np.ndarray,
+def _chunk(cam: DeviceCalibration, A: kern.Intrinsics, lens: LensModel, pixels: np.ndarray,
            grid: np.ndarray | None, run: bool = False) -> _Chunk:
     """The rays of pixels (flat indices; ``run``: they are consecutive): the lens rays of
     ``lens.bundle(xy_n, uv)`` (those of weight > 0 are cast) then the chief rays; a pinhole's
@@ -351,14 +311,14 @@ def _chunk(cam: DeviceCalibration, A: tuple, lens: LensModel, pixels: np.ndarray
                   np.ascontiguousarray(xy.T), _NO_PIXELS, _NO_RUN, False)
 
 
-def _world_rays(c: _Chunk, A: tuple, cam_model: tuple, proj_uv: np.ndarray, weight: np.ndarray):
+def _world_rays(c: _Chunk, A: kern.Intrinsics, cam_model: kern.CameraFrame, proj_uv: np.ndarray,
+                weight: np.ndarray):
     """``trace_kernels.chunk_rays`` of a chunk: world rays W (6, >= m) (the first m columns),
     float32 origins and directions (m, 3), the lens rays' destinations (n_lens,), n_lens."""
     n = c.n_rays
     W, dest = np.empty((6, n)), np.empty(n, np.int64)
     o32, d32 = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
-    n_lens, n_chief = kern.chunk_rays(c.weights, c.k, c.o_cam, c.shared, c.d_cam, c.xy, c.pixels,
-                                      c.run, A, cam_model, W, o32, d32, dest, proj_uv, weight)
+    n_lens, n_chief = kern.chunk_rays(c, A, cam_model, W, o32, d32, dest, proj_uv, weight)
     m = n_lens + n_chief
     return W, o32[:m], d32[:m], dest[:n_lens], n_lens
 
@@ -380,8 +340,8 @@ def camera_rays(camera: DeviceCalibration, lens: LensModel,
     return np.ascontiguousarray(W[:3, :m].T), np.ascontiguousarray(W[3:, :m].T)
 
 
-def _trace_chunk(geom: TraceGeometry, proj: _Projector, cam: DeviceCalibration, A: tuple,
-                 cam_model: tuple, lens: LensModel, pixels: np.ndarray, run: bool,
+def _trace_chunk(geom: TraceGeometry, proj: _Projector, cam: DeviceCalibration, A: kern.Intrinsics,
+                 cam_model: kern.CameraFrame, lens: LensModel, pixels: np.ndarray, run: bool,
                  grid: np.ndarray | None, result: Transport, sl: slice) -> int:
     """Trace the pixels of ``result[sl]`` into it; returns the number of camera rays."""
     c = _chunk(cam, A, lens, pixels, grid, run)
@@ -389,13 +349,13 @@ def _trace_chunk(geom: TraceGeometry, proj: _Projector, cam: DeviceCalibration, 
     W, o32, d32, dest, n_lens = _world_rays(c, A, cam_model, proj_uv, weight)
     m, nk = len(o32), len(c.weights)
     hits = geom.embree.run(o32, d32, output=1)
-    so, sd, far, sidx = _shadow_buffers(m)
+    shadow = _shadow_buffers(m)
+    out = kern.ChunkTransport(proj_uv, weight, result.depth[sl], result.proj_chief[sl],
+                              result.lit[sl], result.object_id[sl])
     s = kern.shade_chunk(W, dest, nk, n_lens, n_lens == nk, c.pinhole, cam_model,
-                         hits["primID"], hits["tfar"], hits["u"], hits["v"], *geom.kernel_arrays,
-                         proj.model, SHADOW_OFFSET_MM, c.weights, proj_uv, weight,
-                         result.depth[sl], result.proj_chief[sl], result.lit[sl],
-                         result.object_id[sl], so, sd, far, sidx)
-    kern.shadow_chunk(_occluded(geom, so, sd, far, s), sidx[:s], nk, c.pinhole, weight,
+                         kern.Hits(hits["primID"], hits["tfar"], hits["u"], hits["v"]),
+                         geom.kernel_arrays, proj.model, SHADOW_OFFSET_MM, c.weights, out, shadow)
+    kern.shadow_chunk(_occluded(geom, shadow, s), shadow.dest[:s], nk, c.pinhole, weight,
                       result.lit[sl])
     return m
 

@@ -1,6 +1,6 @@
-"""Compiled per-ray loops of ``sim.render.trace`` (numba): lens ray directions (for ``sim.optics.lens``),
-world rays, hit refinement and shading, projector coordinates, shadow rays, and the
-transport written in place.
+"""Compiled per-ray loops of ``sim.render.trace`` (numba): world rays, hit refinement and
+shading, projector coordinates, shadow rays, and the transport written in place. (The lens
+bundles' ray geometry is ``sim.optics.lens_kernels``.)
 
 The arithmetic is OPTICS.md section 4 in float64, as the vectorised numpy it replaced did it
 (results agree to a few ulps; the float32 transport is unchanged). The loops release the GIL
@@ -12,14 +12,11 @@ gathers each hit's face data (and does the rare per-face work: interpolated norm
 spheres), one branch-free vectorised pass does the geometry and the projector, and the
 results are written out.
 
-Small fixed parameters travel as tuples of floats (kept in registers, unlike arrays):
-
-- camera ``cam`` (16,): ``R^T`` row-major (9), the centre ``C = -R^T T`` (3), ``R[2]`` (3),
-  ``T[2]``; world origin ``R^T o + C``, direction ``R^T d``, depth ``R[2] . x + T[2]``;
-- projector ``P`` (29,): ``R`` row-major (9), ``T`` (3), ``fx, skew, cx, fy, cy``, OpenCV
-  ``k1 k2 p1 p2 k3``, has-distortion (0 or 1), width, height, the largest trusted squared
-  normalised radius, the centre (3) in world mm;
-- camera intrinsics ``A`` (7,): ``width, 1 / width, 1 / fx, skew, cx, 1 / fy, cy``.
+Small fixed parameters travel as named tuples of floats (``CameraFrame``, ``ProjectorModel``,
+``Intrinsics``; numba keeps them in registers, unlike arrays, and reads a field by name at no
+cost), arrays that go together as named tuples of arrays (``Hits``, ``FaceArrays``,
+``ChunkTransport``, ``ShadowRays``). The shading scratch ``S`` and the face table are read by
+the row and column names defined once below.
 
 The rays of a chunk of n pixels with lens bundles of K samples: first the lens rays of
 weight > 0 (pixel by pixel), then one chief ray per pixel. A pinhole has no bundle (K = 1,
@@ -31,6 +28,7 @@ as a (6, m) float64 array ``W``: origin x, y, z then direction x, y, z.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -39,56 +37,190 @@ _JIT = {"nogil": True, "cache": True, "error_model": "numpy", "boundscheck": Fal
 _INLINE = {**_JIT, "inline": "always"}
 NAN = np.nan
 BLOCK = 1024  # rays shaded per block (the block's scratch stays in the L2 cache)
-_SCRATCH_ROWS = 25
 _SCRATCH_PAD = 8  # rows BLOCK + 8 long: not a multiple of 4 kB apart (no 4k aliasing)
+
+# Rows of the shading scratch S (_SCRATCH_ROWS, BLOCK + _SCRATCH_PAD) float64, one column per
+# hit of the block. Written by _gather: geometric normal, plane offset (mm), shading normal,
+# Embree's distance (mm), the exact-sphere distance (mm; NaN but for sphere faces), albedo.
+_GX, _GY, _GZ, _OFFSET, _SX, _SY, _SZ, _T_EMBREE, _T_SPHERE, _ALBEDO = range(10)
+# Written by _surface: point (mm), geometric normal facing the ray's origin, unit vector L to the
+# projector centre, its distance (mm), shade (albedo x N.L, 0 where unlit), shadow ray needed
+# (1 or 0), projector pixel u, v; and by _gather: the scene object (-1: miss).
+_PX, _PY, _PZ, _NX, _NY, _NZ, _LX, _LY, _LZ, _DIST, _SHADE, _CAND, _U, _V, _OBJ = range(10, 25)
+_SCRATCH_ROWS = 25
+
+# Columns of ``TraceGeometry.face_table`` (F, FACE_COLUMNS) float64: geometric normal (3),
+# plane offset n . v0 (mm), shading normal (3), albedo, scene object, and the kind of face
+# (FACE_FLAT, FACE_SMOOTH, or the index >= 0 of its exact sphere).
+FACE_NORMAL, FACE_OFFSET, FACE_SHADING, FACE_ALBEDO, FACE_OBJECT, FACE_KIND = 0, 3, 4, 7, 8, 9
+FACE_COLUMNS = 10
+FACE_FLAT, FACE_SMOOTH = -1.0, -2.0
+
+
+class CameraFrame(NamedTuple):
+    """The camera's pose, as the kernels use it: world point ``R^T x_c + C``, world direction
+    ``R^T d_c``, depth ``R[2] . x + T[2]`` (mm)."""
+
+    rt00: float  # R^T, row-major
+    rt01: float
+    rt02: float
+    rt10: float
+    rt11: float
+    rt12: float
+    rt20: float
+    rt21: float
+    rt22: float
+    ox: float  # the centre C = -R^T T, world mm
+    oy: float
+    oz: float
+    depth_x: float  # R[2]
+    depth_y: float
+    depth_z: float
+    depth_t: float  # T[2], mm
+
+
+class ProjectorModel(NamedTuple):
+    """The projector's pinhole model with OpenCV distortion: world-to-device ``R``, ``T``,
+    intrinsics (px), distortion, image size (px), the largest trusted squared normalised
+    radius, and its centre (world mm)."""
+
+    r00: float  # R, row-major
+    r01: float
+    r02: float
+    r10: float
+    r11: float
+    r12: float
+    r20: float
+    r21: float
+    r22: float
+    t0: float  # T, mm
+    t1: float
+    t2: float
+    fx: float  # K: px
+    skew: float
+    cx: float
+    fy: float
+    cy: float
+    k1: float  # OpenCV distortion
+    k2: float
+    p1: float
+    p2: float
+    k3: float
+    distorted: float  # 1.0: any distortion coefficient is non-zero, else 0.0
+    width: float  # px
+    height: float
+    max_r2: float  # largest trusted squared normalised radius (points beyond: outside)
+    px: float  # centre, world mm
+    py: float
+    pz: float
+
+
+class Intrinsics(NamedTuple):
+    """An undistorted camera's pixel-to-normalised map, with reciprocals (px)."""
+
+    width: float
+    inv_width: float
+    inv_fx: float
+    skew: float
+    cx: float
+    inv_fy: float
+    cy: float
+
+
+class ChunkRays(NamedTuple):
+    """A chunk's rays as ``chunk_rays`` takes them. The camera-frame lens bundle of n pixels:
+    flat ``weights`` (n K,) float64 (rays of weight 0 are not cast) and ``k`` = K, origins
+    ``o_cam`` (K, 3) when ``shared`` by every pixel, else (n, K, 3), directions ``d_cam``
+    (n, K, 3), all float64 mm and contiguous (n = 0 for a pinhole). Then the chief rays:
+    through normalised coordinates ``xy`` (2, c) float64; or when xy is empty, through the flat
+    ``pixels`` (c,) (float64) of an undistorted camera (``_pixel_xy``); or when both are empty,
+    through its pixels ``first .. first + c - 1``, ``run = (first, c)``. ``pinhole``: the chief
+    ray is the pixel's one ray."""
+
+    weights: np.ndarray
+    k: int
+    o_cam: np.ndarray
+    shared: bool
+    d_cam: np.ndarray
+    xy: np.ndarray
+    pixels: np.ndarray
+    run: tuple[int, int]
+    pinhole: bool
+
+    @property
+    def n_rays(self) -> int:
+        """Room for every ray of the chunk: lens rays and chief rays."""
+        return len(self.weights) + max(self.xy.shape[1], len(self.pixels), self.run[1])
+
+
+class Hits(NamedTuple):
+    """Embree's first hits of m rays: face ``prim`` (m,) int32 (-1: miss), distance ``tfar``
+    (m,) float32 mm, barycentrics ``u``, ``v`` (m,) float32."""
+
+    prim: np.ndarray
+    tfar: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+
+class FaceArrays(NamedTuple):
+    """What shading reads of the scene: ``table`` (F, FACE_COLUMNS) float64, ``faces`` (F, 3)
+    int64, ``vertex_normals`` (V, 3) float64, exact ``spheres`` (S, 4) float64 (cx, cy, cz, r
+    mm)."""
+
+    table: np.ndarray
+    faces: np.ndarray
+    vertex_normals: np.ndarray
+    spheres: np.ndarray
+
+
+class ChunkTransport(NamedTuple):
+    """A chunk's slice of ``sim.render.trace.Transport``, written in place: per lens ray
+    ``proj_uv`` (n K, 2) float32 and ``weight`` (n K,) float32; per pixel ``depth`` (n,)
+    float64, ``proj_chief`` (n, 2) float64, ``lit`` (n,) bool, ``object_id`` (n,) int32."""
+
+    proj_uv: np.ndarray
+    weight: np.ndarray
+    depth: np.ndarray
+    proj_chief: np.ndarray
+    lit: np.ndarray
+    object_id: np.ndarray
+
+
+class ShadowRays(NamedTuple):
+    """Room for s shadow rays: ``origin``, ``direction`` (s, 3) float32, ``far`` (s,) float32
+    mm, ``dest`` (s,) int64 the transport entry each belongs to."""
+
+    origin: np.ndarray
+    direction: np.ndarray
+    far: np.ndarray
+    dest: np.ndarray
+
+
 _NO_WEIGHTS = np.zeros(0)  # a pinhole's ray: its weight is its shade
-
-
-@nb.njit(**_JIT)
-def aimed_directions(xy_n, pupil, z_aim, coma, out):
-    """Unit directions (n, K, 3) into ``out`` of rays from the aperture points ``pupil`` (K, 2)
-    mm (z = 0) through the aim points ``(x z_k + c_k x, y z_k + c_k y, z_k)`` of pixels with
-    normalised coordinates ``xy_n`` (n, 2), for per-sample aim depths ``z_aim`` and lateral
-    factors ``coma`` (K,): the ray geometry of ``sim.optics.lens`` bundles. The loop over samples
-    is vectorised (contiguous arrays), then interleaved into ``out``."""
-    k = pupil.shape[0]
-    px, py = pupil[:, 0].copy(), pupil[:, 1].copy()
-    ax, ay, az = np.empty(k), np.empty(k), np.empty(k)
-    for i in range(xy_n.shape[0]):
-        x, y = xy_n[i, 0], xy_n[i, 1]
-        for j in range(k):
-            z = z_aim[j]
-            dx = x * z + coma[j] * x - px[j]
-            dy = y * z + coma[j] * y - py[j]
-            inv = 1.0 / math.sqrt(dx * dx + dy * dy + z * z)
-            ax[j] = dx * inv
-            ay[j] = dy * inv
-            az[j] = z * inv
-        for j in range(k):
-            out[i, j, 0], out[i, j, 1], out[i, j, 2] = ax[j], ay[j], az[j]
 
 
 @nb.njit(**_INLINE)
 def _to_world(cam, a, b, c):
     """World point of camera-frame point ``(a, b, c)``: ``R^T (a, b, c) + C``."""
-    return (cam[0] * a + cam[1] * b + cam[2] * c + cam[9],
-            cam[3] * a + cam[4] * b + cam[5] * c + cam[10],
-            cam[6] * a + cam[7] * b + cam[8] * c + cam[11])
+    return (cam.rt00 * a + cam.rt01 * b + cam.rt02 * c + cam.ox,
+            cam.rt10 * a + cam.rt11 * b + cam.rt12 * c + cam.oy,
+            cam.rt20 * a + cam.rt21 * b + cam.rt22 * c + cam.oz)
 
 
 @nb.njit(**_INLINE)
 def _rotate(cam, p, q, s):
     """World direction of camera-frame direction ``(p, q, s)``: ``R^T (p, q, s)``."""
-    return (cam[0] * p + cam[1] * q + cam[2] * s, cam[3] * p + cam[4] * q + cam[5] * s,
-            cam[6] * p + cam[7] * q + cam[8] * s)
+    return (cam.rt00 * p + cam.rt01 * q + cam.rt02 * s, cam.rt10 * p + cam.rt11 * q + cam.rt12 * s,
+            cam.rt20 * p + cam.rt21 * q + cam.rt22 * s)
 
 
 @nb.njit(**_INLINE)
 def _pixel_uv(p, A):
     """Column and row (float64) of flat pixel index p (float64); the row
     ``floor((p + 1/2) / width)`` is exact for any image of fewer than 2^40 pixels."""
-    v = math.floor((p + 0.5) * A[1])
-    return p - v * A[0], v
+    v = math.floor((p + 0.5) * A.inv_width)
+    return p - v * A.width, v
 
 
 @nb.njit(**_INLINE)
@@ -97,8 +229,8 @@ def _pixel_xy(p, A):
     distortion-free branch of ``sim.optics.projection.pixel_to_normalized``, with reciprocals (to an
     ulp or two)."""
     u, v = _pixel_uv(p, A)
-    y = (v - A[6]) * A[5]
-    return (u - A[4] - A[3] * y) * A[2], y
+    y = (v - A.cy) * A.inv_fy
+    return (u - A.cx - A.skew * y) * A.inv_fx, y
 
 
 @nb.njit(**_JIT)
@@ -112,18 +244,14 @@ def pixel_coordinates(pixels, A, uv, xy):
 
 
 @nb.njit(**_JIT)
-def chunk_rays(wts, k, o_cam, shared, d_cam, xy, pixels, run, A, cam, W, o32, d32, dest,
-               proj_uv, weight):
-    """World rays of a chunk (see the module docstring): ``W`` (6, m) float64, their float32
-    copies ``o32, d32`` (m, 3) for Embree, and the lens rays' ``dest``. The camera-frame
-    bundle of n pixels: flat weights ``wts`` (n K,) (rays of weight 0 are not cast), origins
-    ``o_cam`` (K, 3) when ``shared`` by every pixel, else (n, K, 3), directions ``d_cam``
-    (n, K, 3), all float64 and contiguous. Then the chief rays: through normalised
-    coordinates ``xy`` (2, c) float64; or when xy is empty, through the flat ``pixels`` (c,)
-    (float64) of an undistorted camera (``_pixel_xy`` with ``A``); or when both are empty,
-    through its pixels ``first .. first + c - 1``, ``run = (first, c)``. Rays not cast get
-    ``proj_uv`` (n K, 2) NaN and ``weight`` (n K,) 0 now. W and the others have room for every
-    ray. Returns the number of lens rays cast and of chief rays."""
+def chunk_rays(rays, A, cam, W, o32, d32, dest, proj_uv, weight):
+    """World rays of a chunk's ``ChunkRays`` (see the module docstring; ``Intrinsics`` ``A``,
+    ``CameraFrame`` ``cam``): ``W`` (6, m) float64, their float32 copies ``o32, d32`` (m, 3)
+    for Embree, and the lens rays' ``dest``. Rays not cast get ``proj_uv`` (n K, 2) NaN and
+    ``weight`` (n K,) 0 now. W and the others have room for every ray. Returns the number of
+    lens rays cast and of chief rays."""
+    wts, k, o_cam, shared, d_cam = rays.weights, rays.k, rays.o_cam, rays.shared, rays.d_cam
+    xy, pixels, run = rays.xy, rays.pixels, rays.run
     o0, o1, o2, d0, d1, d2 = W[0], W[1], W[2], W[3], W[4], W[5]
     oc, dc = o_cam.reshape(-1), d_cam.reshape(-1)
     nk = wts.shape[0]
@@ -194,7 +322,7 @@ def _chief_rays(xs, ys, cam, o0, o1, o2, d0, d1, d2):
     rows of ``W`` (each (c,)). Its own function: the loop over contiguous arrays is
     vectorised."""
     for i in range(xs.shape[0]):
-        o0[i], o1[i], o2[i] = cam[9], cam[10], cam[11]
+        o0[i], o1[i], o2[i] = cam.ox, cam.oy, cam.oz
         d0[i], d1[i], d2[i] = _chief_ray(xs[i], ys[i], cam)
 
 
@@ -204,7 +332,7 @@ def _run_chief_rays(first, A, cam, o0, o1, o2, d0, d1, d2):
     camera."""
     for i in range(o0.shape[0]):
         x, y = _pixel_xy(first + i, A)
-        o0[i], o1[i], o2[i] = cam[9], cam[10], cam[11]
+        o0[i], o1[i], o2[i] = cam.ox, cam.oy, cam.oz
         d0[i], d1[i], d2[i] = _chief_ray(x, y, cam)
 
 
@@ -213,7 +341,7 @@ def _pixel_chief_rays(pixels, A, cam, o0, o1, o2, d0, d1, d2):
     """``_chief_rays`` through the flat ``pixels`` (c,) float64 of an undistorted camera."""
     for i in range(pixels.shape[0]):
         x, y = _pixel_xy(pixels[i], A)
-        o0[i], o1[i], o2[i] = cam[9], cam[10], cam[11]
+        o0[i], o1[i], o2[i] = cam.ox, cam.oy, cam.oz
         d0[i], d1[i], d2[i] = _chief_ray(x, y, cam)
 
 
@@ -222,23 +350,23 @@ def _project(x0, x1, x2, P, distort):
     """Projector pixel ``(u, v)`` of a world point with OpenCV distortion (when ``distort``, a
     constant where inlined); NaN outside the image, behind the projector or beyond the trusted
     radius. Branch-free."""
-    xp = P[0] * x0 + P[1] * x1 + P[2] * x2 + P[9]
-    yp = P[3] * x0 + P[4] * x1 + P[5] * x2 + P[10]
-    z = P[6] * x0 + P[7] * x1 + P[8] * x2 + P[11]
+    xp = P.r00 * x0 + P.r01 * x1 + P.r02 * x2 + P.t0
+    yp = P.r10 * x0 + P.r11 * x1 + P.r12 * x2 + P.t1
+    z = P.r20 * x0 + P.r21 * x1 + P.r22 * x2 + P.t2
     iz = 1.0 / z
     xn, yn = xp * iz, yp * iz
     r2 = xn * xn + yn * yn
     xd, yd = xn, yn
     if distort:
-        k1, k2, p1, p2, k3 = P[17], P[18], P[19], P[20], P[21]
+        k1, k2, p1, p2, k3 = P.k1, P.k2, P.p1, P.p2, P.k3
         radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
         xy2 = 2.0 * xn * yn
         xd = xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn)
         yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2
-    u = P[12] * xd + P[13] * yd + P[14]
-    v = P[15] * yd + P[16]
-    out = ((z <= 0.0) | (not (r2 <= P[25])) | (u < -0.5) | (u > P[23] - 0.5) | (v < -0.5)
-           | (v > P[24] - 0.5))
+    u = P.fx * xd + P.skew * yd + P.cx
+    v = P.fy * yd + P.cy
+    out = ((z <= 0.0) | (not (r2 <= P.max_r2)) | (u < -0.5) | (u > P.width - 0.5) | (v < -0.5)
+           | (v > P.height - 0.5))
     return (NAN if out else u), (NAN if out else v)
 
 
@@ -247,21 +375,21 @@ def projector_coordinates(x, P, u, v):
     """Projector pixels u, v (m,) of world points x (3, m) (see ``_project``)."""
     x0, x1, x2 = x[0], x[1], x[2]
     for i in range(x.shape[1]):
-        u[i], v[i] = _project(x0[i], x1[i], x2[i], P, P[22] != 0.0)
+        u[i], v[i] = _project(x0[i], x1[i], x2[i], P, P.distorted != 0.0)
 
 
 @nb.njit(**_INLINE)
-def _gather(b0, n, W, prim, tfar, bu, bv, face_table, faces, vertex_normals, spheres, S):
-    """Face data of hits ``b0 .. b0 + n`` into scratch ``S`` rows 0-9 and 24: geometric
-    normal (0-2), plane offset (3), shading normal (4-6; interpolated for smooth faces),
-    Embree's distance (7), the exact-sphere distance (8; NaN but for sphere faces, whose both
-    normals then become the sphere's), albedo (9), scene object (24). All NaN for a miss
-    (object -1). ``face_table`` (F, 10): see ``TraceGeometry.face_table``."""
+def _gather(b0, n, W, hits, fa, S):
+    """Face data of ``Hits`` ``b0 .. b0 + n`` into scratch ``S`` rows ``_GX .. _ALBEDO`` and
+    ``_OBJ`` (the shading normal interpolated for smooth faces; for sphere faces both normals
+    become the exact sphere's). All NaN for a miss (object -1). ``fa``: ``FaceArrays``."""
+    prim, tfar, bu, bv = hits.prim, hits.tfar, hits.u, hits.v
+    faces, vertex_normals, spheres = fa.faces, fa.vertex_normals, fa.spheres
     o0, o1, o2, d0, d1, d2 = W[0], W[1], W[2], W[3], W[4], W[5]
-    g0, g1, g2, off, s0, s1, s2, te, tsph, alb = (S[0], S[1], S[2], S[3], S[4], S[5], S[6],
-                                                  S[7], S[8], S[9])
-    obj = S[24]
-    tab = face_table.reshape(-1)
+    g0, g1, g2, off = S[_GX], S[_GY], S[_GZ], S[_OFFSET]
+    s0, s1, s2, te, tsph, alb = S[_SX], S[_SY], S[_SZ], S[_T_EMBREE], S[_T_SPHERE], S[_ALBEDO]
+    obj = S[_OBJ]
+    tab = fa.table.reshape(-1)
     for b in range(n):
         r = b0 + b
         f = prim[r]
@@ -270,11 +398,12 @@ def _gather(b0, n, W, prim, tfar, bu, bv, face_table, faces, vertex_normals, sph
             s1[b], s2[b], te[b], tsph[b], alb[b] = NAN, NAN, NAN, NAN, NAN
             obj[b] = -1.0
             continue
-        i = 10 * f
-        gx, gy, gz, sx, sy, sz = tab[i], tab[i + 1], tab[i + 2], tab[i + 4], tab[i + 5], tab[i + 6]
+        i = FACE_COLUMNS * f
+        gx, gy, gz = tab[i + FACE_NORMAL], tab[i + FACE_NORMAL + 1], tab[i + FACE_NORMAL + 2]
+        sx, sy, sz = tab[i + FACE_SHADING], tab[i + FACE_SHADING + 1], tab[i + FACE_SHADING + 2]
         ts = NAN
-        kind = tab[i + 9]
-        if kind == -2.0:  # smooth: interpolate vertex normals with Embree's barycentrics
+        kind = tab[i + FACE_KIND]
+        if kind == FACE_SMOOTH:  # smooth: interpolate vertex normals with Embree's barycentrics
             w1, w2 = bu[r], bv[r]
             w0 = np.float32(1.0) - w1 - w2
             a, c, e = faces[f, 0], faces[f, 1], faces[f, 2]
@@ -298,9 +427,10 @@ def _gather(b0, n, W, prim, tfar, bu, bv, face_table, faces, vertex_normals, sph
                 sy = (oy + ts * dy - cy) * ir
                 sz = (oz + ts * dz - cz) * ir
                 gx, gy, gz = sx, sy, sz
-        g0[b], g1[b], g2[b], off[b] = gx, gy, gz, tab[i + 3]
+        g0[b], g1[b], g2[b], off[b] = gx, gy, gz, tab[i + FACE_OFFSET]
         s0[b], s1[b], s2[b] = sx, sy, sz
-        te[b], tsph[b], alb[b], obj[b] = np.float64(tfar[r]), ts, tab[i + 7], tab[i + 8]
+        te[b], tsph[b] = np.float64(tfar[r]), ts
+        alb[b], obj[b] = tab[i + FACE_ALBEDO], tab[i + FACE_OBJECT]
 
 
 @nb.njit(**_INLINE)
@@ -311,8 +441,8 @@ def _surface(n, o0, o1, o2, d0, d1, d2, S, P):
     ray's origin, the unit vector L towards the projector centre and its distance, whether
     the point faces the projector inside its image (geometric and shading N.L > 0, with the
     shading normal on the geometric normal's side) and then its shade albedo x N.L (else 0),
-    and the projector pixel (u, v); into ``S`` rows 10-23 (see ``_shade_block``)."""
-    if P[22] != 0.0:  # one loop each way: no distortion polynomial where there is none
+    and the projector pixel (u, v); into ``S`` rows ``_PX .. _V``."""
+    if P.distorted != 0.0:  # one loop each way: no distortion polynomial where there is none
         _surface_loop(n, o0, o1, o2, d0, d1, d2, S, P, True)
     else:
         _surface_loop(n, o0, o1, o2, d0, d1, d2, S, P, False)
@@ -321,11 +451,11 @@ def _surface(n, o0, o1, o2, d0, d1, d2, S, P):
 @nb.njit(**_INLINE)
 def _surface_loop(n, o0, o1, o2, d0, d1, d2, S, P, distort):
     """``_surface`` with the projector's distortion applied or not (``distort``)."""
-    g0, g1, g2, off, s0, s1, s2, te, tsph, alb = (S[0], S[1], S[2], S[3], S[4], S[5], S[6],
-                                                  S[7], S[8], S[9])
-    x0, x1, x2, n0, n1, n2, l0, l1, l2 = (S[10], S[11], S[12], S[13], S[14], S[15], S[16],
-                                          S[17], S[18])
-    dist, shade, cand, u, v = S[19], S[20], S[21], S[22], S[23]
+    g0, g1, g2, off = S[_GX], S[_GY], S[_GZ], S[_OFFSET]
+    s0, s1, s2, te, tsph, alb = S[_SX], S[_SY], S[_SZ], S[_T_EMBREE], S[_T_SPHERE], S[_ALBEDO]
+    x0, x1, x2, n0, n1, n2 = S[_PX], S[_PY], S[_PZ], S[_NX], S[_NY], S[_NZ]
+    l0, l1, l2 = S[_LX], S[_LY], S[_LZ]
+    dist, shade, cand, u, v = S[_DIST], S[_SHADE], S[_CAND], S[_U], S[_V]
     for b in range(n):
         ox, oy, oz, dx, dy, dz = o0[b], o1[b], o2[b], d0[b], d1[b], d2[b]
         gx, gy, gz = g0[b], g1[b], g2[b]
@@ -339,7 +469,7 @@ def _surface_loop(n, o0, o1, o2, d0, d1, d2, S, P, distort):
         gx, gy, gz = gx * flip, gy * flip, gz * flip
         sx, sy, sz = s0[b], s1[b], s2[b]
         side = -1.0 if sx * gx + sy * gy + sz * gz < 0 else 1.0  # shading normal on that side
-        lx, ly, lz = P[26] - p0, P[27] - p1, P[28] - p2
+        lx, ly, lz = P.px - p0, P.py - p1, P.pz - p2
         dl = math.sqrt(lx * lx + ly * ly + lz * lz)
         il = 1.0 / dl
         lx, ly, lz = lx * il, ly * il, lz * il
@@ -356,50 +486,41 @@ def _surface_loop(n, o0, o1, o2, d0, d1, d2, S, P, distort):
 
 
 @nb.njit(**_INLINE)
-def _shade_block(b0, n, W, prim, tfar, bu, bv, face_table, faces, vertex_normals, spheres, P, S):
-    """``_gather`` then ``_surface`` for hits ``b0 .. b0 + n``; results in ``S`` rows 10-23:
-    point (10-12), facing geometric normal (13-15), L (16-18), distance (19), shade (20),
-    shadow ray needed (21: 1 or 0), u (22), v (23); and the object (24)."""
-    _gather(b0, n, W, prim, tfar, bu, bv, face_table, faces, vertex_normals, spheres, S)
+def _shade_block(b0, n, W, hits, fa, P, S):
+    """``_gather`` then ``_surface`` for hits ``b0 .. b0 + n``; results in ``S`` rows
+    ``_PX .. _V`` and ``_OBJ``."""
+    _gather(b0, n, W, hits, fa, S)
     e = b0 + n
     _surface(n, W[0, b0:e], W[1, b0:e], W[2, b0:e], W[3, b0:e], W[4, b0:e], W[5, b0:e], S, P)
 
 
-@nb.njit(**_INLINE)
-def _shadow_ray(s, b, S, offset, so, sd, far):
-    """Shadow ray s of block hit b: from ``offset`` mm off the surface, along its facing
-    geometric normal, towards the projector centre."""
-    so[s, 0] = S[10, b] + offset * S[13, b]
-    so[s, 1] = S[11, b] + offset * S[14, b]
-    so[s, 2] = S[12, b] + offset * S[15, b]
-    sd[s, 0], sd[s, 1], sd[s, 2] = S[16, b], S[17, b], S[18, b]
-    far[s] = S[19, b] - 2 * offset
-
-
 @nb.njit(**_JIT)
-def shade_chunk(W, dest, nk, n_lens, all_live, pinhole, cam, prim, tfar, bu, bv, face_table,
-                faces, vertex_normals, spheres, P, offset, wts, proj_uv, weight, depth,
-                proj_chief, lit, object_id, so, sd, far, sidx):
-    """Shade a chunk's rays ``W`` (6, m) from their Embree hits (``prim`` -1: miss, ``tfar``,
-    barycentrics ``bu, bv``) and write its transport in place, before shadowing: per lens ray
-    ``proj_uv`` (n K, 2) and ``weight`` (n K,) = lens weight ``wts`` x albedo x N.L where the
-    point faces the projector inside its image, else 0; per chief ray ``depth``,
-    ``proj_chief``, ``lit`` and ``object_id`` (n,) (and for a ``pinhole`` its weight).
-    The first ``n_lens`` rays are lens rays (going to ``dest``; ``all_live``: ray r goes to
-    ``r``), the rest chief rays. Sets up the shadow rays ``so, sd`` (s, 3), ``far`` (s,) with
-    ``sidx`` their ray's destination. Returns s."""
+def shade_chunk(W, dest, nk, n_lens, all_live, pinhole, cam, hits, fa, P, offset, wts, out,
+                shadow):
+    """Shade a chunk's rays ``W`` (6, m) from their Embree ``Hits`` (``FaceArrays`` ``fa``,
+    ``CameraFrame`` ``cam``, ``ProjectorModel`` ``P``) and write its ``ChunkTransport`` ``out``
+    in place, before shadowing: per lens ray ``proj_uv`` and ``weight`` = lens weight ``wts``
+    (n K,) x albedo x N.L where the point faces the projector inside its image, else 0; per
+    chief ray ``depth``, ``proj_chief``, ``lit`` and ``object_id`` (and for a ``pinhole`` its
+    weight). The first ``n_lens`` rays are lens rays (going to ``dest``; ``all_live``: ray r
+    goes to ``r``), the rest chief rays. Sets up the ``ShadowRays`` ``shadow``, starting
+    ``offset`` mm off the surface along its facing normal. Returns their number."""
+    proj_uv, weight, depth, lit, object_id = out.proj_uv, out.weight, out.depth, out.lit, \
+        out.object_id
+    so, sd, far, sidx = shadow.origin, shadow.direction, shadow.far, shadow.dest
+    prim = hits.prim
     S = np.empty((_SCRATCH_ROWS, BLOCK + _SCRATCH_PAD))
-    x0, x1, x2, n0, n1, n2 = S[10], S[11], S[12], S[13], S[14], S[15]
-    l0, l1, l2, dist, shade, cand, u, v = S[16], S[17], S[18], S[19], S[20], S[21], S[22], S[23]
-    obj = S[24]
-    puf, pcf = proj_uv.reshape(-1), proj_chief.reshape(-1)
+    x0, x1, x2, n0, n1, n2 = S[_PX], S[_PY], S[_PZ], S[_NX], S[_NY], S[_NZ]
+    l0, l1, l2, dist, shade, cand = S[_LX], S[_LY], S[_LZ], S[_DIST], S[_SHADE], S[_CAND]
+    u, v = S[_U], S[_V]
+    obj = S[_OBJ]
+    puf, pcf = proj_uv.reshape(-1), out.proj_chief.reshape(-1)
     sof, sdf = so.reshape(-1), sd.reshape(-1)
     m = prim.shape[0]
     s = 0
     for b0 in range(0, m, BLOCK):
         n = min(BLOCK, m - b0)
-        _shade_block(b0, n, W, prim, tfar, bu, bv, face_table, faces, vertex_normals, spheres, P,
-                     S)
+        _shade_block(b0, n, W, hits, fa, P, S)
         nl = max(0, min(n, n_lens - b0))  # lens rays of the block: 0 .. nl
         if all_live and nl:
             _lens_out(u[:nl], v[:nl], shade[:nl], wts[b0:b0 + nl], puf[2 * b0:2 * (b0 + nl)],
@@ -447,7 +568,7 @@ def _chief_out(cam, x0, x1, x2, u, v, cand, obj, depth, pcf, lit, object_id):
     """Chief rays' truth maps: ``depth`` = ``R[2] . x + T[2]``, projector coordinates ``pcf``
     (2 n,), lit before shadowing, object. Its own function, so the loop is vectorised."""
     for b in range(x0.shape[0]):
-        depth[b] = cam[12] * x0[b] + cam[13] * x1[b] + cam[14] * x2[b] + cam[15]
+        depth[b] = cam.depth_x * x0[b] + cam.depth_y * x1[b] + cam.depth_z * x2[b] + cam.depth_t
         pcf[2 * b], pcf[2 * b + 1] = u[b], v[b]
         lit[b], object_id[b] = cand[b] != 0.0, obj[b]
 
@@ -467,41 +588,3 @@ def shadow_chunk(occluded, sidx, nk, pinhole, weight, lit):
             lit[e - nk] = False
             if pinhole:
                 weight[e - nk] = 0.0
-
-
-@nb.njit(**_JIT)
-def shade_rays(W, prim, tfar, bu, bv, face_table, faces, vertex_normals, spheres, P, offset,
-               point, u, v, shade, obj, so, sd, far, sidx):
-    """Shade world rays ``W`` (6, m) from their Embree hits: ``point`` (m, 3) (NaN: miss),
-    ``u, v``, ``shade`` = albedo x N.L where the point faces the projector inside its image
-    (before shadowing), ``obj`` (-1: miss); shadow rays as ``shade_chunk`` with ``sidx`` the
-    ray index. Returns their number."""
-    S = np.empty((_SCRATCH_ROWS, BLOCK + _SCRATCH_PAD))
-    m = prim.shape[0]
-    s = 0
-    for b0 in range(0, m, BLOCK):
-        n = min(BLOCK, m - b0)
-        _shade_block(b0, n, W, prim, tfar, bu, bv, face_table, faces, vertex_normals, spheres, P,
-                     S)
-        for b in range(n):
-            r = b0 + b
-            point[r, 0], point[r, 1], point[r, 2] = S[10, b], S[11, b], S[12, b]
-            u[r], v[r], shade[r] = S[22, b], S[23, b], S[20, b]
-            obj[r] = S[24, b]
-            if S[21, b] != 0.0:
-                _shadow_ray(s, b, S, offset, so, sd, far)
-                sidx[s] = r
-                s += 1
-    return s
-
-
-@nb.njit(**_JIT)
-def shadow_rays(occluded, sidx, shade, lit):
-    """``lit`` (m,): True for the rays ``sidx`` whose shadow ray is free (``occluded`` -1);
-    ``shade`` becomes 0 for those whose shadow ray is blocked."""
-    lit[:] = False
-    for s in range(sidx.shape[0]):
-        if occluded[s] == -1:
-            lit[sidx[s]] = True
-        else:
-            shade[sidx[s]] = 0.0

@@ -24,7 +24,7 @@ from sim.fpp.phase import (
     unwrap_with_reference,
     wrapped_phase,
 )
-from sim.fpp.scan import DecodeSettings, decode_view
+from sim.fpp.decode import DecodeSettings, decode_view
 from sim.render.images import CameraResponse, RenderSettings, render_views
 from sim.optics.rig import DeviceCalibration, Rig, small_rig
 from sim.render.scene import PlaneObject, Pose, Scene, SphereObject

@@ -12,7 +12,7 @@ from sim.fpp.cloud import read_ply, write_ply
 from sim.render.fringe_patterns import PhaseShiftSet
 from sim.optics.lens import PinholeLens
 from sim.metrology.spheres import fit_sphere
-from sim.fpp.scan import reconstruct
+from sim.fpp.decode import scan
 from sim.render.images import CameraResponse, RenderSettings, render_views
 from sim.optics.rig import DeviceCalibration, Rig, default_rig, look_at
 from sim.render.scene import Scene, SphereObject
@@ -210,14 +210,14 @@ def test_reconstruct_errors():
     one = 100 + 50 * np.cos(rng.uniform(0, 7, (30, 40))[None] - d[:, None, None])
     stack = np.concatenate([one, one])  # fringes along v only
     with pytest.raises(ValueError, match="stereo needs the image stacks of 2 cameras, got 1"):
-        reconstruct([stack], ps_v, rig)
+        scan([stack], ps_v, rig)
     with pytest.raises(ValueError, match="stereo matching needs fringes along 'u'"):
-        reconstruct([stack, stack], ps_v, rig)
+        scan([stack, stack], ps_v, rig)
     with pytest.raises(ValueError, match="camera must be 0 or 1, got 2"):
-        reconstruct([stack, stack], ps_v, rig, camera=2)
+        scan([stack, stack], ps_v, rig, camera=2)
     with pytest.raises(ValueError, match="camera 0 has 8 images, camera 1 has 7: the stacks must match"):
-        reconstruct([stack, stack[:7]], ps_v, rig)
-    pts = reconstruct([stack], ps_v, rig, camera=0)  # one stack is enough for camera-projector
+        scan([stack, stack[:7]], ps_v, rig)
+    pts = scan([stack], ps_v, rig, camera=0)  # one stack is enough for camera-projector
     assert np.isfinite(pts.points).all()
 
 
@@ -234,7 +234,7 @@ def test_camera_noise_degrades_the_sphere_gracefully():
     settings = RenderSettings(camera=CameraResponse(shot_noise=True, read_noise_e=5.0))
     res = render_views(geom, rig, [PinholeLens()] * 2, ps.images(rig.projector.size), settings,
                        np.random.default_rng(7))
-    cloud = reconstruct([c.images for c in res.cameras], ps, rig)
+    cloud = scan([c.images for c in res.cameras], ps, rig)
     fit = fit_sphere(cloud.points)
     assert fit.inliers.sum() > 40000
     assert abs(fit.diameter - 2 * R_SPHERE) < 0.005

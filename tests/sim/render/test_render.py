@@ -1,5 +1,6 @@
 """sim.render.images and ``ltc render``: projector and camera response, gather, blur disk, writers, CLI."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -385,3 +386,42 @@ def test_cli_reports_bad_scenes(tmp_path, capsys):
     assert main(["render", str(bad), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "ltc render: error:" in err and "bad.toml" in err and not (tmp_path / "o").exists()
+
+
+def test_render_camera_from_a_kept_transport_equals_full_renders_without_tracing(monkeypatch):
+    """Trace once, render many: pattern sets rendered from one kept transport equal full renders
+    bit for bit, and rendering from it traces nothing."""
+    import sim.render.images as images
+
+    monkeypatch.setattr(images, "TILE_RAYS", 3000)  # several tiles
+    rig, geom, pats, _ = _small_views()
+    cam = CameraResponse(shot_noise=True, read_noise_e=3.0)
+    lens = AberratedLens(pupil_diameter_mm=4.0, focus_distance_mm=600.0, samples=5)
+    proj_a = project_patterns(pats, ProjectorResponse())
+    proj_b = project_patterns(pats[::-1].copy(), ProjectorResponse())
+    full_a = render_camera(geom, rig, 1, lens, proj_a, cam, np.random.default_rng(1))
+    full_b = render_camera(geom, rig, 1, lens, proj_b, cam, np.random.default_rng(2))
+    kept = render_camera(geom, rig, 1, lens, proj_a, cam, np.random.default_rng(1),
+                         keep_transport=True)
+    assert full_a.transport is None and len(kept.transport) > 1
+
+    def no_tracing(*args, **kwargs):
+        raise AssertionError("render_camera traced although it was given the transport")
+
+    monkeypatch.setattr(images, "trace_camera", no_tracing)
+    again_a = render_camera(geom, rig, 1, lens, proj_a, cam, np.random.default_rng(1),
+                            transport=kept.transport)
+    again_b = render_camera(geom, rig, 1, lens, proj_b, cam, np.random.default_rng(2),
+                            transport=kept.transport)
+    assert again_b.transport is kept.transport and again_b.timings["trace_s"] == 0.0
+    for full, res in ((full_a, kept), (full_a, again_a), (full_b, again_b)):
+        assert res.n_rays == full.n_rays
+        for key in ("images", "radiance", "depth", "projector_map", "lit", "object_id"):
+            np.testing.assert_array_equal(getattr(res, key), getattr(full, key), err_msg=key)
+    with pytest.raises(ValueError, match=r"cover each pixel of camera 'right' once \(\d+ missing"):
+        render_camera(geom, rig, 1, lens, proj_a, cam, np.random.default_rng(1),
+                      transport=kept.transport[1:])
+    other = dataclasses.replace(kept.transport[0], camera_size=(7, 5))
+    with pytest.raises(ValueError, match=r"render_camera transport: it is of a \(7, 5\) camera"):
+        render_camera(geom, rig, 1, lens, proj_a, cam, np.random.default_rng(1),
+                      transport=(other, *kept.transport[1:]))

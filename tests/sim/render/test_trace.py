@@ -9,7 +9,7 @@ from sim.optics.lens import AberratedLens, PinholeLens, hit_plane
 from sim.optics.projection import pixel_to_normalized, project_points
 from sim.optics.rig import DeviceCalibration, small_rig
 from sim.render.scene import PlaneObject, Pose, Scene, SphereObject
-from sim.render.trace import TraceGeometry, normalized_grid, trace_camera, trace_rays
+from sim.render.trace import TraceGeometry, normalized_grid, trace_camera
 
 PLANE_R = cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))[0]
 PLANE_T = np.array([5.0, -3.0, 40.0])
@@ -170,24 +170,26 @@ def test_interpolated_normals_and_two_sided_shading():
     v = np.array([[-50.0, -50.0, 100.0], [50.0, -50.0, 100.0], [0.0, 50.0, 100.0]])
     vn = np.array([[0.0, 0.0, -1.0], [0.6, 0.0, -0.8], [0.0, -0.6, -0.8]])
     geom = TraceGeometry(v, np.array([[0, 1, 2]]), vn, np.array([0.5]), np.array([0]))
-    _cam, proj = _coaxial()
-    p = trace._Projector.of(proj)
-    o = np.array([[0.0, 3.0], [2.0, -4.0], [0.0, 0.0]])
-    d = np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 1.0]])
-    r = trace_rays(geom, p, o, d)
+    cam, proj = _coaxial(f_cam=100.0)  # camera and projector centres at the origin
+    pixels = np.array([22 * 41 + 20, 16 * 41 + 23])  # through (0, 2, 100) and (3, -4, 100)
+    r = trace_camera(geom, cam, proj, PinholeLens(), pixels=pixels)
+    uv = np.stack([pixels % 41, pixels // 41], 1).astype(float)
+    xy = pixel_to_normalized(uv, cam.K_array)
     for i in range(2):
-        x = r["point"][:, i]
+        x = r.depth[i] * np.array([xy[i, 0], xy[i, 1], 1.0])
         # barycentrics of x in the triangle, then the interpolated normal
         A = np.stack([v[1] - v[0], v[2] - v[0]], 1)[:2]
         bu, bv = np.linalg.solve(A, x[:2] - v[0, :2])
         n = (1 - bu - bv) * vn[0] + bu * vn[1] + bv * vn[2]
         n /= np.linalg.norm(n)
         L = -x / np.linalg.norm(x)
-        assert r["shade"][i] == pytest.approx(0.5 * n @ L, rel=1e-6)
-    # the camera behind the triangle, the projector in front of it: dark
-    o2 = np.array([[0.0], [0.0], [200.0]])
-    r2 = trace_rays(geom, p, o2, np.array([[0.0], [0.0], [-1.0]]))
-    assert r2["shade"][0] == 0.0 and not r2["lit"][0] and r2["object"][0] == 0
+        assert r.weight[i, 0] == pytest.approx(0.5 * n @ L, rel=1e-6)
+    # the camera behind the triangle (at z = 200, looking along -z), the projector in front of
+    # it: dark
+    behind = DeviceCalibration(name="behind", K=cam.K_array, dist=np.zeros(5),
+                               R=np.diag([1.0, -1.0, -1.0]), T=[0.0, 0.0, 200.0], size=cam.size)
+    r2 = trace_camera(geom, behind, proj, PinholeLens(), pixels=np.array([20 * 41 + 20]))
+    assert r2.weight[0, 0] == 0.0 and not r2.lit[0] and r2.object_id[0] == 0
 
 
 def test_threads_and_pixel_subsets_give_the_same_transport():

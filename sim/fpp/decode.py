@@ -1,7 +1,7 @@
 """From fringe images to projector-coordinate maps and point clouds (the scanner's pipeline).
 
 ``decode_view`` turns one camera's image stack, taken with a ``sim.render.fringe_patterns`` set, into
-per-axis projector-coordinate maps (NaN where invalid) and a modulation map; ``reconstruct``
+per-axis projector-coordinate maps (NaN where invalid) and a modulation map; ``scan``
 matches the two cameras of a rig (``sim.fpp.stereo.stereo_cloud``) or triangulates one camera
 against the projector (``sim.fpp.stereo.camera_projector_cloud``).
 """
@@ -28,8 +28,8 @@ from sim.fpp.phase import (
 )
 from sim.optics.rig import DeviceCalibration, Rig
 from sim.fpp.stereo import PointCloud, camera_projector_cloud, grid_normals, stereo_cloud
+from sim.tolerances import EDGE_MARGIN_PX
 
-EDGE_MARGIN_PX = 0.5  # decoded coordinates this close to the outer pixel centres are dropped
 
 
 class DecodeSettings(BaseModel):
@@ -202,7 +202,7 @@ def _check_camera(view_images: np.ndarray, cam: DeviceCalibration, where: str) -
         )
 
 
-def reconstruct(
+def scan(
     images: list[np.ndarray],
     patterns: PhaseShiftSet | GrayCodeSet,
     rig: Rig,
