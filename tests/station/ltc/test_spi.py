@@ -20,7 +20,8 @@ from fakes.bench import BenchConfig, FakeBench
 from fakes.camera import FakeCamera, NoiseModel
 from fakes.lcd import PanelResponse
 from station.cli import main as cli_main
-from station.ltc.localise import gray_to_index, lcd_coordinates
+from sim.fpp.phase import gray_to_index
+from station.ltc.localise import lcd_coordinates
 from station.ltc.store import (
     LtcStoreError,
     open_ltc_store,
