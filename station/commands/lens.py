@@ -18,7 +18,7 @@ from pydantic import ValidationError
 from sim.optics.measured_lens import LensFileError, save_lens
 from sim.optics.rig import Rig
 from station.acquisition.backend import fake_truth
-from station.lens.centroids import LtcVolumeError, open_ltc_volume
+from station.ltc.store import LtcVolumeError, open_ltc_volume
 from station.lens.derive import derive_lens
 from station.lens.figures import write_figures
 from station.lens.geometry import LensFitConfig, LensFitError

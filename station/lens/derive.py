@@ -17,7 +17,8 @@ from scipy import ndimage
 
 from sim.optics.measured_lens import MeasuredLens
 from station.lens import aperture as ap
-from station.lens.centroids import LtcVolume, rows_per_read, window_stats
+from station.lens.centroids import rows_per_read, window_stats
+from station.ltc.store import LtcVolume
 from station.lens.geometry import (
     LensFitConfig,
     LensFitError,

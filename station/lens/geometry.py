@@ -36,7 +36,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from sim.optics.projection import pixel_to_normalized
-from station.lens.centroids import Centroids, LtcVolume, compute_centroids
+from station.lens.centroids import Centroids, compute_centroids
+from station.ltc.store import LtcVolume
 from station.lens.rays import (
     HUBER_K,
     OpticalCentre,
