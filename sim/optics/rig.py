@@ -42,19 +42,11 @@ from sim.optics.projection import (
     pixel_to_normalized,
     project_points,
 )
+from sim.validation import format_validation_error
 
 YAML_SUFFIXES = (".yaml", ".yml", ".xml")
 ROTATION_TOL = 1e-6
 DEVICE_NODES = ("camera_0", "camera_1", "projector")
-
-
-def format_validation_error(source: str, exc: ValidationError) -> str:
-    """One line per pydantic error: ``source: field 'a.0.b': message``."""
-    lines = [
-        f"{source}: field '{'.'.join(str(p) for p in e['loc']) or '(root)'}': {e['msg']}"
-        for e in exc.errors()
-    ]
-    return "\n".join(lines)
 
 
 def _matrix(value, shape: tuple[int, ...], what: str) -> list:

@@ -17,6 +17,7 @@ from pydantic import ValidationError
 
 from sim.optics.measured_lens import LensFileError, save_lens
 from sim.optics.rig import Rig
+from sim.validation import format_validation_error
 from station.acquisition.backend import fake_truth
 from station.ltc.store import LtcVolumeError, open_ltc_volume
 from station.lens.derive import derive_lens
@@ -84,9 +85,7 @@ def run(args: argparse.Namespace) -> int:
         save_lens(args.out, result.lens)
         figures = [] if args.figures is None else write_figures(volume, result, args.figures)
     except ValidationError as exc:
-        msg = "; ".join(f"--{'-'.join(str(p) for p in e['loc'])}: {e['msg']}"
-                        for e in exc.errors())
-        print(f"ltc lens: error: {msg}", file=sys.stderr)
+        print(f"ltc lens: error: {format_validation_error('options', exc)}", file=sys.stderr)
         return 2
     except (LtcStoreError, LtcVolumeError, LensFitError, RayFitError, LensFileError,
             FileNotFoundError, ValueError) as exc:

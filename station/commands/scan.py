@@ -30,7 +30,8 @@ from pydantic import TypeAdapter, ValidationError
 from sim.fpp.cloud import write_ply
 from sim.render.fringe_patterns import PatternSet
 from sim.fpp.scan import DecodeSettings, reconstruct
-from sim.optics.rig import Rig, format_validation_error
+from sim.optics.rig import Rig
+from sim.validation import format_validation_error
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
 
