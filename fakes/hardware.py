@@ -96,7 +96,8 @@ class FakeHardware(contextlib.ExitStack):
             self.lcd = self.enter_context(FakeLCD(display, settings.panel))
             self.camera = self.enter_context(
                 FakeCamera(
-                    self.bench, self.lcd, self.carriage_mm, settings.noise, seed=settings.seed
+                    self.bench, self.lcd, self.carriage_mm, settings.noise, seed=settings.seed,
+                    seed_per_scene=True,
                 )
             )
         except BaseException:

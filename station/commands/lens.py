@@ -12,18 +12,16 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
 from pydantic import ValidationError
 
 from sim.optics.measured_lens import LensFileError, save_lens
 from sim.optics.rig import Rig
 from sim.validation import format_validation_error
-from station.acquisition.backend import fake_truth
 from station.ltc.store import LtcVolumeError, open_ltc_volume
 from station.lens.derive import derive_lens
 from station.lens.figures import write_figures
 from station.lens.geometry import LensFitConfig, LensFitError
-from station.ltc.store import LtcStoreError, open_ltc_store
+from station.ltc.store import LtcStoreError
 from station.lens.rays import RayFitError
 
 
@@ -92,11 +90,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"ltc lens: error: {exc}", file=sys.stderr)
         return 2
     report = {**result.summary(), "out": str(args.out), "figures": [str(f) for f in figures]}
-    truth = fake_truth(dict(open_ltc_store(args.store).attrs.get("config") or {}))
-    if truth is not None:
-        err = np.subtract(report["optical_centre_mm"], truth["optical_centre_mm"])
-        report["fake_truth"] = {**truth, "optical_centre_error_mm": err.tolist(),
-                                "optical_centre_error_norm_mm": float(np.linalg.norm(err))}
     if args.json:
         print(json.dumps(report))
     else:
@@ -123,12 +116,6 @@ def format_report(r: dict) -> str:
         (f"lens model      {r['samples']} samples x {r['nodes'][0]}x{r['nodes'][1]} nodes "
          f"({r['nodes_filled']} filled from a neighbour) -> {r['out']}"),
     ]
-    if "fake_truth" in r:
-        t = r["fake_truth"]
-        c = t["optical_centre_mm"]
-        lines.append(f"fake bench truth optical centre ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f}) mm: "
-                     f"error {t['optical_centre_error_norm_mm']:.4f} mm; paraxial focus "
-                     f"{t['focus_distance_mm']:.3f} mm")
     lines += [f"note            {n}" for n in r["notes"]]
     lines += [f"figure          {f}" for f in r["figures"]]
     return "\n".join(lines)
