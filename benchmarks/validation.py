@@ -62,7 +62,7 @@ from sim.optics.rig import DeviceCalibration, Rig, small_rig
 from sim.render.scene import Scene, SphereObject
 from sim.render.trace import TraceGeometry
 from station.acquisition.acquire import acquire
-from station.lens.centroids import open_ltc_volume
+from station.ltc.store import open_ltc_volume
 from station.acquisition.config import StationConfig
 from station.lens.derive import derive_lens
 from station.lens.geometry import LensFitConfig

@@ -9,6 +9,7 @@ rounded to integers and clipped to the bit depth.
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -66,7 +67,13 @@ class CameraFaults:
 
 
 class FakeCamera(Camera):
-    """Renders the fake LCD through the bench's true LTC at the stage's current position."""
+    """Renders the fake LCD through the bench's true LTC at the stage's current position.
+
+    seed : noise seed (None: a fresh one). seed_per_scene : draw each capture's noise from
+    ``(seed, scene_key)``, the scene being what the LCD shows and where the stage is, so a
+    frame does not depend on what was captured before it (a run interrupted and resumed, or
+    a retried frame, gives the same frames); otherwise one stream from ``seed``.
+    """
 
     def __init__(
         self,
@@ -78,6 +85,7 @@ class FakeCamera(Camera):
         exposure_ms: float | None = None,
         seed: int | None = 0,
         timeout_s: float = 2.0,
+        seed_per_scene: bool = False,
     ) -> None:
         if lcd.size != bench.config.lcd_size:
             raise ValueError(
@@ -90,18 +98,20 @@ class FakeCamera(Camera):
         self._position = stage_position_mm
         self._exposure_ms = exposure_ms or self.noise.reference_exposure_ms
         self.seed = seed
+        self.seed_per_scene = seed_per_scene
         self.rng = np.random.default_rng(seed)
         self.timeout_s = timeout_s
         self.faults = CameraFaults()
         self._frame_id = -1
         self._last: Frame | None = None
 
-    def reseed(self, key: tuple[int, ...]) -> None:
-        """Restart the noise from ``(seed, *key)`` (non-negative ints): the same key gives the
-        same noise, so a frame taken again (after an interruption, or a retry), keyed by what it
-        shows (e.g. depth and pattern), is identical. No effect when ``seed`` is None."""
-        if self.seed is not None:
-            self.rng = np.random.default_rng([self.seed, *key])
+    def scene_key(self, z_mm: float) -> tuple[int, ...]:
+        """Identity of the scene of a capture: a hash of the LCD's luminance (H, W) and of the
+        stage position ``z_mm``, as four 32-bit ints."""
+        h = hashlib.blake2b(digest_size=16)
+        h.update(np.ascontiguousarray(self.lcd.luminance()).tobytes())
+        h.update(np.float64(z_mm).tobytes())
+        return tuple(int(v) for v in np.frombuffer(h.digest(), dtype="<u4"))
 
     @property
     def exposure_ms(self) -> float:
@@ -157,6 +167,8 @@ class FakeCamera(Camera):
             f.drop = 0
         z = self._position()
         self._frame_id += 1
+        if self.seed_per_scene and self.seed is not None:
+            self.rng = np.random.default_rng([self.seed, *self.scene_key(z)])
         frame = Frame(
             image=self._digitise(self.expected_electrons(z)),
             timestamp=time.monotonic(),

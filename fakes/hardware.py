@@ -16,6 +16,7 @@ from fakes.bench import BenchConfig, FakeBench
 from fakes.camera import FakeCamera, NoiseModel
 from fakes.lcd import FakeLCD, PanelResponse
 from fakes.zaber import FakeZaberDevice, FakeZaberPty
+from sim.validation import format_validation_error
 
 SPEED_UNIT = 1.6384  # Zaber maxspeed value per microstep/s
 
@@ -37,17 +38,16 @@ class FakeSettings(BaseModel):
 
 
 def parse_fake_settings(data: dict[str, Any], source: str = "config") -> FakeSettings:
-    """Validate the ``[fake]`` section; errors name the field as ``fake.<field>``."""
+    """Validate the ``[fake]`` section; errors name ``source`` and the field as
+    ``fake.<field>`` (``fake.bench.<field>`` for the bench overrides)."""
     try:
         settings = FakeSettings.model_validate(data)
+    except ValidationError as exc:
+        raise ValueError(format_validation_error(source, exc, ("fake",))) from exc
+    try:
         settings.bench_config()
     except ValidationError as exc:
-        fields = "; ".join(
-            "fake." + ("bench." if e["loc"] and e["loc"][0] not in FakeSettings.model_fields else "")
-            + ".".join(str(p) for p in e["loc"]) + f": {e['msg']}"
-            for e in exc.errors()
-        )
-        raise ValueError(f"{source}: invalid fake bench settings: {fields}") from exc
+        raise ValueError(format_validation_error(source, exc, ("fake", "bench"))) from exc
     return settings
 
 
@@ -96,7 +96,8 @@ class FakeHardware(contextlib.ExitStack):
             self.lcd = self.enter_context(FakeLCD(display, settings.panel))
             self.camera = self.enter_context(
                 FakeCamera(
-                    self.bench, self.lcd, self.carriage_mm, settings.noise, seed=settings.seed
+                    self.bench, self.lcd, self.carriage_mm, settings.noise, seed=settings.seed,
+                    seed_per_scene=True,
                 )
             )
         except BaseException:

@@ -43,18 +43,10 @@ from sim.optics.projection import (
     project_points,
 )
 from sim.tolerances import LOOK_AT_PARALLEL_TOL, ROTATION_TOL
+from sim.validation import format_validation_error
 
 YAML_SUFFIXES = (".yaml", ".yml", ".xml")
 DEVICE_NODES = ("camera_0", "camera_1", "projector")
-
-
-def format_validation_error(source: str, exc: ValidationError) -> str:
-    """One line per pydantic error: ``source: field 'a.0.b': message``."""
-    lines = [
-        f"{source}: field '{'.'.join(str(p) for p in e['loc']) or '(root)'}': {e['msg']}"
-        for e in exc.errors()
-    ]
-    return "\n".join(lines)
 
 
 def _matrix(value, shape: tuple[int, ...], what: str) -> list:

@@ -37,7 +37,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from sim.render.fringe_patterns import PatternSet
 from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens
 from sim.render.images import RenderResult, RenderSettings, render_views
-from sim.optics.rig import DeviceCalibration, Rig, _matrix, format_validation_error
+from sim.optics.rig import DeviceCalibration, Rig, _matrix
+from sim.validation import format_validation_error
 from sim.render.trace import TraceGeometry
 from sim.tolerances import ROTATION_TOL
 

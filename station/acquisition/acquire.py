@@ -15,8 +15,9 @@ stop the stage after a failure, close the devices, record the run's status) alwa
 failed cleanup is logged and attached to the run's error as a note, never raised in its
 place (after a run that went well, it is the error).
 
-On the fake bench the camera's noise is seeded per frame by what the frame shows (depth,
-pattern), so a run interrupted and resumed ends with the same frames as one that was not.
+On the fake bench the camera seeds its noise by itself from the scene of each capture (what
+the LCD shows and where the stage is), so a run interrupted and resumed ends with the same
+frames as one that was not; the engine treats every camera alike.
 """
 
 from __future__ import annotations
@@ -176,7 +177,7 @@ class Acquisition:
         """Show ``image`` and return a good camera frame of it (camera trouble retried)."""
         shown = self._show(image)
         for attempt in range(self.config.acquire.max_retries + 1):
-            frame, why = self._capture(shown, key)
+            frame, why = self._capture(shown)
             if frame is not None:
                 return frame.image
             self._retry(why[0], f"calibration capture {key}", attempt, why[1])
@@ -198,7 +199,7 @@ class Acquisition:
         for attempt in range(max_retries + 1):
             if shown is None:
                 shown = self._show(image)
-            frame, why = self._capture(shown, (0, d, p))
+            frame, why = self._capture(shown)
             if frame is not None and code is not None:
                 why = self._verify(frame, code)
                 if why is not None:
@@ -230,13 +231,9 @@ class Acquisition:
             time.sleep(wait)
         return shown
 
-    def _capture(self, shown: ShownFrame,
-                 key: tuple[int, ...]) -> tuple[Frame | None, tuple[str, str] | None]:
+    def _capture(self, shown: ShownFrame) -> tuple[Frame | None, tuple[str, str] | None]:
         """One capture: (frame, None) when it is fresh (taken after ``shown`` went on screen,
-        with a new frame counter), else (None, (kind, detail)). On the fake bench the camera
-        noise is seeded by ``key`` (what is shown), so frames do not depend on interruptions."""
-        if self.hw.fake is not None:
-            self.hw.fake.camera.reseed(key)
+        with a new frame counter), else (None, (kind, detail))."""
         try:
             frame = self.hw.camera.capture(self.config.camera.timeout_s)
         except CameraTimeout as exc:

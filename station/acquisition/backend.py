@@ -8,7 +8,7 @@ from __future__ import annotations
 import contextlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Iterator
 
 import numpy as np
 
@@ -19,12 +19,11 @@ from station.acquisition.config import ConfigError, StationConfig
 
 @dataclass
 class Hardware:
-    """The opened devices; ``fake`` is the fake bench (ground truth) on the fake backend."""
+    """The opened devices, real or fake: the station sees only their interfaces."""
 
     stage: Stage
     display: PatternDisplay
     camera: Camera
-    fake: Any = None
 
 
 def load_lut(path: str | Path) -> np.ndarray:
@@ -47,17 +46,20 @@ def frame_code_layout(config: StationConfig) -> FrameCodeLayout | None:
     return FrameCodeLayout(block_px=d.frame_code_block_px) if d.frame_code else None
 
 
-def fake_truth(config: dict) -> dict | None:
-    """Ground truth of a fake-bench run from its stored config (None for a real bench):
-    the true optical centre in the station frame (mm) and focus distance (mm)."""
-    if config.get("backend") != "fake":
-        return None
-    from fakes.bench import FakeBench
-    from fakes.hardware import parse_fake_settings
+def open_fake_hardware(config: StationConfig, *, lut: np.ndarray | None = None):
+    """The fake bench's devices (a ``fakes.hardware.FakeHardware``, a context manager) as
+    the config's ``[fake]``, ``stage``, ``display`` and ``camera`` sections set them up.
+    Tests reach the fakes' fault switches and wire log through it; the station does not."""
+    from fakes.hardware import FakeHardware, parse_fake_settings
 
-    bench = FakeBench(parse_fake_settings(config.get("fake", {})).bench_config())
-    return {"optical_centre_mm": bench.optical_centre_station_mm().tolist(),
-            "focus_distance_mm": bench.config.focus_distance_mm}
+    s = config.stage
+    fake = FakeHardware(
+        parse_fake_settings(config.fake), microstep_um=s.microstep_um, travel_mm=s.travel_mm,
+        tolerance_um=s.tolerance_um, timeout_s=s.timeout_s, settle_s=s.settle_s,
+        frame_code=frame_code_layout(config), lut=lut,
+    )
+    fake.camera.exposure_ms = config.camera.exposure_ms
+    return fake
 
 
 @contextlib.contextmanager
@@ -67,16 +69,8 @@ def open_hardware(config: StationConfig, *, lut: np.ndarray | None = None) -> It
         lut = load_lut(config.display.lut_path)
     s = config.stage
     if config.backend == "fake":
-        from fakes.hardware import FakeHardware, parse_fake_settings
-
-        settings = parse_fake_settings(config.fake)
-        with FakeHardware(
-            settings, microstep_um=s.microstep_um, travel_mm=s.travel_mm,
-            tolerance_um=s.tolerance_um, timeout_s=s.timeout_s, settle_s=s.settle_s,
-            frame_code=frame_code_layout(config), lut=lut,
-        ) as fake:
-            fake.camera.exposure_ms = config.camera.exposure_ms
-            yield Hardware(fake.stage, fake.lcd, fake.camera, fake)
+        with open_fake_hardware(config, lut=lut) as fake:
+            yield Hardware(fake.stage, fake.lcd, fake.camera)
         return
 
     from drivers.camera import OpenCVCamera

@@ -10,6 +10,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from drivers.frame_code import FrameCodeLayout
+from sim.validation import format_validation_error
 
 
 class ConfigError(ValueError):
@@ -184,14 +185,6 @@ class StationConfig(_Strict):
         return self
 
 
-def _format_errors(source: str, exc: ValidationError) -> str:
-    lines = [f"{source}: invalid station config"]
-    for err in exc.errors():
-        field = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        lines.append(f"  {field}: {err['msg']}")
-    return "\n".join(lines)
-
-
 def parse_config(text: str, source: str = "<config>") -> StationConfig:
     """Parse TOML text into a validated config; errors name ``source`` and the field."""
     try:
@@ -201,7 +194,7 @@ def parse_config(text: str, source: str = "<config>") -> StationConfig:
     try:
         return StationConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(_format_errors(source, exc)) from exc
+        raise ConfigError(format_validation_error(source, exc)) from exc
 
 
 def load_config(path: str | Path) -> StationConfig:

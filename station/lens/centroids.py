@@ -14,20 +14,18 @@ with the area summed over (OPTICS.md section 5). Station-frame points are
 
 The LTC store writes NaN windows for pixels without signal; such a pixel is "no signal" at
 that depth. A window mixing NaN and finite weights, or one whose weights sum to <= 0, is a
-broken store and raises. (``station/ltc/spi.py`` of issue 3 will offer its own ``centroid``;
-it did not exist when this was written, so the centroid lives here.)
+broken store and raises. This is the project's one LTC centroid: the reconstruction
+(``station/ltc/spi.py``) and its tests grade their LTCs with ``window_stats`` too.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 from scipy import ndimage
 
-from station.ltc.store import LtcStoreError, open_ltc_store
+from station.ltc.store import LtcVolume, LtcVolumeError
 
 STATUS_OK = 0
 STATUS_NO_SIGNAL = 1  # NaN window, or no weight above the noise threshold
@@ -37,96 +35,6 @@ PEAK_FRACTION = 0.02  # ...and at least this fraction of the smoothed peak
 REGION_MARGIN_PX = 2  # the region is grown by this many LCD pixels
 READ_BUDGET_BYTES = 1 << 27  # LTC windows read at once (float64), bytes
 WINDOWS_PER_BATCH = 4096  # windows analysed at once (temporaries ~ 10 x this x P^2 x 8 B)
-
-
-class LtcVolumeError(ValueError):
-    """An LTC volume is unusable; the message names the source, array and element."""
-
-
-@dataclass(frozen=True)
-class LtcVolume:
-    """The LTC of every pixel at every depth; arrays may be numpy or zarr (read by rows).
-
-    ltc : (D, H, W, P, P) weights, each window summing to 1, NaN where no signal.
-    origin : (D, H, W, 2) int, LCD (column, row) of window element [0, 0].
-    gain : (D, H, W) response to full white, ADU above black (relative transmittance).
-    noise : (D, H, W) std of one LTC weight.
-    depths_mm : (D,) stage readings, mm; pitch_mm : LCD pixel pitch, mm.
-    camera_matrix, dist_coeffs : the camera's K (3x3) and OpenCV distortion, if known.
-    name : where it came from, for error messages.
-    """
-
-    ltc: Any
-    origin: Any
-    gain: Any
-    noise: Any
-    depths_mm: np.ndarray
-    pitch_mm: float
-    camera_matrix: np.ndarray | None = None
-    dist_coeffs: np.ndarray | None = None
-    name: str = "<memory>"
-
-    def __post_init__(self) -> None:
-        depths = np.asarray(self.depths_mm, dtype=np.float64).ravel()
-        object.__setattr__(self, "depths_mm", depths)
-        n = self.name
-        if len(depths) < 2:
-            raise LtcVolumeError(f"{n}: depths_mm has {len(depths)} depth(s); the lens "
-                                 "derivation needs at least 2 depths (better 5-6)")
-        if not np.all(np.isfinite(depths)) or len(np.unique(depths)) != len(depths):
-            raise LtcVolumeError(f"{n}: depths_mm must be finite and distinct, got {depths}")
-        if not (np.isfinite(self.pitch_mm) and self.pitch_mm > 0):
-            raise LtcVolumeError(f"{n}: pitch_mm must be > 0, got {self.pitch_mm}")
-        shape = tuple(self.ltc.shape)
-        if len(shape) != 5 or shape[0] != len(depths) or shape[3] != shape[4]:
-            raise LtcVolumeError(f"{n}: ltc has shape {shape}, expected (D={len(depths)}, H, W, "
-                                 "P, P)")
-        for field, want in (("origin", shape[:3] + (2,)), ("gain", shape[:3]),
-                            ("noise", shape[:3])):
-            got = tuple(getattr(self, field).shape)
-            if got != want:
-                raise LtcVolumeError(f"{n}: {field} has shape {got}, expected {want}")
-        if self.camera_matrix is not None:
-            k = np.asarray(self.camera_matrix, dtype=np.float64)
-            if k.shape != (3, 3) or not np.all(np.isfinite(k)) or k[0, 0] <= 0 or k[1, 1] <= 0:
-                raise LtcVolumeError(f"{n}: camera_matrix must be a finite 3x3 K with "
-                                     f"fx, fy > 0, got {k.tolist()}")
-            object.__setattr__(self, "camera_matrix", k)
-
-    @property
-    def camera_size(self) -> tuple[int, int]:
-        """(width, height) in pixels."""
-        return int(self.ltc.shape[2]), int(self.ltc.shape[1])
-
-    def rows(self, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``ltc, origin, gain, noise`` of camera rows ``r0:r1`` as float64/int64 arrays."""
-        return (
-            np.asarray(self.ltc[:, r0:r1], dtype=np.float64),
-            np.asarray(self.origin[:, r0:r1], dtype=np.int64),
-            np.asarray(self.gain[:, r0:r1], dtype=np.float64),
-            np.asarray(self.noise[:, r0:r1], dtype=np.float64),
-        )
-
-
-def open_ltc_volume(path: str | Path) -> LtcVolume:
-    """An ``LtcVolume`` reading from an LTC store (``station/ltc/store.py``) on demand.
-
-    Optional attributes ``camera_matrix`` (3x3) and ``dist_coeffs`` (5) give the camera's K.
-    """
-    g = open_ltc_store(path)
-    a = g.attrs
-    for key in ("depths_mm", "pitch_mm"):
-        if key not in a:
-            raise LtcStoreError(f"{path}: attribute {key!r} is missing")
-    k = a.get("camera_matrix")
-    d = a.get("dist_coeffs")
-    return LtcVolume(
-        ltc=g["ltc"], origin=g["origin"], gain=g["gain"], noise=g["noise"],
-        depths_mm=np.asarray(a["depths_mm"], dtype=np.float64), pitch_mm=float(a["pitch_mm"]),
-        camera_matrix=None if k is None else np.asarray(k, dtype=np.float64),
-        dist_coeffs=None if d is None else np.asarray(d, dtype=np.float64),
-        name=str(path),
-    )
 
 
 @dataclass(frozen=True)

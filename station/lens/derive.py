@@ -1,6 +1,10 @@
-"""The measured lens from an LTC volume: geometry (``station.lens.geometry``), then every node
-pixel's LTC at the optical centre (``station.lens.aperture``), K samples, and the lens model file
-(``sim.optics.measured_lens``).
+"""The lens model file from the lens's geometry and its LTCs (OPTICS.md section 6).
+
+This module's line: given the ``LensGeometry`` (``station.lens.geometry``: principal rays ->
+optical centre -> focus plane), it takes every node pixel's LTC at each depth, scales it onto
+the aperture plane at the optical centre and fuses the depths (``station.lens.aperture``),
+draws K samples per node and writes the lens model (``sim.optics.measured_lens``).
+``derive_lens`` runs the whole chain from an LTC volume.
 
 Nodes: every ``grid_step``-th pixel in u and v, plus the last column and row. A node without
 a usable principal ray (flagged) or without a fused distribution takes the samples of the
@@ -17,7 +21,8 @@ from scipy import ndimage
 
 from sim.optics.measured_lens import MeasuredLens
 from station.lens import aperture as ap
-from station.lens.centroids import LtcVolume, rows_per_read, window_stats
+from station.lens.centroids import rows_per_read, window_stats
+from station.ltc.store import LtcVolume
 from station.lens.geometry import (
     LensFitConfig,
     LensFitError,

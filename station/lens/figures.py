@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from station.lens.centroids import LtcVolume
+from station.ltc.store import LtcVolume
 from station.lens.derive import LensResult, aperture_set
 from station.lens.rays import UNUSABLE
 

@@ -1,30 +1,21 @@
-"""From an LTC volume to a measured lens (OPTICS.md section 6), and the choices it makes.
+"""The lens's geometry from an LTC volume (OPTICS.md 6.1-6.3): principal rays -> optical
+centre -> focus plane, as a ``LensGeometry``.
 
-Steps: centroids (``station.lens.centroids``) -> principal rays and their intersection
-(``station.lens.rays``) -> focus plane from LTC size -> optical centre -> every node
-pixel's LTC at each depth scaled onto the aperture plane and fused (``station.lens.aperture``) ->
-K samples -> ``sim.optics.measured_lens.MeasuredLens``.
+This module's line: it measures where the lens is and where it focuses, nothing of its
+aperture. Steps: centroids (``station.lens.centroids``) -> principal rays
+(``station.lens.rays``) -> optical centre (``station.lens.centre``: the principal-ray
+intersection, or with K the pinhole centre) -> focus plane from the LTC sizes. What the
+lens does with the light (each pixel's LTC seen from the optical centre, the aperture
+samples) and the lens model file are ``station.lens.derive``.
 
 **Focus.** The LTC's second moment, less the known blurs (LCD pixel ``pitch^2/12`` and the
 camera pixel's footprint ``(d/f)^2/12`` per axis), is quadratic in depth for a thin lens
 (spherical aberration included: each ray's offset is linear in depth); its vertex is the
 pixel's focus plane ``Z_F`` (the plane of least blur). The lens's ``Z_F`` is the median over
 pixels. A configured focus distance ``z_f`` (from the optical centre) is reported beside the
-fitted ``Z_F - z_O`` and, when given, used.
-
-**Which optical centre.** A pixel's LTC centroid follows the centroid of its *clipped*
-pupil. With vignetting that shifts with the field (cat's eyes), the centroid rays cross the
-pupil plane at ``p_n ~ field``, so all of them converge on the axis behind the pupil (34 mm
-on the small fake bench), near as well as far from the axis: no weighting fixes it, and rays
-alone cannot fix it either (a field-shifted clipping circle is a second stop in another
-plane, and two stops give the same rays whichever is called the pupil). The simulator casts
-pixel n's rays through ``O + z_f (x_n, y_n, 1)`` with ``x_n`` from the camera matrix K, so
-the centre it needs is the one from which the in-focus points are seen in K's directions.
-With K known, that is what is estimated (``pinhole_centre``): the principal rays at the focus
-plane give each pixel's in-focus point (every ray of the pixel passes there, clipped or
-not), whose spread over the sensor is ``z_f`` times that of K's directions; the centre lies
-``z_f`` before the focus plane, on the axis through the principal-ray intersection. Without
-K the principal-ray intersection (the paper's definition) is used, and the report says so.
+fitted ``Z_F - z_O`` and, when given, used. The centre and the focus plane depend on each
+other with K (the footprint blur and ``z_f``), so ``fit_geometry`` iterates them to a fixed
+point.
 """
 
 from __future__ import annotations
@@ -35,16 +26,10 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from sim.optics.projection import pixel_to_normalized
-from station.lens.centroids import Centroids, LtcVolume, compute_centroids
-from station.lens.rays import (
-    HUBER_K,
-    OpticalCentre,
-    PrincipalRays,
-    RayFitError,
-    fit_principal_rays,
-    intersect_rays,
-)
+from station.lens.centre import OpticalCentre, intersect_rays, pinhole_centre
+from station.lens.centroids import Centroids, compute_centroids
+from station.lens.rays import PrincipalRays, RayFitError, fit_principal_rays
+from station.ltc.store import LtcVolume
 
 LCD_BIN_VAR = 1.0 / 12.0  # variance of an LCD pixel box, pitch^2
 TRACE_REL_FLOOR = 0.01  # relative error floor of an LTC second moment in the focus fit
@@ -133,72 +118,6 @@ def fit_focus_plane(c: Centroids, usable: np.ndarray, centre_z_mm: float,
     med = float(np.median(zg))
     spread = float(1.4826 * np.median(np.abs(zg - med)))
     return FocusFit(med, 1.2533 * spread / np.sqrt(len(zg)), z, spread)
-
-
-def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, uv: np.ndarray, K: np.ndarray,
-                   dist: np.ndarray | None, focus_plane_z_mm: float,
-                   focus_plane_var_mm2: float, axis: OpticalCentre,
-                   iterations: int = 20) -> tuple[OpticalCentre, np.ndarray]:
-    """Optical centre consistent with K (see the module docstring).
-
-    The in-focus points ``A_n`` (principal rays at the focus plane ``Z_F``) must be the
-    pixels' directions ``x_n`` (from K) scaled by z_f about the axis, up to a roll phi:
-    ``A_n = o + z_f Rot(phi) x_n``, linear in ``(o_x, o_y, z_f cos phi, z_f sin phi)``
-    (robust: Huber-reweighted). The centre is at ``z = Z_F - z_f`` on the axis through the
-    principal-ray intersection ``axis`` (its x, y; a camera tilt would enter ``o`` with a
-    lever of z_f, and only 34 mm x tilt into the intersection). Covariance: x, y from the
-    intersection, z from the fit's residuals plus the focus-plane variance propagated.
-    Returns the centre and the rotation (3, 3) from station to camera axes (the roll).
-    """
-    idx = np.flatnonzero(usable)
-    if len(idx) < 3:
-        raise RayFitError(f"pinhole optical centre: {len(idx)} usable principal rays; need >= 3")
-    xn = pixel_to_normalized(uv[idx], K, dist)
-    n = len(idx)
-    a = np.zeros((2 * n, 4))
-    a[0::2, 0] = 1.0
-    a[1::2, 1] = 1.0
-    a[0::2, 2], a[0::2, 3] = xn[:, 0], -xn[:, 1]
-    a[1::2, 2], a[1::2, 3] = xn[:, 1], xn[:, 0]
-    data = rays.xy_at(focus_plane_z_mm)[idx].ravel()
-    slope = rays.slope[idx].ravel()  # d data / d Z_F
-    prior = np.repeat(1.0 / rays.var_at(focus_plane_z_mm)[idx], 2)
-    robust = np.ones(2 * n)
-    for _ in range(iterations):
-        w = prior * robust
-        ata = a.T @ (w[:, None] * a)
-        theta = np.linalg.solve(ata, a.T @ (w * data))
-        r = data - a @ theta
-        dist_n = np.hypot(r[0::2], r[1::2])
-        scaled = dist_n * np.sqrt(prior[0::2])
-        scale = max(float(np.median(scaled)) / np.sqrt(np.log(4.0)), 1e-300)
-        new = np.repeat(np.where(scaled <= HUBER_K * scale, 1.0,
-                                 HUBER_K * scale / np.maximum(scaled, 1e-300)), 2)
-        done = np.allclose(new, robust, atol=1e-10)
-        robust = new
-        if done:
-            break
-    w = prior * robust
-    ata_inv = np.linalg.inv(a.T @ (w[:, None] * a))
-    s2 = float((w * r * r).sum()) / max(2 * n - 4, 1)
-    ca, cb = theta[2], theta[3]
-    z_f = float(np.hypot(ca, cb))
-    jac = np.array([ca, cb]) / z_f
-    var_zf = float(jac @ (s2 * ata_inv[2:, 2:]) @ jac)
-    dtheta = ata_inv @ (a.T @ (w * slope))
-    dz_o = 1.0 - float(jac @ dtheta[2:])
-    cov = np.array(axis.covariance, dtype=np.float64, copy=True)
-    cov[2, :] = cov[:, 2] = 0.0
-    cov[2, 2] = var_zf + dz_o**2 * focus_plane_var_mm2
-    o = np.array([axis.position[0], axis.position[1], focus_plane_z_mm - z_f])
-    phi = float(np.arctan2(cb, ca))
-    rot = np.array([[np.cos(phi), np.sin(phi), 0.0], [-np.sin(phi), np.cos(phi), 0.0],
-                    [0.0, 0.0, 1.0]])
-    weights = np.zeros(len(usable))
-    weights[idx] = w[0::2]
-    distance = np.full(len(usable), np.nan)
-    distance[idx] = dist_n
-    return OpticalCentre(o, cov, weights, distance, "pinhole: in-focus points vs K"), rot
 
 
 @dataclass

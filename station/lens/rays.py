@@ -1,4 +1,5 @@
-"""Principal rays (OPTICS.md 6.2) and the optical centre (6.3), vectorised over pixels.
+"""Principal rays (OPTICS.md 6.2), vectorised over pixels; their intersection, the optical
+centre, is ``station.lens.centre``.
 
 A pixel's principal ray is the line through its LTC centroids at the depths:
 ``x(z) = c_x + s_x (z - z_ref)``, ``y(z) = c_y + s_y (z - z_ref)`` (station frame, mm). The
@@ -13,12 +14,6 @@ Flags (bitmask per pixel; a flagged pixel is never used silently):
 * ``FLAG_OUTLIER``: outlier depth(s) removed; the ray uses the rest and stays usable.
 * ``FLAG_BAD_FIT``: outliers remain after ``max_outliers`` removals; not used.
 
-The optical centre here is the least-squares intersection of the usable rays, iteratively
-reweighted (Huber weights on the ray-to-centre distance over a robust scale), with the
-covariance ``s^2 (sum_n w_n (I - d_n d_n^T))^-1`` where ``s^2`` is the weighted residual
-variance. With field-dependent vignetting the centroid ray of a pixel follows the centroid of
-its clipped pupil, not the pupil centre, and these rays meet behind the pupil;
-``station.lens.geometry`` explains and corrects that with the camera matrix.
 """
 
 from __future__ import annotations
@@ -31,7 +26,6 @@ FLAG_FEW_DEPTHS = 1
 FLAG_OUTLIER = 2
 FLAG_BAD_FIT = 4
 UNUSABLE = FLAG_FEW_DEPTHS | FLAG_BAD_FIT
-HUBER_K = 2.0  # Huber threshold in robust-scale units for the ray intersection
 
 
 class RayFitError(ValueError):
@@ -150,69 +144,3 @@ def fit_principal_rays(
     res = np.where(used[..., None], res, np.nan)
     return PrincipalRays(z_ref, c, s, vr, vs, res, used, np.where(used, w0, 0.0),
                          flags.astype(np.int8))
-
-
-@dataclass(frozen=True)
-class OpticalCentre:
-    """position : (3,) mm station frame; covariance : (3, 3) mm^2; weights : (N,) final
-    robust weights (0 for unused rays); distance : (N,) ray-to-centre distance, mm;
-    method : how it was found."""
-
-    position: np.ndarray
-    covariance: np.ndarray
-    weights: np.ndarray
-    distance: np.ndarray
-    method: str
-
-    @property
-    def std(self) -> np.ndarray:
-        return np.sqrt(np.diag(self.covariance))
-
-
-def _huber(r: np.ndarray) -> np.ndarray:
-    a = np.abs(r)
-    return np.where(a <= HUBER_K, 1.0, HUBER_K / np.maximum(a, 1e-300))
-
-
-def intersect_rays(rays: PrincipalRays, use: np.ndarray | None = None,
-                   iterations: int = 20) -> OpticalCentre:
-    """Robust least-squares intersection of the usable rays (``use`` restricts further)."""
-    ok = rays.usable if use is None else rays.usable & np.asarray(use, dtype=bool)
-    if ok.sum() < 2:
-        raise RayFitError(f"optical centre: {int(ok.sum())} usable principal ray(s); need >= 2 "
-                          f"({int((rays.flags & FLAG_FEW_DEPTHS).astype(bool).sum())} pixels "
-                          "have too few depths with signal)")
-    dirs = rays.directions()[ok]
-    a = np.concatenate([rays.xy_ref[ok], rays.z_ref[ok, None]], axis=1)
-    m = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]
-    robust = np.ones(ok.sum())
-    z_c = float(np.mean(rays.z_ref[ok]))
-    o = np.full(3, np.inf)
-    for _ in range(iterations):
-        # a-priori lateral variance of each ray where it passes the current centre
-        prior = 1.0 / rays.var_at(np.full(len(ok), z_c))[ok]
-        w = prior * robust
-        mat = (w[:, None, None] * m).sum(axis=0)
-        rhs = (w[:, None, None] * m @ a[:, :, None]).sum(axis=0)[:, 0]
-        o_prev, o = o, np.linalg.solve(mat, rhs)
-        z_c = float(o[2])
-        r = np.einsum("nij,nj->ni", m, o - a)
-        dist = np.linalg.norm(r, axis=1)
-        scaled = dist * np.sqrt(prior)
-        # a 2-D Gaussian miss has a Rayleigh length, median sigma * sqrt(ln 4)
-        scale = np.median(scaled) / np.sqrt(np.log(4.0))
-        new = _huber(scaled / max(scale, 1e-300))
-        done = np.allclose(new, robust, atol=1e-10) and np.allclose(o, o_prev, atol=1e-9, rtol=0)
-        robust = new
-        if done:
-            break
-    w = prior * robust
-    mat = (w[:, None, None] * m).sum(axis=0)
-    dof = max(2 * len(w) - 3, 1)
-    s2 = float((w * dist**2).sum() / dof)
-    cov = s2 * np.linalg.inv(mat)
-    weights = np.zeros(len(ok))
-    weights[ok] = w
-    distance = np.full(len(ok), np.nan)
-    distance[ok] = dist
-    return OpticalCentre(o, cov, weights, distance, "principal-ray intersection")

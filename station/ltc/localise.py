@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.fpp.phase import wrapped_phase
+from sim.fpp.phase import gray_to_index, wrapped_phase
 from station.acquisition.patterns import StationPatternPlan
 
 
@@ -32,14 +32,6 @@ class LcdMap:
     xy: np.ndarray
     contrast: np.ndarray
     modulation: np.ndarray
-
-
-def gray_to_index(bits: np.ndarray) -> np.ndarray:
-    """Gray-coded bits (b, n) bool, most significant first -> (n,) int64 binary index."""
-    b = np.asarray(bits, dtype=np.int64)
-    binary = np.bitwise_xor.accumulate(b, axis=0)
-    weights = (1 << np.arange(b.shape[0] - 1, -1, -1, dtype=np.int64))[:, None]
-    return (binary * weights).sum(axis=0)
 
 
 def decode_axis(

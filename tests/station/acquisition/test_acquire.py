@@ -29,6 +29,7 @@ from fakes import hardware as fake_hardware
 from fakes.bench import FakeBench
 from fakes.hardware import parse_fake_settings
 from fakes.lcd import FakeLCD
+from fakes.truth import lens_truth, optical_centre_error
 from station.acquisition.acquire import (
     CODE_MASK,
     AcquisitionError,
@@ -37,7 +38,7 @@ from station.acquisition.acquire import (
     config_differences,
     plan_events,
 )
-from station.acquisition.backend import open_hardware
+from station.acquisition.backend import Hardware, open_fake_hardware, open_hardware
 from station.cli import main
 from station.acquisition.config import example_text, parse_config
 from station.acquisition.run_store import RunStore
@@ -263,7 +264,7 @@ def test_repeated_pattern_is_caught_by_the_check_code_and_recaptured(reference, 
 
     def fault(event, hw):
         if event in (Event(0, 10), Event(1, 33)):
-            hw.fake.lcd.faults.repeat_previous = 1
+            hw.display.faults.repeat_previous = 1
 
     summary = acquire(small_config(), out, progress=False, before_event=fault)
     arrays, attrs = read_store(out)
@@ -283,11 +284,11 @@ def test_camera_timeout_and_stale_frames_are_retried_and_recorded(reference, tmp
 
     def fault(event, hw):
         if event == Event(0, 5):
-            hw.fake.camera.faults.timeout = 1
+            hw.camera.faults.timeout = 1
         if event == Event(0, 20):
-            hw.fake.camera.faults.stale = 2
+            hw.camera.faults.stale = 2
         if event == Event(1, 3):
-            hw.fake.camera.faults.drop = 3  # lost frames are harmless: nothing to retry
+            hw.camera.faults.drop = 3  # lost frames are harmless: nothing to retry
 
     summary = acquire(small_config(), out, progress=False, before_event=fault)
     arrays, attrs = read_store(out)
@@ -305,7 +306,7 @@ def test_a_frame_that_stays_bad_stops_the_run_and_keeps_what_is_done(tmp_path):
 
     def fault(event, hw):
         if event == Event(0, 12):
-            hw.fake.camera.faults.timeout = 10
+            hw.camera.faults.timeout = 10
 
     config = small_config(**{"max_retries = 3 ": "max_retries = 2 "})
     with pytest.raises(AcquisitionError, match=r"frame \(depth 0, pattern 12\): no good frame in 3 "
@@ -318,7 +319,7 @@ def test_a_frame_that_stays_bad_stops_the_run_and_keeps_what_is_done(tmp_path):
 def test_calibration_that_cannot_get_frames_stops_the_run(tmp_path):
     config = small_config(**{"max_retries = 3 ": "max_retries = 1 "})
     with open_hardware(config) as hw:
-        hw.fake.camera.faults.timeout = 10
+        hw.camera.faults.timeout = 10
         with pytest.raises(AcquisitionError, match=r"no good frame of calibration capture "
                                                    r"\(1, 0, 4\) in 2 attempts: FakeCamera: no "
                                                    r"frame within"):
@@ -352,11 +353,11 @@ def test_saturated_frames_are_counted_and_the_check_code_can_be_off(tmp_path, ca
 
 
 @pytest.mark.parametrize(("old", "new", "message"), [
-    ("[camera]", "[camera]\nexposure = 3", r"camera\.exposure: Extra inputs are not permitted"),
+    ("[camera]", "[camera]\nexposure = 3", r"field 'camera\.exposure': Extra inputs are not permitted"),
     ("depths_mm = [40.0,", "depths_mm = [-4.0,", r"depths_mm\[0\] = -4.0 is negative"),
-    ("period = 4", "period = 3", r"patterns\.period: Input should be greater than or equal to 4"),
+    ("period = 4", "period = 3", r"field 'patterns\.period': Input should be greater than or equal to 4"),
     ("depths_mm = [40.0,", "depths_mm = [400.0,", r"depths_mm\[0\] = 400.0 is outside stage\.travel_mm"),
-    ("bits = 2", "bits = 9", r"frame_check\.bits: Input should be less than or equal to 6"),
+    ("bits = 2", "bits = 9", r"field 'frame_check\.bits': Input should be less than or equal to 6"),
 ])
 def test_bad_configs_fail_before_the_stage_is_opened(tmp_path, monkeypatch, capsys, old, new, message):
     devices = []
@@ -382,12 +383,13 @@ def test_config_errors_found_with_the_devices_open_come_before_any_move(tmp_path
     ]
     for edits, message, limits in cases:
         config = small_config(**edits)
-        with open_hardware(config) as hw, monkeypatch.context() as patch:
+        with open_fake_hardware(config) as fake, monkeypatch.context() as patch:
             if limits is not None:
                 patch.setattr(ZaberStage, "limits_mm", limits)
+            hw = Hardware(fake.stage, fake.lcd, fake.camera)
             with pytest.raises(AcquisitionError, match=message):
                 acquire(config, tmp_path / "run.zarr", progress=False, hw=hw)
-            sent = bytes(hw.fake.device.received_bytes)
+            sent = bytes(fake.device.received_bytes)
         assert b"home" not in sent and b"move" not in sent
         assert not (tmp_path / "run.zarr").exists()
 
@@ -524,8 +526,11 @@ def test_fake_example_acquire_and_reconstruct_recover_the_true_ltc(tmp_path, cap
     # the whole station: the lens derived from this run against the fake bench's truth
     assert main(["lens", str(ltc), "--out", str(tmp_path / "lens.npz"), "--json"]) == 0
     lens = json.loads(capsys.readouterr().out)
-    truth = lens["fake_truth"]
+    assert "fake_truth" not in lens  # the station reports what it measured, nothing more
+    truth = lens_truth(dict(zarr.open_group(str(ltc), mode="r").attrs["config"]))
     np.testing.assert_allclose(truth["optical_centre_mm"], bench.optical_centre_station_mm())
+    assert truth["focus_distance_mm"] == bench.config.focus_distance_mm
+    truth = {**truth, **optical_centre_error(lens, truth)}
     assert truth["optical_centre_error_norm_mm"] < 0.5
     lines.append(f"optical centre error {truth['optical_centre_error_norm_mm']:.3f} mm")
     with capsys.disabled():

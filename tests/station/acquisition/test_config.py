@@ -22,13 +22,13 @@ def test_examples_parse():
 @pytest.mark.parametrize(
     "old, new, message",
     [
-        ("settle_s = 0.0", "settle_s = 0.0\nsettel_s = 1", r"stage\.settel_s: Extra inputs"),
+        ("settle_s = 0.0", "settle_s = 0.0\nsettel_s = 1", r"field 'stage\.settel_s': Extra inputs"),
         ("depths_mm = [40.0,", "depths_mm = [-5.0,", r"depths_mm\[0\] = -5.0 is negative"),
-        ("period = 12", "period = 3", r"patterns\.period: Input should be greater than or equal to 4"),
+        ("period = 12", "period = 3", r"field 'patterns\.period': Input should be greater than or equal to 4"),
         ("depths_mm = [40.0,", "depths_mm = [250.0,", r"depths_mm\[0\] = 250.0 is outside stage\.travel_mm"),
         ("steps = 4", "steps = 5", r"patterns\.steps"),
-        ('backend = "fake"', 'backend = "simulated"', r"backend: Input should be 'fake' or 'real'"),
-        ("travel_mm = [0.0, 200.0]", "travel_mm = [200.0, 0.0]", r"stage: Value error, travel_mm must be"),
+        ('backend = "fake"', 'backend = "simulated"', r"field 'backend': Input should be 'fake' or 'real'"),
+        ("travel_mm = [0.0, 200.0]", "travel_mm = [200.0, 0.0]", r"field 'stage': Value error, travel_mm must be"),
     ],
 )
 def test_bad_configs_name_file_and_field(tmp_path, old, new, message):

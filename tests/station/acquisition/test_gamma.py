@@ -120,7 +120,7 @@ def test_a_linear_panel_gets_the_identity(tmp_path):
 def test_gamma_reports_a_camera_that_gives_no_frames(capsys, tmp_path):
     config = parse_config(fake_text(2.2))
     with open_hardware(config) as hw:
-        hw.fake.camera.faults.timeout = 100
+        hw.camera.faults.timeout = 100
         with pytest.raises(GammaError, match=r"no fresh camera frame in 4 attempts: FakeCamera: "
                                              r"no frame within 0.050 s"):
             measure_lut(config, hw=hw)

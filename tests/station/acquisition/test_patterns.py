@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from station.ltc.localise import gray_to_index
+from sim.fpp.phase import gray_to_index
 from station.acquisition.patterns import (
     FourierPatternSet,
     LocalisationPatternSet,

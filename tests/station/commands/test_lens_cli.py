@@ -119,7 +119,7 @@ def test_errors_are_reported_not_raised(tmp_path, store, capsys):
     assert main(["lens", str(store), "--out", str(out)]) == 2
     assert f"{out} exists; pass --force to overwrite it" in capsys.readouterr().err
     assert main(["lens", str(store), "--out", str(out), "--force", "--samples", "0"]) == 2
-    assert "--samples: Input should be greater than or equal to 1" in capsys.readouterr().err
+    assert "options: field 'samples': Input should be greater than or equal to 1" in capsys.readouterr().err
     assert main(["lens", str(store), "--out", str(out), "--force", "--focus-mm", "250",
                  "--centre", "rays", "--grid-step", "10"]) == 0
     assert load_lens(out).focus_distance_mm == pytest.approx(250.0)

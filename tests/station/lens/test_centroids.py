@@ -12,16 +12,16 @@ from station.lens.centroids import (
     STATUS_NO_SIGNAL,
     STATUS_OK,
     STATUS_TRUNCATED,
-    LtcVolume,
-    LtcVolumeError,
     compute_centroids,
-    open_ltc_volume,
     window_stats,
 )
 from station.ltc.store import (
     LtcStoreError,
+    LtcVolume,
+    LtcVolumeError,
     centred_origins,
     create_ltc_store,
+    open_ltc_volume,
     windows_from_sparse,
 )
 

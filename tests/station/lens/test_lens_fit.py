@@ -39,7 +39,7 @@ from station.lens.aperture import (
     resample,
     scale_ratio,
 )
-from station.lens.centroids import LtcVolume
+from station.ltc.store import LtcVolume
 from station.lens.derive import aperture_set, derive_lens, node_positions
 from station.lens.geometry import LensFitConfig, LensFitError, fit_geometry
 from station.ltc.store import centred_origins, windows_from_sparse

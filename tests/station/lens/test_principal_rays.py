@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from fakes.bench import BenchConfig, FakeBench
+from station.lens.centre import intersect_rays
 from station.lens.rays import (
     FLAG_BAD_FIT,
     FLAG_FEW_DEPTHS,
     FLAG_OUTLIER,
     RayFitError,
     fit_principal_rays,
-    intersect_rays,
 )
 
 DEPTHS = np.array([0.0, 20.0, 40.0, 110.0, 250.0, 290.0])

@@ -20,7 +20,9 @@ from fakes.bench import BenchConfig, FakeBench
 from fakes.camera import FakeCamera, NoiseModel
 from fakes.lcd import PanelResponse
 from station.cli import main as cli_main
-from station.ltc.localise import gray_to_index, lcd_coordinates
+from sim.fpp.phase import gray_to_index
+from station.lens.centroids import REGION_MARGIN_PX, STATUS_NO_SIGNAL, window_stats
+from station.ltc.localise import lcd_coordinates
 from station.ltc.store import (
     LtcStoreError,
     open_ltc_store,
@@ -70,10 +72,25 @@ def synth_frames(bench, plan, z_mm, noise, response=None, lut=None, seed=0):
     return np.stack(out)
 
 
-def centroid_errors(bench, z_mm, ltc, origin, region=None):
-    """|centroid - true centroid| per pixel, LCD px."""
+def centroid_lcd(ltc, origin, noise=None):
+    """LCD (x, y) centroids (n, 2) of windows (n, P, P) with origins (n, 2), by the pipeline's
+    ``window_stats`` (noise (n,): std of one weight; default 0)."""
+    sigma = np.zeros(len(ltc)) if noise is None else noise
+    return window_stats(ltc, sigma).centroid + np.asarray(origin, dtype=np.float64)
+
+
+def whole_window_centroid(ltc, origin):
+    """Reference: the grey-scale centroid (n, 2) over the whole P x P window, noise and all."""
+    p = ltc.shape[-1]
+    total = ltc.sum(axis=(1, 2))
+    xy = np.stack([(ltc.sum(1) * np.arange(p)).sum(1), (ltc.sum(2) * np.arange(p)).sum(1)], 1)
+    return xy / total[:, None] + origin
+
+
+def centroid_errors(bench, z_mm, ltc, origin, noise=None):
+    """|centroid - true centroid| per pixel, LCD px (``window_stats``)."""
     true = bench.true_centroids_lcd_px(z_mm).reshape(-1, 2)
-    return np.linalg.norm(centroid(ltc, origin, region) - true, axis=1)
+    return np.linalg.norm(centroid_lcd(ltc, origin, noise) - true, axis=1)
 
 
 def relative_l2(bench, z_mm, ltc, origin):
@@ -151,7 +168,7 @@ def test_exact_ltc_from_the_shown_8_bit_patterns(p, steps):
     np.testing.assert_allclose(blk.gain, 3000.0, rtol=1e-9)
     true_xy = np.stack([(h.sum(1) * np.arange(lcd[0])).sum(1),
                         (h.sum(2) * np.arange(lcd[1])).sum(1)], axis=1)
-    np.testing.assert_allclose(centroid(blk.ltc, blk.origin), true_xy, atol=1e-9)
+    np.testing.assert_allclose(centroid_lcd(blk.ltc, blk.origin, blk.noise), true_xy, atol=1e-9)
     assert blk.valid.all()
     ring = want.sum(axis=(1, 2)) - want[:, 1:-1, 1:-1].sum(axis=(1, 2))
     np.testing.assert_allclose(blk.edge_mass, ring, atol=1e-9)
@@ -268,6 +285,37 @@ def test_peak_region_needs_a_signal():
         peak_region(np.full((2, 16, 16), np.nan), np.zeros((2, 2)))
 
 
+def test_window_stats_centroid_point_and_outlier():
+    w = np.zeros((2, 8, 8))
+    w[0, 2, 3] = 1.0  # a point: centroid exactly there
+    w[1, 4:6, 4:6] = 0.25
+    w[1, 0, 7] = 0.3  # a far-away outlier (noise): outside the region around the peak
+    o = np.array([[10, 20], [-4, 7]])
+    np.testing.assert_allclose(centroid_lcd(w[:1], o[:1]), [[13.0, 22.0]])
+    full = whole_window_centroid(w[1:], o[1:])[0]
+    assert abs(full[0] - (-4 + (4.5 + 0.3 * 7) / 1.3)) < 1e-12
+    np.testing.assert_allclose(centroid_lcd(w[1:], o[1:])[0], [-4 + 4.5, 7 + 4.5])
+    dark = window_stats(np.full((1, 8, 8), np.nan), np.zeros(1))
+    assert np.isnan(dark.centroid).all() and dark.status[0] == STATUS_NO_SIGNAL
+
+
+@pytest.mark.parametrize("radius", [1.5, 2.5, 3.5, 4.5, 5.5])
+def test_window_stats_region_covers_a_disk_without_waste(radius):
+    p = 16
+    yy, xx = np.mgrid[0:p, 0:p]
+    disk = ((xx - 7.3) ** 2 + (yy - 7.6) ** 2 <= radius**2).astype(float)
+    extent = int(np.ptp(np.nonzero(disk.any(axis=0))[0])) + 1
+    win = np.repeat((disk / disk.sum())[None], 3, axis=0)
+    o = np.array([[3, 4]] * 3)
+    st = window_stats(win, np.zeros(3))
+    cols = np.nonzero(st.region[0].any(axis=0))[0]
+    assert (st.region[0] >= (disk > 0)).all()  # the whole LTC is in
+    # grown by the 3 x 3 smoothing (1 px) and the margin on each side, no more
+    assert extent <= np.ptp(cols) + 1 <= extent + 2 * (1 + REGION_MARGIN_PX)
+    np.testing.assert_allclose(centroid_lcd(win, o), whole_window_centroid(win, o), atol=1e-12)
+
+
+
 def test_noise_estimates_match_monte_carlo():
     lcd = (64, 48)
     plan = StationPatternPlan.for_lcd(lcd, 8, 4)
@@ -322,10 +370,11 @@ def test_run_store_to_ltc_store_end_to_end(bench, plan, clean_frames, clean_run)
     assert g.attrs["pitch_mm"] == c.lcd_pitch_mm
     ltc = np.asarray(g["ltc"][0]).reshape(-1, P, P)
     origin = np.asarray(g["origin"][0]).reshape(-1, 2)
+    noise = np.asarray(g["noise"][0], dtype=np.float64).ravel()
     assert np.isfinite(ltc).all()
     np.testing.assert_allclose(ltc.sum(axis=(1, 2)), 1.0, atol=1e-5)
     assert np.median(relative_l2(bench, z, ltc, origin)) <= 0.02
-    assert np.percentile(centroid_errors(bench, z, ltc, origin), 95) <= 0.02
+    assert np.percentile(centroid_errors(bench, z, ltc, origin, noise), 95) <= 0.02
     # the tiled driver stores exactly what the in-memory maths gives
     blk = reconstruct_frames(clean_frames[z].reshape(len(plan), -1), plan)
     np.testing.assert_array_equal(ltc, blk.ltc.astype(np.float32))
@@ -347,7 +396,7 @@ def test_noise_free_recovers_true_ltc_at_every_depth(bench, plan, clean_frames, 
         blk = reconstruct_frames(clean_frames[z].reshape(len(plan), -1), plan)
         assert blk.valid.all()
         rel = np.median(relative_l2(bench, z, blk.ltc, blk.origin))
-        cen = np.percentile(centroid_errors(bench, z, blk.ltc, blk.origin), 95)
+        cen = np.percentile(centroid_errors(bench, z, blk.ltc, blk.origin, blk.noise), 95)
         lines.append(f"z={z:g} mm: median rel L2 {100 * rel:.4f} %, centroid p95 {cen:.5f} px, "
                      f"edge mass max {np.abs(blk.edge_mass).max():.1e}")
         assert rel <= 0.02 and cen <= 0.02
@@ -360,19 +409,24 @@ def test_level_correction_matters_in_focus(bench, plan, clean_frames):
     frames = clean_frames[z].reshape(len(plan), -1)
     raw = reconstruct_frames(frames, plan, level_correction=False)
     fixed = reconstruct_frames(frames, plan)
-    e_raw = np.percentile(centroid_errors(bench, z, raw.ltc, raw.origin), 95)
-    e_fix = np.percentile(centroid_errors(bench, z, fixed.ltc, fixed.origin), 95)
+    e_raw = np.percentile(centroid_errors(bench, z, raw.ltc, raw.origin, raw.noise), 95)
+    e_fix = np.percentile(centroid_errors(bench, z, fixed.ltc, fixed.origin, fixed.noise), 95)
     assert e_raw > 10 * e_fix
 
 
 def test_default_noise_centroid_and_region_beat_full_window(bench, plan, capsys):
+    # Still graded on spi's peak-region centroid, not on window_stats: with this noise the
+    # pipeline's window_stats gives 0.118 px p95 at z=40 mm (0.1 px allowed); issue 12 leaves
+    # that to the lead (see the report), since changing window_stats changes lens results.
     lines = []
     for z in DEPTHS:
         frames = synth_frames(bench, plan, z, NoiseModel(), seed=11).reshape(len(plan), -1)
         blk = reconstruct_frames(frames, plan)
+        true_xy = bench.true_centroids_lcd_px(z).reshape(-1, 2)
         r = peak_region(blk.ltc, blk.origin)
-        full = np.percentile(centroid_errors(bench, z, blk.ltc, blk.origin), 95)
-        near = np.percentile(centroid_errors(bench, z, blk.ltc, blk.origin, r), 95)
+        full = np.percentile(np.linalg.norm(centroid(blk.ltc, blk.origin) - true_xy, axis=1), 95)
+        near = np.percentile(np.linalg.norm(centroid(blk.ltc, blk.origin, r) - true_xy, axis=1),
+                             95)
         true = windows_from_sparse(bench.true_ltc(z, normalise=True), bench.config.lcd_size, P,
                                    blk.origin)
         empirical = np.sqrt(np.mean((blk.ltc - true) ** 2))
@@ -392,10 +446,10 @@ def test_gamma_biases_3_step_and_the_inverse_lut_removes_it(bench, capsys):
     for z in (40.0, 100.0):
         raw = synth_frames(bench, plan3, z, CLEAN, panel).reshape(len(plan3), -1)
         blk = reconstruct_frames(raw, plan3)
-        biased = np.percentile(centroid_errors(bench, z, blk.ltc, blk.origin), 95)
+        biased = np.percentile(centroid_errors(bench, z, blk.ltc, blk.origin, blk.noise), 95)
         fixed_frames = synth_frames(bench, plan3, z, CLEAN, panel, lut=GAMMA_LUT)
         blk = reconstruct_frames(fixed_frames.reshape(len(plan3), -1), plan3, lut=GAMMA_LUT)
-        fixed = np.percentile(centroid_errors(bench, z, blk.ltc, blk.origin), 95)
+        fixed = np.percentile(centroid_errors(bench, z, blk.ltc, blk.origin, blk.noise), 95)
         lines.append(f"z={z:g} mm: uncorrected {biased:.4f} px, inverse LUT {fixed:.5f} px")
         assert biased > 0.1 and fixed <= 0.01
     with capsys.disabled():

@@ -1,0 +1,29 @@
+"""The one formatter of pydantic validation errors, for every package (station, fakes, sim).
+
+Each error is one line naming where the data came from and the field's path:
+``<source>: field '<a.0.b>': <message>`` (``(root)`` for an error of the whole model), so a
+message points at the file and the key to fix.
+"""
+
+from __future__ import annotations
+
+from pydantic import ValidationError
+
+
+def field_path(loc: tuple[int | str, ...], prefix: tuple[int | str, ...] = ()) -> str:
+    """Dotted path of a pydantic error location, e.g. ``('cameras', 1, 'K')`` ->
+    ``'cameras.1.K'``; ``'(root)'`` when empty. ``prefix`` is prepended (a nested section)."""
+    parts = tuple(prefix) + tuple(loc)
+    return ".".join(str(p) for p in parts) or "(root)"
+
+
+def format_validation_error(
+    source: str, exc: ValidationError, prefix: tuple[int | str, ...] = ()
+) -> str:
+    """One line per error of ``exc``: ``source: field 'prefix.loc': message``.
+
+    source : the file (and, where useful, the node in it) the data came from.
+    prefix : the path of the validated section inside that file, e.g. ``('fake', 'bench')``.
+    """
+    return "\n".join(f"{source}: field '{field_path(e['loc'], prefix)}': {e['msg']}"
+                     for e in exc.errors())

@@ -1,0 +1,165 @@
+"""The optical centre (OPTICS.md 6.3): where the principal rays meet, and the centre
+consistent with the camera matrix K.
+
+**Principal-ray intersection** (``intersect_rays``): the least-squares intersection of the
+usable rays, iteratively reweighted (Huber weights on the ray-to-centre distance over a
+robust scale), with the covariance ``s^2 (sum_n w_n (I - d_n d_n^T))^-1`` where ``s^2`` is the
+weighted residual variance.
+
+**Which optical centre** (``pinhole_centre``). A pixel's LTC centroid follows the centroid
+of its *clipped* pupil. With vignetting that shifts with the field (cat's eyes), the centroid rays cross the
+pupil plane at ``p_n ~ field``, so all of them converge on the axis behind the pupil (34 mm
+on the small fake bench), near as well as far from the axis: no weighting fixes it, and rays
+alone cannot fix it either (a field-shifted clipping circle is a second stop in another
+plane, and two stops give the same rays whichever is called the pupil). The simulator casts
+pixel n's rays through ``O + z_f (x_n, y_n, 1)`` with ``x_n`` from the camera matrix K, so
+the centre it needs is the one from which the in-focus points are seen in K's directions.
+With K known, that is what is estimated (``pinhole_centre``): the principal rays at the focus
+plane give each pixel's in-focus point (every ray of the pixel passes there, clipped or
+not), whose spread over the sensor is ``z_f`` times that of K's directions; the centre lies
+``z_f`` before the focus plane, on the axis through the principal-ray intersection. Without
+K the principal-ray intersection (the paper's definition) is used, and the report says so.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.optics.projection import pixel_to_normalized
+from station.lens.rays import FLAG_FEW_DEPTHS, PrincipalRays, RayFitError
+
+HUBER_K = 2.0  # Huber threshold in robust-scale units for the ray intersection
+
+
+@dataclass(frozen=True)
+class OpticalCentre:
+    """position : (3,) mm station frame; covariance : (3, 3) mm^2; weights : (N,) final
+    robust weights (0 for unused rays); distance : (N,) ray-to-centre distance, mm;
+    method : how it was found."""
+
+    position: np.ndarray
+    covariance: np.ndarray
+    weights: np.ndarray
+    distance: np.ndarray
+    method: str
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.covariance))
+
+
+def _huber(r: np.ndarray) -> np.ndarray:
+    a = np.abs(r)
+    return np.where(a <= HUBER_K, 1.0, HUBER_K / np.maximum(a, 1e-300))
+
+
+def intersect_rays(rays: PrincipalRays, use: np.ndarray | None = None,
+                   iterations: int = 20) -> OpticalCentre:
+    """Robust least-squares intersection of the usable rays (``use`` restricts further)."""
+    ok = rays.usable if use is None else rays.usable & np.asarray(use, dtype=bool)
+    if ok.sum() < 2:
+        raise RayFitError(f"optical centre: {int(ok.sum())} usable principal ray(s); need >= 2 "
+                          f"({int((rays.flags & FLAG_FEW_DEPTHS).astype(bool).sum())} pixels "
+                          "have too few depths with signal)")
+    dirs = rays.directions()[ok]
+    a = np.concatenate([rays.xy_ref[ok], rays.z_ref[ok, None]], axis=1)
+    m = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]
+    robust = np.ones(ok.sum())
+    z_c = float(np.mean(rays.z_ref[ok]))
+    o = np.full(3, np.inf)
+    for _ in range(iterations):
+        # a-priori lateral variance of each ray where it passes the current centre
+        prior = 1.0 / rays.var_at(np.full(len(ok), z_c))[ok]
+        w = prior * robust
+        mat = (w[:, None, None] * m).sum(axis=0)
+        rhs = (w[:, None, None] * m @ a[:, :, None]).sum(axis=0)[:, 0]
+        o_prev, o = o, np.linalg.solve(mat, rhs)
+        z_c = float(o[2])
+        r = np.einsum("nij,nj->ni", m, o - a)
+        dist = np.linalg.norm(r, axis=1)
+        scaled = dist * np.sqrt(prior)
+        # a 2-D Gaussian miss has a Rayleigh length, median sigma * sqrt(ln 4)
+        scale = np.median(scaled) / np.sqrt(np.log(4.0))
+        new = _huber(scaled / max(scale, 1e-300))
+        done = np.allclose(new, robust, atol=1e-10) and np.allclose(o, o_prev, atol=1e-9, rtol=0)
+        robust = new
+        if done:
+            break
+    w = prior * robust
+    mat = (w[:, None, None] * m).sum(axis=0)
+    dof = max(2 * len(w) - 3, 1)
+    s2 = float((w * dist**2).sum() / dof)
+    cov = s2 * np.linalg.inv(mat)
+    weights = np.zeros(len(ok))
+    weights[ok] = w
+    distance = np.full(len(ok), np.nan)
+    distance[ok] = dist
+    return OpticalCentre(o, cov, weights, distance, "principal-ray intersection")
+
+
+def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, uv: np.ndarray, K: np.ndarray,
+                   dist: np.ndarray | None, focus_plane_z_mm: float,
+                   focus_plane_var_mm2: float, axis: OpticalCentre,
+                   iterations: int = 20) -> tuple[OpticalCentre, np.ndarray]:
+    """Optical centre consistent with K (see the module docstring).
+
+    The in-focus points ``A_n`` (principal rays at the focus plane ``Z_F``) must be the
+    pixels' directions ``x_n`` (from K) scaled by z_f about the axis, up to a roll phi:
+    ``A_n = o + z_f Rot(phi) x_n``, linear in ``(o_x, o_y, z_f cos phi, z_f sin phi)``
+    (robust: Huber-reweighted). The centre is at ``z = Z_F - z_f`` on the axis through the
+    principal-ray intersection ``axis`` (its x, y; a camera tilt would enter ``o`` with a
+    lever of z_f, and only 34 mm x tilt into the intersection). Covariance: x, y from the
+    intersection, z from the fit's residuals plus the focus-plane variance propagated.
+    Returns the centre and the rotation (3, 3) from station to camera axes (the roll).
+    """
+    idx = np.flatnonzero(usable)
+    if len(idx) < 3:
+        raise RayFitError(f"pinhole optical centre: {len(idx)} usable principal rays; need >= 3")
+    xn = pixel_to_normalized(uv[idx], K, dist)
+    n = len(idx)
+    a = np.zeros((2 * n, 4))
+    a[0::2, 0] = 1.0
+    a[1::2, 1] = 1.0
+    a[0::2, 2], a[0::2, 3] = xn[:, 0], -xn[:, 1]
+    a[1::2, 2], a[1::2, 3] = xn[:, 1], xn[:, 0]
+    data = rays.xy_at(focus_plane_z_mm)[idx].ravel()
+    slope = rays.slope[idx].ravel()  # d data / d Z_F
+    prior = np.repeat(1.0 / rays.var_at(focus_plane_z_mm)[idx], 2)
+    robust = np.ones(2 * n)
+    for _ in range(iterations):
+        w = prior * robust
+        ata = a.T @ (w[:, None] * a)
+        theta = np.linalg.solve(ata, a.T @ (w * data))
+        r = data - a @ theta
+        dist_n = np.hypot(r[0::2], r[1::2])
+        scaled = dist_n * np.sqrt(prior[0::2])
+        scale = max(float(np.median(scaled)) / np.sqrt(np.log(4.0)), 1e-300)
+        new = np.repeat(np.where(scaled <= HUBER_K * scale, 1.0,
+                                 HUBER_K * scale / np.maximum(scaled, 1e-300)), 2)
+        done = np.allclose(new, robust, atol=1e-10)
+        robust = new
+        if done:
+            break
+    w = prior * robust
+    ata_inv = np.linalg.inv(a.T @ (w[:, None] * a))
+    s2 = float((w * r * r).sum()) / max(2 * n - 4, 1)
+    ca, cb = theta[2], theta[3]
+    z_f = float(np.hypot(ca, cb))
+    jac = np.array([ca, cb]) / z_f
+    var_zf = float(jac @ (s2 * ata_inv[2:, 2:]) @ jac)
+    dtheta = ata_inv @ (a.T @ (w * slope))
+    dz_o = 1.0 - float(jac @ dtheta[2:])
+    cov = np.array(axis.covariance, dtype=np.float64, copy=True)
+    cov[2, :] = cov[:, 2] = 0.0
+    cov[2, 2] = var_zf + dz_o**2 * focus_plane_var_mm2
+    o = np.array([axis.position[0], axis.position[1], focus_plane_z_mm - z_f])
+    phi = float(np.arctan2(cb, ca))
+    rot = np.array([[np.cos(phi), np.sin(phi), 0.0], [-np.sin(phi), np.cos(phi), 0.0],
+                    [0.0, 0.0, 1.0]])
+    weights = np.zeros(len(usable))
+    weights[idx] = w[0::2]
+    distance = np.full(len(usable), np.nan)
+    distance[idx] = dist_n
+    return OpticalCentre(o, cov, weights, distance, "pinhole: in-focus points vs K"), rot
