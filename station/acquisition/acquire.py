@@ -48,13 +48,14 @@ from station.acquisition.backend import Hardware, load_lut, open_hardware
 from station.acquisition.config import StationConfig
 from station.acquisition.patterns import StationPatternPlan, apply_lut
 from station.acquisition.run_store import FrameMeta, RunStore, RunStoreError
+from station.errors import StationError
 
 log = logging.getLogger(__name__)
 
 CODE_MASK = "code_mask"  # run store array [depth, row, col] bool: pixels that see the check code
 
 
-class AcquisitionError(RuntimeError):
+class AcquisitionError(StationError):
     """The run cannot start or cannot go on; the message says where and why."""
 
 

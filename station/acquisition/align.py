@@ -38,12 +38,13 @@ from drivers.frame_code import frame_code_rect
 from station.acquisition.backend import Hardware, open_hardware
 from station.acquisition.config import StationConfig
 from station.acquisition.gamma import capture_after
+from station.errors import StationError
 
 ROW_SIGNAL_FRACTION = 0.2  # rows used: signal >= this fraction of the best row's
 PROFILE_FRACTION = 0.03  # a row's profile counts while above this fraction of its peak
 
 
-class AlignError(RuntimeError):
+class AlignError(StationError):
     """The alignment could not be measured; the message says at which depth and why."""
 
 

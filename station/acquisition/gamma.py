@@ -20,13 +20,14 @@ from scipy.interpolate import PchipInterpolator
 from drivers.camera import CameraError, CameraTimeout
 from station.acquisition.backend import Hardware, open_hardware
 from station.acquisition.config import StationConfig
+from station.errors import StationError
 
 MIN_LEVELS = 64
 MIN_CONTRAST_FRACTION = 0.5  # pixels used: white-black contrast >= this fraction of the best
 MAX_DEVIATION = 0.05  # ...and a curve within this of the median curve (not seeing a code)
 
 
-class GammaError(RuntimeError):
+class GammaError(StationError):
     """The display response could not be measured; the message says why."""
 
 

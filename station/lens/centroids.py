@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from tqdm import tqdm
 from scipy import ndimage
 
 from station.ltc.store import LtcVolume, LtcVolumeError
@@ -173,17 +174,19 @@ def rows_per_read(volume: LtcVolume) -> int:
     return max(1, READ_BUDGET_BYTES // per_row)
 
 
-def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None) -> Centroids:
+def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
+                      progress: bool = False) -> Centroids:
     """Centroids of all pixels at all depths, reading ``rows_per_tile`` camera rows at a time
     (default: as many as fit the read budget) and processing ``WINDOWS_PER_BATCH`` windows
-    at once, so memory does not grow with the sensor."""
+    at once, so memory does not grow with the sensor. ``progress``: a bar over camera rows."""
     d = len(volume.depths_mm)
     w, h = volume.camera_size
     rows = rows_per_tile or rows_per_read(volume)
     out = {"xy": np.full((d, h, w, 2), np.nan), "std": np.full((d, h, w, 2), np.nan),
            "mom": np.full((d, h, w, 3), np.nan), "tstd": np.full((d, h, w), np.nan),
            "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
-    for r0 in range(0, h, rows):
+    for r0 in tqdm(range(0, h, rows), desc="lens: centroids", unit="block",
+                   disable=None if progress else True):
         r1 = min(h, r0 + rows)
         ltc, origin, _, noise = volume.rows(r0, r1)
         p = ltc.shape[-1]

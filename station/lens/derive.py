@@ -14,10 +14,12 @@ nearest node that has one; the file's metadata lists how many were filled.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
+from tqdm import tqdm
 
 from sim.optics.measured_lens import MeasuredLens
 from station.lens import aperture as ap
@@ -91,8 +93,9 @@ def _row_blocks(pixels: np.ndarray, width: int,
 
 def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
                  pixels: np.ndarray, cfg: LensFitConfig | None = None,
-                 keep_depths: bool = False) -> ApertureSet:
-    """Scale, resample and fuse the LTC of the given flat pixels onto the aperture plane."""
+                 keep_depths: bool = False, progress: bool = False) -> ApertureSet:
+    """Scale, resample and fuse the LTC of the given flat pixels onto the aperture plane
+    (``progress``: a bar over the row blocks read)."""
     cfg = cfg or LensFitConfig()
     pixels = np.asarray(pixels, dtype=np.int64).ravel()
     c, rays = geom.centroids, geom.rays
@@ -110,7 +113,9 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
     fused = np.zeros((n, g, g))
     at_centre = rays.xy_at(zc) - geom.centre.position[:2]
     mom = c.moments_px2.reshape(d, -1, 3)
-    for r0, r1, sel in _row_blocks(pixels, w_cam, rows_per_read(volume)):
+    blocks = list(_row_blocks(pixels, w_cam, rows_per_read(volume)))
+    for r0, r1, sel in tqdm(blocks, desc="lens: aperture", unit="block",
+                            disable=None if progress else True):
         ltc, origin, _, noise = volume.rows(r0, r1)
         ltc = ltc.reshape(d, -1, *ltc.shape[-2:])
         origin = origin.reshape(d, -1, 2)
@@ -178,6 +183,7 @@ class LensResult:
     apertures: ApertureSet
     lens: MeasuredLens
     filled_nodes: int
+    figures: list[Path] = field(default_factory=list)
 
     def summary(self) -> dict:
         """A JSON-able report of what was measured."""
@@ -221,15 +227,17 @@ class LensResult:
 
 
 def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,
-                K: np.ndarray | None = None, dist: np.ndarray | None = None) -> LensResult:
-    """The measured lens of an LTC volume (see the module docstrings for every step)."""
+                K: np.ndarray | None = None, dist: np.ndarray | None = None,
+                progress: bool = False) -> LensResult:
+    """The measured lens of an LTC volume (see the module docstrings for every step);
+    ``progress`` shows bars over the centroid and aperture passes."""
     cfg = config or LensFitConfig()
-    geom = fit_geometry(volume, cfg, K, dist)
+    geom = fit_geometry(volume, cfg, K, dist, progress=progress)
     grid = aperture_grid(geom, cfg)
     w, h = volume.camera_size
     nu, nv = node_positions(w, cfg.grid_step), node_positions(h, cfg.grid_step)
     pix = (nv[:, None] * w + nu[None, :]).ravel()
-    aps = aperture_set(volume, geom, grid, pix, cfg)
+    aps = aperture_set(volume, geom, grid, pix, cfg, progress=progress)
     good = aps.ok & geom.rays.usable[pix]
     if not good.any():
         raise LensFitError(f"{volume.name}: no node pixel has a usable LTC at any depth")

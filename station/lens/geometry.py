@@ -161,10 +161,12 @@ def _focus_plane(fit: FocusFit | None, z_f_config: float | None, centre_z: float
 
 
 def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
-                 K: np.ndarray | None = None, dist: np.ndarray | None = None) -> LensGeometry:
+                 K: np.ndarray | None = None, dist: np.ndarray | None = None,
+                 progress: bool = False) -> LensGeometry:
     """Centroids, principal rays, focus plane and optical centre of an LTC volume.
 
     K, dist : camera matrix and distortion; default: the volume's (``camera_matrix``).
+    progress : a progress bar over the centroid pass.
     """
     cfg = config or LensFitConfig()
     K = volume.camera_matrix if K is None else np.asarray(K, dtype=np.float64)
@@ -172,7 +174,7 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
     if cfg.centre_method == "pinhole" and K is None:
         raise LensFitError(f"{volume.name}: centre_method 'pinhole' needs the camera matrix K "
                            "(store attribute camera_matrix, or --rig)")
-    c = compute_centroids(volume)
+    c = compute_centroids(volume, progress=progress)
     d = len(c.depths_mm)
     pts = c.points_mm().reshape(d, -1, 3)
     rays = fit_principal_rays(pts, c.std_mm().reshape(d, -1, 2), c.valid.reshape(d, -1),

@@ -383,7 +383,7 @@ def test_cli_renders_the_example(tmp_path, capsys):
 def test_cli_reports_bad_scenes(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text('rig = "missing.yaml"\n')
-    assert main(["render", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert main(["render", str(bad), "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err
     assert "ltc render: error:" in err and "bad.toml" in err and not (tmp_path / "o").exists()
 

@@ -129,7 +129,9 @@ def test_ltc_align_reports_the_configured_tilt(tmp_path, capsys):
 def test_ltc_align_errors(tmp_path, capsys):
     cfg = tmp_path / "fake.toml"
     cfg.write_text(tilted_text())
-    assert main(["align", str(cfg), "--shift", "0"]) == 2
-    assert "--shift must be >= 1 LCD pixel, got 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as usage:  # argparse refuses the value
+        main(["align", str(cfg), "--shift", "0"])
+    assert usage.value.code == 2
+    assert "argument --shift: must be >= 1, got 0" in capsys.readouterr().err
     assert main(["align", str(cfg), "--shift", "70"]) == 1
     assert "crosshair shift 70 px puts the arm off the 160x120 LCD" in capsys.readouterr().err

@@ -42,5 +42,5 @@ def test_check_reports_a_missing_stage_port(tmp_path, capsys):
 def test_check_needs_config_or_fake(capsys, tmp_path):
     assert main(["check"]) == 2
     assert "either a CONFIG.toml or --fake" in capsys.readouterr().err
-    assert main(["check", str(tmp_path / "none.toml")]) == 2
+    assert main(["check", str(tmp_path / "none.toml")]) == 1
     assert "cannot read config" in capsys.readouterr().err

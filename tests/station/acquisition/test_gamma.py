@@ -126,5 +126,7 @@ def test_gamma_reports_a_camera_that_gives_no_frames(capsys, tmp_path):
             measure_lut(config, hw=hw)
     cfg = tmp_path / "fake.toml"
     cfg.write_text(fake_text())
-    assert main(["gamma", str(cfg), "--out", str(tmp_path / "lut.npy"), "--levels", "32"]) == 2
-    assert "--levels must be >= 64, got 32" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as usage:  # argparse refuses the value
+        main(["gamma", str(cfg), "--out", str(tmp_path / "lut.npy"), "--levels", "32"])
+    assert usage.value.code == 2
+    assert "argument --levels: must be >= 64, got 32" in capsys.readouterr().err

@@ -155,67 +155,67 @@ def test_scan_errors_wrong_count_sizes_dark_rig(sphere_render, tmp_path, capsys)
     for i in range(2):
         (few / f"camera_{i}" / "pattern_011.png").unlink()
     code, _, err = ltc(capsys, "scan", few, "--rig", rig, "--out", tmp_path / "x.ply")
-    assert code == 2 and "camera 0: 11 images, but the pattern set has 12 patterns" in err
+    assert code == 1 and "camera 0: 11 images, but the pattern set has 12 patterns" in err
     (few / "camera_0" / "pattern_010.png").unlink()
     code, _, err = ltc(capsys, "scan", few, "--rig", rig, "--out", tmp_path / "x.ply")
-    assert code == 2 and "camera 0 has 10 images, camera 1 has 11: the stacks must match" in err
+    assert code == 1 and "camera 0 has 10 images, camera 1 has 11: the stacks must match" in err
 
     odd = _copy(d, tmp_path / "odd")
     cv2.imwrite(str(odd / "camera_1" / "pattern_005.png"), np.zeros((10, 12), np.uint16))
     code, _, err = ltc(capsys, "scan", odd, "--rig", rig, "--out", tmp_path / "x.ply")
-    assert code == 2 and "pattern_005.png: image is 12 x 10 pixels, pattern_000.png is" in err
+    assert code == 1 and "pattern_005.png: image is 12 x 10 pixels, pattern_000.png is" in err
 
     dark = _copy(d, tmp_path / "dark")
     for f in (dark / "camera_0").glob("*.png"):
         cv2.imwrite(str(f), np.zeros(cv2.imread(str(f), cv2.IMREAD_UNCHANGED).shape, np.uint16))
     code, _, err = ltc(capsys, "scan", dark, "--rig", rig, "--out", tmp_path / "x.ply")
-    assert code == 2 and "camera 0: no pixel has a fringe modulation" in err and "dark" in err
+    assert code == 1 and "camera 0: no pixel has a fringe modulation" in err and "dark" in err
 
     default_rig().save(tmp_path / "full_rig.json")
     code, _, err = ltc(capsys, "scan", d / "render", "--rig", tmp_path / "full_rig.json", "--out", tmp_path / "x.ply")
-    assert code == 2 and "but the rig's camera 'left' is 4096 x 2168; is the rig file for these images?" in err
+    assert code == 1 and "but the rig's camera 'left' is 4096 x 2168; is the rig file for these images?" in err
 
 
 def test_scan_errors_inputs_and_pattern_sets(sphere_render, tmp_path, capsys):
     d = sphere_render
     rig = d / "rig.json"
     code, _, err = ltc(capsys, "scan", tmp_path / "nothing", "--rig", rig, "--out", tmp_path / "x.ply")
-    assert code == 2 and "nothing: not found" in err
+    assert code == 1 and "nothing: not found" in err
     (tmp_path / "empty").mkdir()
     code, _, err = ltc(capsys, "scan", tmp_path / "empty", "--rig", rig, "--out", tmp_path / "x.ply")
-    assert code == 2 and "expected an ltc render folder, a zarr stack or camera_0/" in err
+    assert code == 1 and "expected an ltc render folder, a zarr stack or camera_0/" in err
     plain = _copy(d, tmp_path / "plain")
     (plain / "summary.json").unlink()
     code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply")
-    assert code == 2 and "no pattern set recorded; give it with --patterns" in err
+    assert code == 1 and "no pattern set recorded; give it with --patterns" in err
     pfile = tmp_path / "patterns.json"
     pfile.write_text(json.dumps(json.loads((d / "render" / "summary.json").read_text())["pattern_set"]))
     code, out, _ = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "p.ply", "--patterns", pfile)
     assert code == 0 and "points (stereo)" in out
     pfile.write_text('{"kind": "phase_shift", "periods_px": [16.0], "steps": 2}')
     code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", pfile)
-    assert code == 2 and "field 'phase_shift.steps'" in err
+    assert code == 1 and "field 'phase_shift.steps'" in err
     pfile.write_text("{not json")
     code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", pfile)
-    assert code == 2 and "not valid JSON" in err
+    assert code == 1 and "not valid JSON" in err
     code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", tmp_path / "no.json")
-    assert code == 2 and "no.json: not found" in err
+    assert code == 1 and "no.json: not found" in err
     (plain / "camera_1" / "notes.txt").write_text("x")
     shutil.rmtree(plain / "camera_1")
     (plain / "camera_1").mkdir()
     code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", tmp_path / "patterns.json")
-    assert code == 2 and "camera_1: no PNG or TIFF images" in err
+    assert code == 1 and "camera_1: no PNG or TIFF images" in err
     cv2.imwrite(str(plain / "camera_1" / "a.png"), np.zeros((4, 4, 3), np.uint8))
     code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", tmp_path / "patterns.json")
-    assert code == 2 and "a.png: not a single-channel image" in err
+    assert code == 1 and "a.png: not a single-channel image" in err
     z = tmp_path / "z.zarr"
     z.mkdir()
     (z / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group", "attributes": {}}')
     code, _, err = ltc(capsys, "scan", z, "--rig", rig, "--out", tmp_path / "x.ply")
-    assert code == 2 and "zarr stack has no 'camera_0/images' array" in err
+    assert code == 1 and "zarr stack has no 'camera_0/images' array" in err
     (z / "zarr.json").write_text("{broken")
     code, _, err = ltc(capsys, "scan", z, "--rig", rig, "--out", tmp_path / "x.ply")
-    assert code == 2 and "not a readable zarr group" in err
+    assert code == 1 and "not a readable zarr group" in err
 
 
 def test_measure_errors(sphere_render, tmp_path, capsys):
@@ -225,12 +225,12 @@ def test_measure_errors(sphere_render, tmp_path, capsys):
     code, _, err = ltc(capsys, "measure", d / "cloud.ply", "--ballbar")
     assert code == 2 and "--ballbar needs --diameter" in err
     code, _, err = ltc(capsys, "measure", d / "cloud.ply", "--reference", tmp_path / "none.stl")
-    assert code == 2 and "none.stl: not found" in err
+    assert code == 1 and "none.stl: not found" in err
     (tmp_path / "empty.obj").write_text("# nothing\n")
     code, _, err = ltc(capsys, "measure", d / "cloud.ply", "--reference", tmp_path / "empty.obj")
-    assert code == 2 and "no triangles in the file" in err
+    assert code == 1 and "no triangles in the file" in err
     (tmp_path / "bad.ply").write_text("not a ply")
     code, _, err = ltc(capsys, "measure", tmp_path / "bad.ply", "--sphere")
-    assert code == 2 and "not a PLY file" in err
+    assert code == 1 and "not a PLY file" in err
     code, out, _ = ltc(capsys, "measure", d / "cloud.ply", "--sphere")
     assert code == 0 and out.startswith("sphere: diameter 50.80")

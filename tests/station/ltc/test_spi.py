@@ -478,7 +478,7 @@ def test_cli_reports_store_errors(clean_run, capsys):
     code = cli_main(["reconstruct", str(root / "missing.zarr"), "--out", str(root / "x.zarr")])
     assert code == 1
     assert "ltc reconstruct: error:" in capsys.readouterr().err
-    assert cli_main(["reconstruct", str(root / "run.zarr"), "--out", str(root / "ltc.zarr")]) == 1
+    assert cli_main(["reconstruct", str(root / "run.zarr"), "--out", str(root / "ltc.zarr")]) == 2
     assert "already exists" in capsys.readouterr().err
 
 
