@@ -52,7 +52,6 @@ from station.errors import StationError
 
 log = logging.getLogger(__name__)
 
-CODE_MASK = "code_mask"  # run store array [depth, row, col] bool: pixels that see the check code
 
 
 class AcquisitionError(StationError):
@@ -153,8 +152,7 @@ class Acquisition:
                         "enlarge frame_check.block_px") from exc
                 self._retry("code calibration", f"depth {depth}", attempt, str(exc))
         mask = self.calibration.polluted
-        arr = self.store.group[CODE_MASK]
-        arr[depth] = np.asarray(arr[depth]) | mask
+        self.store.add_code_mask(depth, mask)
         self.mask_fraction[depth] = float(mask.mean())
 
     def _calibrate(self, depth: int, first_pattern: int) -> CodeCalibration:
@@ -220,9 +218,7 @@ class Acquisition:
                          exposure_ms=frame.exposure_ms, retries=len(reasons))
         self.store.write_frame(d, p, frame.image, meta)
         if reasons:
-            entries = list(self.store.group.attrs.get("retry_log", []))
-            entries.append({"depth": d, "pattern": p, "reasons": reasons})
-            self.store.group.attrs["retry_log"] = entries
+            self.store.log_retries(d, p, reasons)
 
     def _show(self, image: np.ndarray) -> ShownFrame:
         shown = self.hw.display.show(image)
@@ -340,7 +336,7 @@ def acquire(
         finally:
             cleanup = engine.teardown(failed=error is not None)
             try:
-                store.group.attrs.update({"status": status, "end_time": _now()})
+                store.set_status(status, end_time=_now())
             except OSError as exc:
                 cleanup.append(f"teardown: could not record the run status: {exc}")
             if cleanup and error is not None:
@@ -411,11 +407,10 @@ def _check_and_create(config: StationConfig, hw: Hardware, out: Path, store: Run
             camera_size=hw.camera.size, bit_depth=hw.camera.bit_depth, lcd_size=lcd_size,
             lcd_pitch_mm=config.display.pitch_mm, display_lut=lut, start_time=_now())
         layout = config.frame_check.layout(lcd_size) if config.frame_check.enabled else None
-        store.group.attrs.update({
-            "frame_check": None if layout is None else {
-                "rect_xywh": list(frame_code_rect(layout, lcd_size)), "bits": layout.bits,
-                "block_px": layout.block_px, "columns": layout.grid[1]},
-            "status": "running"})
+        store.set_frame_check(None if layout is None else {
+            "rect_xywh": list(frame_code_rect(layout, lcd_size)), "bits": layout.bits,
+            "block_px": layout.block_px, "columns": layout.grid[1]})
+        store.set_status("running")
         return store
     try:
         store.require_same_config(record, plan)
@@ -428,7 +423,7 @@ def _check_and_create(config: StationConfig, hw: Hardware, out: Path, store: Run
     if found != stored:
         raise AcquisitionError(f"{out}: refusing to resume: devices {found} differ from the "
                                f"run's {stored}")
-    store.group.attrs["status"] = "running"
+    store.set_status("running")
     return store
 
 

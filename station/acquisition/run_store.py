@@ -17,6 +17,9 @@ Layout (HARDWARE.md "Acquisition runs", issue 3):
   ``bit_depth``, ``lcd_size`` (w, h), ``lcd_pitch_mm``, ``tile_px``, ``display_lut`` (the
   inverse response LUT the patterns were computed through, see
   :func:`station.acquisition.patterns.apply_lut`; null when none).
+* written by the acquisition through the store's methods only: ``code_mask[depth, row,
+  col]`` (``add_code_mask``), attributes ``retry_log`` (``log_retries``), ``status`` and
+  ``end_time`` (``set_status``), ``frame_check`` (``set_frame_check``).
 """
 
 from __future__ import annotations
@@ -37,6 +40,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from zarr.core.sync import sync as zarr_sync
 
 from station.acquisition.patterns import StationPatternPlan, apply_lut
+
+CODE_MASK = "code_mask"  # array [depth, row, col] bool: camera pixels that see the check code
 
 FORMAT = "ltc-run-store"
 FORMAT_VERSION = 1
@@ -177,7 +182,7 @@ class RunStore:
         g.create_array("done", shape=(d, n), chunks=(1, n), dtype="bool", fill_value=False,
                        compressors=None)
         # camera pixels that see the acquisition's check code, per depth (excluded from LTC)
-        g.create_array("code_mask", shape=(d, h, w), chunks=(1, h, w), dtype="bool",
+        g.create_array(CODE_MASK, shape=(d, h, w), chunks=(1, h, w), dtype="bool",
                        fill_value=False)
         for name, dt in META_ARRAYS.items():
             fill = np.nan if dt == "float64" else _INT_FILL
@@ -317,13 +322,38 @@ class RunStore:
         zarr_sync(write_meta())
         self._done[depth, pattern] = True
 
+    def add_code_mask(self, depth: int, mask: np.ndarray) -> None:
+        """Mark camera pixels (rows, cols) bool that saw the check code at ``depth`` (OR-ed
+        into ``code_mask``, so a resumed depth keeps what an earlier calibration found)."""
+        self._check_index(depth, 0)
+        arr = self.group[CODE_MASK]
+        arr[depth] = np.asarray(arr[depth]) | np.asarray(mask, dtype=bool)
+
+    def log_retries(self, depth: int, pattern: int, reasons: list[str]) -> None:
+        """Append a frame's failed attempts to the ``retry_log`` attribute."""
+        entries = list(self.group.attrs.get("retry_log", []))
+        entries.append({"depth": depth, "pattern": pattern, "reasons": list(reasons)})
+        self.group.attrs["retry_log"] = entries
+
+    def set_status(self, status: str, end_time: str | None = None) -> None:
+        """Record the run's ``status`` attribute ("running", "complete", "failed", ...) and,
+        when given, its ``end_time`` (ISO 8601)."""
+        attrs: dict = {"status": status}
+        if end_time is not None:
+            attrs["end_time"] = end_time
+        self.group.attrs.update(attrs)
+
+    def set_frame_check(self, frame_check: dict | None) -> None:
+        """Record where the check code is drawn (``frame_check`` attribute; None: no code)."""
+        self.group.attrs["frame_check"] = frame_check
+
     # ---- reading ----------------------------------------------------------------------------
     def code_mask(self, depth: int) -> np.ndarray:
         """(rows, cols) bool: camera pixels that saw the check code at this depth (no LTC)."""
-        if "code_mask" not in self.group:  # stores written before the mask existed
+        if CODE_MASK not in self.group:  # stores written before the mask existed
             h, w = self.camera_size[1], self.camera_size[0]
             return np.zeros((h, w), bool)
-        return np.asarray(self.group["code_mask"][depth])
+        return np.asarray(self.group[CODE_MASK][depth])
 
     def read_meta(self, depth: int) -> dict[str, np.ndarray]:
         """Per-frame metadata of one depth: name -> (patterns,) array (fill where not done)."""

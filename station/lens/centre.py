@@ -7,8 +7,8 @@ robust scale), with the covariance ``s^2 (sum_n w_n (I - d_n d_n^T))^-1`` where 
 weighted residual variance.
 
 **Which optical centre** (``pinhole_centre``). A pixel's LTC centroid follows the centroid
-of its *clipped* pupil. With vignetting that shifts with the field (cat's eyes), the centroid rays cross the
-pupil plane at ``p_n ~ field``, so all of them converge on the axis behind the pupil (34 mm
+of its *clipped* pupil. With vignetting that shifts with the field (cat's eyes), the
+centroid rays cross the pupil plane at ``p_n ~ field``, so all of them converge on the axis behind the pupil (34 mm
 on the small fake bench), near as well as far from the axis: no weighting fixes it, and rays
 alone cannot fix it either (a field-shifted clipping circle is a second stop in another
 plane, and two stops give the same rays whichever is called the pupil). The simulator casts

@@ -31,7 +31,6 @@ from fakes.hardware import parse_fake_settings
 from fakes.lcd import FakeLCD
 from fakes.truth import lens_truth, optical_centre_error
 from station.acquisition.acquire import (
-    CODE_MASK,
     AcquisitionError,
     Event,
     acquire,
@@ -41,7 +40,7 @@ from station.acquisition.acquire import (
 from station.acquisition.backend import Hardware, open_fake_hardware, open_hardware
 from station.cli import main
 from station.acquisition.config import example_text, parse_config
-from station.acquisition.run_store import RunStore
+from station.acquisition.run_store import CODE_MASK, RunStore
 from station.ltc.spi import centroid, peak_region
 
 EXAMPLE = example_text("fake")

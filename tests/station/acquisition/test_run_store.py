@@ -231,3 +231,29 @@ def test_open_validates(tmp_path):
     del g["retries"]
     with pytest.raises(RunStoreError, match=r"missing array\(s\) \['retries'\]"):
         RunStore.open(tmp_path / "run.zarr")
+
+
+def test_run_records_go_through_the_store(tmp_path):
+    s = make(tmp_path)
+    w, h = CAM
+    a = np.zeros((h, w), bool)
+    a[0, 1] = True
+    b = np.zeros((h, w), bool)
+    b[2, 0] = True
+    s.add_code_mask(1, a)
+    s.add_code_mask(1, b)  # OR-ed: a resumed depth keeps the earlier mask
+    np.testing.assert_array_equal(s.code_mask(1), a | b)
+    assert not s.code_mask(0).any()
+    with pytest.raises(RunStoreError, match=r"frame index \(depth=2, pattern=0\) outside"):
+        s.add_code_mask(2, a)
+    s.log_retries(0, 3, ["camera timeout: x"])
+    s.log_retries(1, 0, ["stale frame: y", "wrong check code: z"])
+    s.set_status("running")
+    s.set_frame_check({"bits": 2})
+    s.set_status("complete", end_time="2024-01-01T00:00:00+00:00")
+    g = RunStore.open(s.path).group
+    assert g.attrs["retry_log"] == [
+        {"depth": 0, "pattern": 3, "reasons": ["camera timeout: x"]},
+        {"depth": 1, "pattern": 0, "reasons": ["stale frame: y", "wrong check code: z"]}]
+    assert g.attrs["status"] == "complete" and g.attrs["end_time"].startswith("2024-01-01")
+    assert g.attrs["frame_check"] == {"bits": 2}
