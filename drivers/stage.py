@@ -28,6 +28,8 @@ from drivers.stage_errors import (
     StageTimeout,
 )
 from drivers.zaber_protocol import (
+    ACCEL_UNIT,
+    SPEED_UNIT,
     Reply,
     ZaberChecksumError,
     ZaberFormatError,
@@ -48,8 +50,6 @@ __all__ = [
     "ZaberStage",
 ]
 
-SPEED_UNIT = 1.6384  # Zaber maxspeed value per microstep/s
-ACCEL_UNIT = 1.6384 / 10000  # Zaber accel value per microstep/s^2
 READ_SLICE_S = 0.01  # port read timeout; the line reader loops until its own deadline
 NOT_HOMED = ("WR", "WH")
 FAULT_NAMES = {"FS": "stalled", "FE": "limit error", "FD": "driver disabled",

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+SPEED_UNIT = 1.6384  # device ``maxspeed`` value per µstep/s: µsteps/s = value / SPEED_UNIT
+ACCEL_UNIT = 1.6384 / 10000  # device ``accel`` value per µstep/s²: µsteps/s² = value / ACCEL_UNIT
 NO_WARNING = "--"
 FLAGS = ("OK", "RJ")
 STATUSES = ("BUSY", "IDLE")

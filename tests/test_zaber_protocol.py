@@ -118,3 +118,24 @@ def test_parse_reply_fields() -> None:
 def test_parse_reply_rejects_malformed_lines(line: str, error: type, match: str) -> None:
     with pytest.raises(error, match=match):
         parse_reply(line)
+
+
+def test_speed_and_accel_units_are_defined_once_in_the_protocol_module() -> None:
+    import pathlib
+
+    import drivers.stage
+    import fakes.hardware
+    import fakes.zaber.device
+    from drivers import zaber_protocol
+
+    # HARDWARE.md: speed in microsteps/s = maxspeed / 1.6384; microsteps/s^2 = accel * 10000 / 1.6384
+    assert zaber_protocol.SPEED_UNIT == 1.6384
+    assert 16 / zaber_protocol.ACCEL_UNIT == pytest.approx(16 * 10000 / 1.6384, rel=1e-12)
+    for module in (drivers.stage, fakes.zaber.device, fakes.hardware):
+        assert module.SPEED_UNIT is zaber_protocol.SPEED_UNIT
+    root = pathlib.Path(zaber_protocol.__file__).parents[1]
+    defining = sorted(str(path.relative_to(root)) for package in ("drivers", "fakes", "station")
+                      for path in (root / package).rglob("*.py")
+                      if any(line.startswith(("SPEED_UNIT =", "ACCEL_UNIT ="))
+                             for line in path.read_text().splitlines()))
+    assert defining == ["drivers/zaber_protocol.py"]
