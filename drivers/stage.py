@@ -84,7 +84,8 @@ class ZaberStage(Stage):
     of the target, with no ``F*`` fault; then (and after homing) the driver sleeps ``settle_s``.
 
     Deadlines: every command waits at most ``timeout_s`` for its reply. A move waits at most
-    |distance|/speed + 2*speed/accel + ``margin_s`` (speed and accel read from the device) or
+    |distance|/speed + 2*speed/accel + ``margin_s`` (speed and accel read from the device; a
+    device reporting ``accel 0``, Zaber's "no ramp", gets no ramp term) or
     the ``timeout`` given to ``move_to``, and at most ``no_progress_s`` without the position
     changing; on either, or on any error once the axis moves, the driver sends ``stop`` and
     raises. So a call returns within its move deadline + 2 * ``timeout_s`` (+ ``settle_s``).
@@ -161,13 +162,13 @@ class ZaberStage(Stage):
         self.axis_count = self._get_int("system.axiscount", axis=0)
         low, high = self._get_int("limit.min"), self._get_int("limit.max")
         self.device_limits_mm = (self._mm(low), self._mm(high))
-        self.speed_steps_s = self._get_int("maxspeed") / SPEED_UNIT
-        self.accel_steps_s2 = self._get_int("accel") / ACCEL_UNIT
-        if self.speed_steps_s <= 0 or self.accel_steps_s2 <= 0:
+        maxspeed, accel = self._get_int("maxspeed"), self._get_int("accel")
+        self.speed_steps_s = maxspeed / SPEED_UNIT
+        self.accel_steps_s2 = accel / ACCEL_UNIT  # 0: no ramp, full speed at once (Zaber)
+        if maxspeed <= 0 or accel < 0:
             raise StageProtocolError(
-                f"{self.port_name}: sent 'get maxspeed' and 'get accel', got "
-                f"{self.speed_steps_s * SPEED_UNIT:g} and {self.accel_steps_s2 * ACCEL_UNIT:g}: "
-                "the device cannot move, so no move timeout can be computed"
+                f"{self.port_name}: sent 'get maxspeed' and 'get accel', got {maxspeed} and "
+                f"{accel}: the device cannot move, so no move timeout can be computed"
             )
         self._limits = (max(self.travel_mm[0], self.device_limits_mm[0]),
                         min(self.travel_mm[1], self.device_limits_mm[1]))
@@ -349,9 +350,15 @@ class ZaberStage(Stage):
         return steps
 
     def _motion_time(self, distance_steps: float) -> float:
-        """Move deadline (s): |distance|/speed + 2*speed/accel + margin."""
-        return (abs(distance_steps) / self.speed_steps_s
-                + 2 * self.speed_steps_s / self.accel_steps_s2 + self.margin_s)
+        """Move deadline (s): |distance|/speed + 2*speed/accel + margin; with accel 0 (no ramp:
+        the device starts and stops at full speed) |distance|/speed + margin."""
+        ramp = 0.0 if self.accel_steps_s2 == 0 else 2 * self.speed_steps_s / self.accel_steps_s2
+        return abs(distance_steps) / self.speed_steps_s + ramp + self.margin_s
+
+    def move_deadline_s(self, distance_mm: float) -> float:
+        """Deadline (s) the driver gives a move of ``distance_mm`` (mm) when no ``timeout`` is
+        passed to ``move_to``: |distance|/speed + 2*speed/accel (0 with accel 0) + margin_s."""
+        return self._motion_time(distance_mm * 1000.0 / self.microstep_um)
 
     def _wait(self, target: int | None, duration: float, started_by: str) -> int:
         """Poll until done (see class docstring); return the position in microsteps.

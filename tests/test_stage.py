@@ -125,6 +125,29 @@ def test_device_that_cannot_move_is_refused(server: FakeZaberPty) -> None:
         ZaberStage(server.port, **STAGE)
 
 
+def test_negative_acceleration_is_refused(server: FakeZaberPty) -> None:
+    server.device.settings["accel"] = -5
+    with pytest.raises(StageProtocolError, match=r"'get accel', got 3276800 and -5: the device cannot move"):
+        ZaberStage(server.port, **STAGE)
+
+
+def test_device_with_accel_zero_homes_and_moves(server: FakeZaberPty) -> None:
+    """Zaber's accel 0 is "no ramp": accepted, and the move deadline has no ramp term."""
+    server.device.settings.update({"maxspeed": round(200.0 * 1e4 * 1.6384), "accel": 0})
+    with ZaberStage(server.port, **STAGE) as stage:
+        assert stage.describe()["accel_mm_s2"] == 0.0
+        # 40 mm at 200 mm/s: 0.2 s + 0.3 s margin, no 2 * speed/accel
+        assert stage.move_deadline_s(40.0) == pytest.approx(0.2 + 0.3, rel=1e-4)
+        assert stage.move_deadline_s(-10.0) == pytest.approx(0.05 + 0.3, rel=1e-4)
+        stage.home()
+        assert stage.is_homed and server.device.position == 0
+        for z in (12.5, 40.0, 0.0, 3.1234, 39.9999):
+            started = time.monotonic()
+            assert stage.move_to(z) == pytest.approx(z, abs=1e-5)
+            assert time.monotonic() - started < stage.move_deadline_s(40.0) + 2 * TIMEOUT_S
+            assert server.device.position == round(z * 1e4) and not server.device.busy
+
+
 def test_non_integer_setting_is_a_protocol_error(server: FakeZaberPty) -> None:
     server.device.settings["limit.max"] = "lots"
     with pytest.raises(StageProtocolError, match=r"sent '/1 1 \d\d get limit.max:..', "
@@ -386,6 +409,7 @@ def test_move_deadline_stops_the_axis(homed: ZaberStage, device: FakeZaberDevice
 def test_computed_timeout_covers_a_full_travel_move(homed: ZaberStage) -> None:
     # 40 mm at 200 mm/s: 0.2 s + 2 * 0.02 s + 0.3 s margin
     assert homed._motion_time(400_000) == pytest.approx(0.2 + 0.04 + 0.3, rel=1e-3)
+    assert homed.move_deadline_s(40.0) == pytest.approx(0.2 + 0.04 + 0.3, rel=1e-3)
     assert homed.move_to(40.0) == pytest.approx(40.0)
 
 

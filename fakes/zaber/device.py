@@ -221,7 +221,7 @@ class FakeZaberDevice:
             self.faults.stall_at = None
         self._homing = homing
         vmax = max(int(self.settings["maxspeed"]) / SPEED_UNIT, 1.0)
-        accel = max(int(self.settings["accel"]) / ACCEL_UNIT, 1.0)
+        accel = max(int(self.settings["accel"]), 0) / ACCEL_UNIT  # 0: no ramp (full speed at once)
         self._profile = Profile(self._pos, target, now, vmax, accel)
         self._update()
 
