@@ -111,8 +111,14 @@ def test_parse_reply_fields() -> None:
         ("@01 1 OK", ZaberFormatError, "truncated Zaber reply"),
         ("@01 1 OK SLEEPY -- 0", ZaberFormatError, "malformed Zaber reply"),
         ("@01 1 OK IDLE xx 0", ZaberFormatError, "malformed Zaber reply"),
-        ("@1 1 OK IDLE -- 0", ZaberFormatError, "expected a 2-2 digit number, got '1'"),
-        ("@01 1 123 OK IDLE -- 0", ZaberFormatError, "expected a 1-2 digit number, got '123'"),
+        ("@1 1 OK IDLE -- 0", ZaberFormatError,
+         r"malformed Zaber reply: '@1 1 OK IDLE -- 0' \(expected a 2-2 digit address, got '1'\)"),
+        ("@01 1 123 OK IDLE -- 0", ZaberFormatError,
+         r"'@01 1 123 OK IDLE -- 0' \(expected a 1-2 digit message id, got '123'\)"),
+        ("@01 1 05 OK IDLE --", ZaberFormatError,
+         r"truncated Zaber reply \(no data field\): '@01 1 05 OK IDLE --'"),
+        ("@01 1 OK IDLE -- \xe9:00", ZaberFormatError,
+         r"non-ASCII characters in Zaber reply: '@01 1 OK IDLE -- \xe9:00'"),
     ],
 )
 def test_parse_reply_rejects_malformed_lines(line: str, error: type, match: str) -> None:
