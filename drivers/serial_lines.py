@@ -28,9 +28,11 @@ class LineReader:
 
     def read_line(self, deadline: float) -> bytes | None:
         """The next line (terminator included), or None when ``deadline`` (monotonic s) passes.
-        More than MAX_LINE bytes without a newline come back as one line. Port errors propagate."""
+        A line is never longer than MAX_LINE bytes: MAX_LINE bytes without a newline come back as
+        one (garbled) line. Port errors propagate. Returns at the latest one port read (the
+        port's ``timeout``) after the deadline."""
         while True:
-            end = self._buf.find(b"\n")
+            end = self._buf.find(b"\n", 0, MAX_LINE)  # a newline further on ends a later line
             if end >= 0 or len(self._buf) >= MAX_LINE:
                 size = end + 1 if end >= 0 else MAX_LINE
                 line = bytes(self._buf[:size])

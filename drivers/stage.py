@@ -3,13 +3,24 @@
 Millimetres in the API; microsteps exist only inside this module (``microstep_um`` from config).
 Every error message names the port, the command sent and the reply received (or
 "no reply within X s").
+
+Threads: one command is on the wire at a time (one lock around each write-plus-read; the lock is
+per command, not per move, so queries and ``stop()`` from other threads interleave with a move's
+polls). One motion (``move_to`` or ``home``) at a time: a second one from another thread is
+refused at once with ``StageBusy`` (nothing sent; the first goes on undisturbed), because a lab
+script must never silently redirect a moving camera. ``stop()`` from another thread ends the
+running motion with ``StageStopped`` in the mover's thread. After any motion that did not
+complete, ``position_known`` is False until the next completed ``move_to`` or ``home``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
+import re
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,16 +29,21 @@ import serial
 from drivers.interfaces import Stage
 from drivers.serial_lines import LineReader, SerialLike
 from drivers.stage_errors import (
+    StageBusy,
     StageConnectionLost,
     StageError,
     StageFault,
     StageLimitError,
     StageNotHomed,
+    StagePositionUnknown,
     StageProtocolError,
     StageRejected,
+    StageStopped,
     StageTimeout,
 )
 from drivers.zaber_protocol import (
+    ACCEL_UNIT,
+    SPEED_UNIT,
     Reply,
     ZaberChecksumError,
     ZaberFormatError,
@@ -37,21 +53,23 @@ from drivers.zaber_protocol import (
 
 __all__ = [
     "Stage",
+    "StageBusy",
     "StageConnectionLost",
     "StageError",
     "StageFault",
     "StageLimitError",
     "StageNotHomed",
+    "StagePositionUnknown",
     "StageProtocolError",
     "StageRejected",
+    "StageStopped",
     "StageTimeout",
     "ZaberStage",
 ]
 
-SPEED_UNIT = 1.6384  # Zaber maxspeed value per microstep/s
-ACCEL_UNIT = 1.6384 / 10000  # Zaber accel value per microstep/s^2
 READ_SLICE_S = 0.01  # port read timeout; the line reader loops until its own deadline
 NOT_HOMED = ("WR", "WH")
+INTEGER = re.compile(r"-?[0-9]+")  # a reply's integer data: no '+', '_', spaces or other digits
 FAULT_NAMES = {"FS": "stalled", "FE": "limit error", "FD": "driver disabled",
                "FQ": "encoder error", "FF": "critical fault"}
 
@@ -84,7 +102,8 @@ class ZaberStage(Stage):
     of the target, with no ``F*`` fault; then (and after homing) the driver sleeps ``settle_s``.
 
     Deadlines: every command waits at most ``timeout_s`` for its reply. A move waits at most
-    |distance|/speed + 2*speed/accel + ``margin_s`` (speed and accel read from the device) or
+    |distance|/speed + 2*speed/accel + ``margin_s`` (speed and accel read from the device; a
+    device reporting ``accel 0``, Zaber's "no ramp", gets no ramp term) or
     the ``timeout`` given to ``move_to``, and at most ``no_progress_s`` without the position
     changing; on either, or on any error once the axis moves, the driver sends ``stop`` and
     raises. So a call returns within its move deadline + 2 * ``timeout_s`` (+ ``settle_s``).
@@ -94,6 +113,23 @@ class ZaberStage(Stage):
     ``move abs`` is lost, the command is not re-sent: the driver queries position and status
     and raises StageConnectionLost carrying them (``position_mm``, ``busy``), without stopping
     the axis; the caller decides (wait with move_to to the same target, stop(), or give up).
+
+    Threads: any thread may call any method; each command's write-plus-read holds one lock, so
+    bytes of two commands never interleave and ``position_mm`` or ``stop()`` from another thread
+    get on the wire between a move's polls (waiting at most one command's ``timeout_s``).
+    Policy for motions: one ``move_to``/``home`` at a time per stage. A second one, from any
+    thread, raises ``StageBusy`` at once, naming the port and the motion in progress; nothing is
+    sent and the first motion completes as if nothing happened. ``stop()`` from another thread
+    sends ``stop`` at once and makes the running motion raise ``StageStopped`` (naming the port
+    and the target) in its own thread at its next poll, within ``poll_s`` + 2 * ``timeout_s``.
+
+    Rest position: ``position_known`` is True, and ``last_position_mm`` the position where the
+    axis rests, only after a completed ``move_to`` or ``home`` with no motion command sent since.
+    Sending ``move abs`` or ``home`` makes it unknown until that motion completes; so after any
+    error or stop during a motion the position is explicitly unknown (``last_position_mm``
+    raises StagePositionUnknown) until the next completed motion. ``move_to`` and ``home`` never
+    rely on it: each starts from a fresh ``get pos``. A refused motion (StageBusy, StageLimitError)
+    changes nothing.
     """
 
     def __init__(
@@ -129,7 +165,12 @@ class ZaberStage(Stage):
         self.travel_mm = (float(travel_mm[0]), float(travel_mm[1]))
         self.timeout_s, self.settle_s, self.poll_s = timeout_s, settle_s, poll_s
         self.margin_s, self.no_progress_s, self.checksum = margin_s, no_progress_s, checksum
-        self._lock = threading.RLock()
+        self._lock = threading.RLock()  # one command (write plus read) at a time
+        self._state_lock = threading.Lock()  # guards _motion and _stop_requested
+        self._motion: str | None = None  # the move or homing in progress, e.g. "move to 5 mm"
+        self._stop_requested = threading.Event()  # set by stop() while a motion is in progress
+        self._rest_steps: int | None = None  # where the axis rests, None when unknown
+        self._unknown_why = "no move or homing has completed yet"
         self._msg_id = 0
         self._closed = False
         self._url = port if isinstance(port, str) else None
@@ -161,13 +202,13 @@ class ZaberStage(Stage):
         self.axis_count = self._get_int("system.axiscount", axis=0)
         low, high = self._get_int("limit.min"), self._get_int("limit.max")
         self.device_limits_mm = (self._mm(low), self._mm(high))
-        self.speed_steps_s = self._get_int("maxspeed") / SPEED_UNIT
-        self.accel_steps_s2 = self._get_int("accel") / ACCEL_UNIT
-        if self.speed_steps_s <= 0 or self.accel_steps_s2 <= 0:
+        maxspeed, accel = self._get_int("maxspeed"), self._get_int("accel")
+        self.speed_steps_s = maxspeed / SPEED_UNIT
+        self.accel_steps_s2 = accel / ACCEL_UNIT  # 0: no ramp, full speed at once (Zaber)
+        if maxspeed <= 0 or accel < 0:
             raise StageProtocolError(
-                f"{self.port_name}: sent 'get maxspeed' and 'get accel', got "
-                f"{self.speed_steps_s * SPEED_UNIT:g} and {self.accel_steps_s2 * ACCEL_UNIT:g}: "
-                "the device cannot move, so no move timeout can be computed"
+                f"{self.port_name}: sent 'get maxspeed' and 'get accel', got {maxspeed} and "
+                f"{accel}: the device cannot move, so no move timeout can be computed"
             )
         self._limits = (max(self.travel_mm[0], self.device_limits_mm[0]),
                         min(self.travel_mm[1], self.device_limits_mm[1]))
@@ -307,10 +348,9 @@ class ZaberStage(Stage):
         return ex
 
     def _int_data(self, ex: _Exchange) -> int:
-        try:
-            return int(ex.reply.data)
-        except ValueError:
-            raise self._protocol_error(ex.sent, ex.text, "expected an integer") from None
+        if not INTEGER.fullmatch(ex.reply.data):
+            raise self._protocol_error(ex.sent, ex.text, "expected an integer")
+        return int(ex.reply.data)
 
     def _get_int(self, setting: str, axis: int | None = None) -> int:
         return self._int_data(self._command(f"get {setting}", axis))
@@ -349,9 +389,49 @@ class ZaberStage(Stage):
         return steps
 
     def _motion_time(self, distance_steps: float) -> float:
-        """Move deadline (s): |distance|/speed + 2*speed/accel + margin."""
-        return (abs(distance_steps) / self.speed_steps_s
-                + 2 * self.speed_steps_s / self.accel_steps_s2 + self.margin_s)
+        """Move deadline (s): |distance|/speed + 2*speed/accel + margin; with accel 0 (no ramp:
+        the device starts and stops at full speed) |distance|/speed + margin."""
+        ramp = 0.0 if self.accel_steps_s2 == 0 else 2 * self.speed_steps_s / self.accel_steps_s2
+        return abs(distance_steps) / self.speed_steps_s + ramp + self.margin_s
+
+    def move_deadline_s(self, distance_mm: float) -> float:
+        """Deadline (s) the driver gives a move of ``distance_mm`` (mm) when no ``timeout`` is
+        passed to ``move_to``: |distance|/speed + 2*speed/accel (0 with accel 0) + margin_s."""
+        return self._motion_time(distance_mm * 1000.0 / self.microstep_um)
+
+    @contextlib.contextmanager
+    def _motion_slot(self, what: str) -> Iterator[None]:
+        """Hold the one motion slot for ``what``; StageBusy (nothing sent) when it is taken."""
+        with self._state_lock:
+            if self._motion is not None:
+                raise StageBusy(f"{self.port_name}: {what} refused: {self._motion} is in progress "
+                                "(started by another thread); nothing sent", self._motion)
+            self._motion = what
+            self._stop_requested.clear()
+        try:
+            yield
+        except BaseException as exc:
+            if self._rest_steps is None:
+                self._unknown_why = f"{what} ended with {type(exc).__name__}: {exc}"
+            raise
+        finally:
+            with self._state_lock:
+                self._motion = None
+                self._stop_requested.clear()
+
+    def _motion_sent(self, what: str, target: int | None) -> None:
+        """Called just before a motion command is sent: raise StageStopped if stop() came
+        first (nothing sent); else forget the rest position until the motion completes."""
+        if self._stop_requested.is_set():
+            goal = "home" if target is None else f"{self._mm(target):.6g} mm"
+            raise StageStopped(f"{self.port_name}: {what} was stopped by stop() before it was "
+                               f"sent (target {goal}); nothing moved", self._target_mm(target),
+                               None)
+        self._rest_steps = None
+        self._unknown_why = f"{what} is under way"
+
+    def _target_mm(self, target: int | None) -> float | None:
+        return None if target is None else self._mm(target)
 
     def _wait(self, target: int | None, duration: float, started_by: str) -> int:
         """Poll until done (see class docstring); return the position in microsteps.
@@ -366,6 +446,15 @@ class ZaberStage(Stage):
                 exc.args = (f"{exc}; {self._stop_quietly()}",)
                 raise
             self._raise_if_fault(ex)
+            goal = "home" if target is None else f"{self._mm(target):.6g} mm"
+            if self._stop_requested.is_set():
+                stopped = self._stop_quietly()
+                raise StageStopped(
+                    f"{self.port_name}: {started_by!r} (target {goal}) was stopped by stop() from "
+                    f"another thread: last sent {ex.sent!r}, got {ex.text!r} (device "
+                    f"{ex.reply.status} at {self._mm(pos):.6g} mm); {stopped}; position unknown "
+                    "until the next completed move or homing", self._target_mm(target),
+                    self._mm(pos))
             at_target = target is None or abs(pos - target) * self.microstep_um <= self.tolerance_um
             idle_polls = idle_polls + 1 if (at_target and not ex.reply.busy) else 0
             if idle_polls >= 2:
@@ -373,7 +462,6 @@ class ZaberStage(Stage):
             now = time.monotonic()
             if pos != last_pos:
                 last_pos, last_change = pos, now
-            goal = "home" if target is None else f"{self._mm(target):.6g} mm"
             problem = None
             if now - last_change > self.no_progress_s:
                 problem = f"no progress for {self.no_progress_s:g} s"
@@ -386,38 +474,64 @@ class ZaberStage(Stage):
                     f"{self.port_name}: {started_by!r} {problem}: last sent {ex.sent!r}, got "
                     f"{ex.text!r} (device {ex.reply.status} at {self._mm(pos):.6g} mm, "
                     f"target {goal}); {stopped}")
-            time.sleep(self.poll_s)
+            self._stop_requested.wait(self.poll_s)  # a stop() wakes the poll loop at once
 
     # ----- Stage interface -----------------------------------------------------------------
     def home(self) -> None:
-        """Home the axis and wait; raise StageNotHomed if the device is still not referenced."""
-        ex = self._command("home", motion=True)
-        low, high = self.device_limits_mm
-        self._wait(None, self._motion_time((high - low) * 1000.0 / self.microstep_um), ex.sent)
-        check = self._command("get limit.home.triggered")
-        if check.reply.data != "1":
-            raise StageNotHomed(f"{self.port_name}: homing ended but sent {check.sent!r}, "
-                                f"got {check.text!r}: no reference position")
-        time.sleep(self.settle_s)
+        """Home the axis and wait; raise StageNotHomed if the device is still not referenced,
+        StageBusy (nothing sent) while another thread's motion runs, StageStopped on stop()."""
+        with self._motion_slot("home"):
+            self._motion_sent("home", None)
+            ex = self._command("home", motion=True)
+            low, high = self.device_limits_mm
+            final = self._wait(None, self._motion_time((high - low) * 1000.0 / self.microstep_um),
+                               ex.sent)
+            check = self._command("get limit.home.triggered")
+            if check.reply.data != "1":
+                raise StageNotHomed(f"{self.port_name}: homing ended but sent {check.sent!r}, "
+                                    f"got {check.text!r}: no reference position")
+            self._rest_steps = final
+            time.sleep(self.settle_s)
 
     def move_to(self, z_mm: float, timeout: float | None = None) -> float:
         """Move to ``z_mm`` (mm), wait until done and settled; return the measured position (mm).
-        ``timeout`` (s) replaces the computed move deadline."""
+        ``timeout`` (s) replaces the computed move deadline. Raises StageBusy (nothing sent)
+        while another thread's motion runs, StageStopped when stop() ends it."""
         target = self._target_steps(z_mm)
-        before = self._command("get pos")
-        pos, r = self._int_data(before), before.reply
-        if pos == target and not r.busy and not r.fault and r.warning not in NOT_HOMED:
-            return self._mm(pos)  # zero-length move: done at once
-        ex = self._command(f"move abs {target}", motion=True)
-        duration = self._motion_time(target - pos) if timeout is None else timeout
-        final = self._wait(target, duration, ex.sent)
-        time.sleep(self.settle_s)
-        return self._mm(final)
+        what = f"move to {z_mm:g} mm"
+        with self._motion_slot(what):
+            before = self._command("get pos")
+            pos, r = self._int_data(before), before.reply
+            if (pos == target == self._rest_steps and not r.busy and not r.fault
+                    and r.warning not in NOT_HOMED):
+                return self._mm(pos)  # zero-length move from a known rest position: done at once
+            self._motion_sent(what, target)
+            ex = self._command(f"move abs {target}", motion=True)
+            duration = self._motion_time(target - pos) if timeout is None else timeout
+            final = self._wait(target, duration, ex.sent)
+            self._rest_steps = final
+            time.sleep(self.settle_s)
+            return self._mm(final)
 
     @property
     def position_mm(self) -> float:
-        """Measured position (mm), valid while moving."""
+        """Measured position (mm), queried from the device; valid while moving."""
         return self._mm(self._get_int("pos"))
+
+    @property
+    def position_known(self) -> bool:
+        """True when the axis rests at ``last_position_mm`` (see the class docstring)."""
+        return self._rest_steps is not None
+
+    @property
+    def last_position_mm(self) -> float:
+        """Where the last completed move or homing left the axis (mm), without asking the device;
+        raise StagePositionUnknown when a motion was sent since and did not complete."""
+        steps = self._rest_steps
+        if steps is None:
+            raise StagePositionUnknown(f"{self.port_name}: rest position unknown: "
+                                       f"{self._unknown_why}; query position_mm, or move_to/home")
+        return self._mm(steps)
 
     @property
     def limits_mm(self) -> tuple[float, float]:
@@ -429,7 +543,11 @@ class ZaberStage(Stage):
         return self._get_int("limit.home.triggered") == 1
 
     def stop(self) -> None:
-        """Decelerate to a stop now (returns once the device accepted the command)."""
+        """Decelerate to a stop now (returns once the device accepted the command). A move or
+        homing running in another thread then raises StageStopped there."""
+        with self._state_lock:
+            if self._motion is not None:
+                self._stop_requested.set()
         self._command("stop")
 
     def close(self) -> None:

@@ -49,3 +49,30 @@ class StageConnectionLost(StageError):
 
 class StageProtocolError(StageError):
     """A reply that is garbled, fails its checksum, does not match the command, or is not Zaber."""
+
+
+class StageBusy(StageError):
+    """A move or homing was refused at once because another thread's move or homing on the same
+    stage is in progress; nothing was sent and that motion goes on. ``in_progress`` names it."""
+
+    def __init__(self, message: str, in_progress: str) -> None:
+        super().__init__(message)
+        self.in_progress = in_progress
+
+
+class StageStopped(StageError):
+    """A move or homing was ended by ``stop()`` (called from another thread). ``target_mm`` is
+    the move's target (None for homing), ``position_mm`` the last polled position (None if the
+    motion was stopped before it was sent). The axis was told to stop; the driver's rest
+    position is unknown until the next completed move or homing."""
+
+    def __init__(self, message: str, target_mm: float | None, position_mm: float | None) -> None:
+        super().__init__(message)
+        self.target_mm = target_mm
+        self.position_mm = position_mm
+
+
+class StagePositionUnknown(StageError):
+    """The driver does not know where the axis rests: no move or homing has completed since a
+    motion command was sent (an error or a stop ended it). Query ``position_mm``, or complete a
+    ``move_to``/``home()``, which always start from a fresh position query."""

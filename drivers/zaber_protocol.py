@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+SPEED_UNIT = 1.6384  # device ``maxspeed`` value per µstep/s: µsteps/s = value / SPEED_UNIT
+ACCEL_UNIT = 1.6384 / 10000  # device ``accel`` value per µstep/s²: µsteps/s² = value / ACCEL_UNIT
 NO_WARNING = "--"
 FLAGS = ("OK", "RJ")
 STATUSES = ("BUSY", "IDLE")
@@ -86,6 +88,8 @@ def parse_command(line: str) -> Command:
     line = line.strip()
     if not line.startswith("/"):
         raise ZaberFormatError(f"not a Zaber command: {line!r}")
+    if not line.isascii():
+        raise ZaberFormatError(f"non-ASCII characters in Zaber command: {line!r}")
     if checksum_ok(line) is False:
         raise ZaberChecksumError(f"bad checksum in {line!r}")
     body, _ = split_checksum(line)
@@ -138,30 +142,38 @@ def format_reply(reply: Reply, *, checksum: bool = False) -> str:
 def parse_reply(line: str) -> Reply:
     """Parse an ``@`` reply line; verify its checksum when it carries one.
 
-    Raises ZaberChecksumError on a checksum mismatch, ZaberFormatError on anything malformed.
+    Raises ZaberChecksumError on a checksum mismatch, ZaberFormatError on anything malformed
+    (also a reply without its data field); every message quotes the (stripped) line.
     """
     line = line.strip()
     if not line.startswith("@"):
         raise ZaberFormatError(f"not a Zaber reply: {line!r}")
+    if not line.isascii():
+        raise ZaberFormatError(f"non-ASCII characters in Zaber reply: {line!r}")
     if checksum_ok(line) is False:
         raise ZaberChecksumError(f"bad checksum in {line!r}")
     body, _ = split_checksum(line)
     tokens = body[1:].split(" ")
     try:
-        address = _number(tokens.pop(0), 2, 2)
-        axis = _number(tokens.pop(0), 1, 1)
-        msg_id = None if tokens[0] in FLAGS else _number(tokens.pop(0), 1, 2)
-        flag, status, warning = tokens[0], tokens[1], tokens[2]
+        address = _number(tokens.pop(0), 2, 2, "address")
+        axis = _number(tokens.pop(0), 1, 1, "axis")
+        msg_id = None if tokens[0] in FLAGS else _number(tokens.pop(0), 1, 2, "message id")
+        flag, status, warning, data = tokens[0], tokens[1], tokens[2], " ".join(tokens[3:])
     except IndexError:
         raise ZaberFormatError(f"truncated Zaber reply: {line!r}") from None
+    except ValueError as exc:
+        raise ZaberFormatError(f"malformed Zaber reply: {line!r} ({exc})") from None
     if flag not in FLAGS or status not in STATUSES or not _is_warning(warning):
         raise ZaberFormatError(f"malformed Zaber reply: {line!r}")
-    return Reply(address, axis, msg_id, flag, status, warning, " ".join(tokens[3:]))
+    if not data:
+        raise ZaberFormatError(f"truncated Zaber reply (no data field): {line!r}")
+    return Reply(address, axis, msg_id, flag, status, warning, data)
 
 
-def _number(token: str, min_len: int, max_len: int) -> int:
+def _number(token: str, min_len: int, max_len: int, what: str) -> int:
+    """``token`` as a number of ``min_len``-``max_len`` ASCII digits; ValueError naming ``what``."""
     if not (token.isascii() and token.isdigit() and min_len <= len(token) <= max_len):
-        raise ZaberFormatError(f"expected a {min_len}-{max_len} digit number, got {token!r}")
+        raise ValueError(f"expected a {min_len}-{max_len} digit {what}, got {token!r}")
     return int(token)
 
 

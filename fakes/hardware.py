@@ -12,13 +12,13 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from drivers.display import OffscreenDisplay
 from drivers.frame_code import FrameCodeLayout
 from drivers.stage import ZaberStage
+from drivers.zaber_protocol import ACCEL_UNIT, SPEED_UNIT
 from fakes.bench import BenchConfig, FakeBench
 from fakes.camera import FakeCamera, NoiseModel
 from fakes.lcd import FakeLCD, PanelResponse
 from fakes.zaber import FakeZaberDevice, FakeZaberPty
 from sim.validation import format_validation_error
 
-SPEED_UNIT = 1.6384  # Zaber maxspeed value per microstep/s
 
 
 class FakeSettings(BaseModel):
@@ -79,7 +79,7 @@ class FakeHardware(contextlib.ExitStack):
                 limit_min=0,
                 limit_max=round(travel_mm[1] * 1000 / um) + 1000,
                 maxspeed=round(settings.stage_maxspeed_mm_s * 1000 / um * SPEED_UNIT),
-                accel=max(1, round(settings.stage_accel_mm_s2 * 1000 / um * SPEED_UNIT / 10000)),
+                accel=max(1, round(settings.stage_accel_mm_s2 * 1000 / um * ACCEL_UNIT)),
                 position=round(settings.start_mm * 1000 / um),
             )
             self.pty = self.enter_context(FakeZaberPty(self.device))

@@ -1,7 +1,8 @@
 """One fake Zaber device (one axis) speaking the ASCII protocol: bytes in, bytes out.
 
-Positions are integer microsteps, speeds use the device's own units (``maxspeed`` value / 1.6384
-= µsteps/s; ``accel`` value * 10000 / 1.6384 = µsteps/s²), times come from an injectable clock.
+Positions are integer microsteps, speeds use the device's own units (µsteps/s is the
+``maxspeed`` value / SPEED_UNIT; µsteps/s² is the ``accel`` value / ACCEL_UNIT; both units come
+from ``drivers.zaber_protocol``), times come from an injectable clock.
 
 Simplifications, stated so tests do not rely on more: one axis; a new move starts from rest
 even when it interrupts another; homing drives to microstep 0 and then counts as homed; a
@@ -16,7 +17,9 @@ import time
 from collections.abc import Callable
 
 from drivers.zaber_protocol import (
+    ACCEL_UNIT,
     NO_WARNING,
+    SPEED_UNIT,
     Command,
     Reply,
     ZaberFormatError,
@@ -26,8 +29,6 @@ from drivers.zaber_protocol import (
 from fakes.zaber.faults import Faults
 from fakes.zaber.motion import Profile
 
-SPEED_UNIT = 1.6384  # maxspeed value per µstep/s
-ACCEL_UNIT = 1.6384 / 10000  # accel value per µstep/s²
 WARNING_ORDER = ("FF", "FS", "FE", "FD", "FQ", "WL", "WR", "WH", "WV", "WT", "WM", "NI", "NC", "NU")
 
 
@@ -220,7 +221,7 @@ class FakeZaberDevice:
             self.faults.stall_at = None
         self._homing = homing
         vmax = max(int(self.settings["maxspeed"]) / SPEED_UNIT, 1.0)
-        accel = max(int(self.settings["accel"]) / ACCEL_UNIT, 1.0)
+        accel = max(int(self.settings["accel"]), 0) / ACCEL_UNIT  # 0: no ramp (full speed at once)
         self._profile = Profile(self._pos, target, now, vmax, accel)
         self._update()
 

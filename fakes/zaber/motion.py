@@ -11,7 +11,10 @@ class Profile:
     """A move from ``start`` to ``end`` (microsteps) beginning at time ``t0`` (s) with speed
     ``v0`` toward ``end``: accelerate at ``accel`` (µsteps/s²) to at most ``vmax`` (µsteps/s),
     cruise, decelerate to rest exactly at ``end``. ``v0`` must not exceed what allows stopping
-    within the distance (true for moves from rest and for a stop's deceleration)."""
+    within the distance (true for moves from rest and for a stop's deceleration).
+
+    ``accel`` 0 is Zaber's "no ramp": the axis runs at ``vmax`` from the start and stops dead
+    at ``end`` (duration |end - start| / vmax); a stop ends the motion where it is."""
 
     start: float
     end: float
@@ -23,6 +26,8 @@ class Profile:
     def _phases(self) -> tuple[float, float, float, float, float]:
         """(peak speed, accel time, accel distance, cruise distance, cruise time)."""
         d = abs(self.end - self.start)
+        if self.no_ramp:
+            return self.vmax, 0.0, 0.0, d, d / self.vmax
         v0 = min(self.v0, self.vmax)
         vp = min(self.vmax, math.sqrt(self.accel * d + v0 * v0 / 2))
         vp = max(vp, v0)
@@ -33,12 +38,17 @@ class Profile:
         return vp, t1, d1, d2, t2
 
     @property
+    def no_ramp(self) -> bool:
+        """True for ``accel`` 0: full speed at once, no acceleration or deceleration phase."""
+        return self.accel == 0
+
+    @property
     def duration(self) -> float:
         """Total time of the move (s)."""
         if self.end == self.start:
             return 0.0
         vp, t1, _, _, t2 = self._phases()
-        return t1 + t2 + vp / self.accel
+        return t1 + t2 + (0.0 if self.no_ramp else vp / self.accel)
 
     def state(self, t: float) -> tuple[float, float]:
         """(position in microsteps, speed toward ``end`` in µsteps/s) at time ``t``."""
@@ -61,6 +71,8 @@ class Profile:
     def stopping(self, t: float) -> "Profile":
         """The deceleration to rest that a stop at time ``t`` starts."""
         pos, v = self.state(t)
+        if self.no_ramp:
+            return Profile(pos, pos, t, self.vmax, 0.0)
         direction = 1.0 if self.end >= self.start else -1.0
         end = pos + direction * v * v / (2 * self.accel)
         return Profile(pos, end, t, max(v, 1e-9), self.accel, v)

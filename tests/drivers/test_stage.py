@@ -14,13 +14,16 @@ import drivers.stage as stage_module
 from drivers.interfaces import DeviceError
 from drivers.stage import (
     Stage,
+    StageBusy,
     StageConnectionLost,
     StageError,
     StageFault,
     StageLimitError,
     StageNotHomed,
+    StagePositionUnknown,
     StageProtocolError,
     StageRejected,
+    StageStopped,
     StageTimeout,
     ZaberStage,
 )
@@ -125,6 +128,29 @@ def test_device_that_cannot_move_is_refused(server: FakeZaberPty) -> None:
         ZaberStage(server.port, **STAGE)
 
 
+def test_negative_acceleration_is_refused(server: FakeZaberPty) -> None:
+    server.device.settings["accel"] = -5
+    with pytest.raises(StageProtocolError, match=r"'get accel', got 3276800 and -5: the device cannot move"):
+        ZaberStage(server.port, **STAGE)
+
+
+def test_device_with_accel_zero_homes_and_moves(server: FakeZaberPty) -> None:
+    """Zaber's accel 0 is "no ramp": accepted, and the move deadline has no ramp term."""
+    server.device.settings.update({"maxspeed": round(200.0 * 1e4 * 1.6384), "accel": 0})
+    with ZaberStage(server.port, **STAGE) as stage:
+        assert stage.describe()["accel_mm_s2"] == 0.0
+        # 40 mm at 200 mm/s: 0.2 s + 0.3 s margin, no 2 * speed/accel
+        assert stage.move_deadline_s(40.0) == pytest.approx(0.2 + 0.3, rel=1e-4)
+        assert stage.move_deadline_s(-10.0) == pytest.approx(0.05 + 0.3, rel=1e-4)
+        stage.home()
+        assert stage.is_homed and server.device.position == 0
+        for z in (12.5, 40.0, 0.0, 3.1234, 39.9999):
+            started = time.monotonic()
+            assert stage.move_to(z) == pytest.approx(z, abs=1e-5)
+            assert time.monotonic() - started < stage.move_deadline_s(40.0) + 2 * TIMEOUT_S
+            assert server.device.position == round(z * 1e4) and not server.device.busy
+
+
 def test_non_integer_setting_is_a_protocol_error(server: FakeZaberPty) -> None:
     server.device.settings["limit.max"] = "lots"
     with pytest.raises(StageProtocolError, match=r"sent '/1 1 \d\d get limit.max:..', "
@@ -214,6 +240,7 @@ def test_targets_outside_the_travel_raise_before_any_byte_is_sent(
                                                         "[0, 40] mm; nothing sent")):
         homed.move_to(z)
     assert bytes(device.received_bytes) == before
+    assert homed.position_known and homed.last_position_mm == 0.0  # a refused move changes nothing
 
 
 def test_unrepresentable_target_is_refused(server: FakeZaberPty) -> None:
@@ -253,17 +280,134 @@ def test_stop_is_sent_to_the_axis(homed: ZaberStage, device: FakeZaberDevice) ->
     assert re.fullmatch(r"/1 1 \d\d stop:..", device.received[-1])
 
 
-def test_stop_from_another_thread_ends_a_move_with_a_typed_error(server: FakeZaberPty) -> None:
+def run_thread(fn: Callable[[], object]) -> tuple[threading.Thread, dict]:
+    """Like in_background, and also records when ``fn`` ended (time.monotonic) in 'ended'."""
+    out: dict = {}
+
+    def run() -> None:
+        try:
+            out["result"] = fn()
+        except StageError as exc:
+            out["error"] = exc
+        out["ended"] = time.monotonic()
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    return thread, out
+
+
+def wait_for_motion(device: FakeZaberDevice, min_steps: int = 1000) -> None:
+    """Block until the fake's carriage has left 0 by ``min_steps`` (a move is under way)."""
+    deadline = time.monotonic() + 2.0
+    while device.position < min_steps:
+        assert time.monotonic() < deadline, "the move never started"
+        time.sleep(0.002)
+
+
+def test_stop_from_another_thread_ends_a_move_with_stage_stopped(server: FakeZaberPty) -> None:
+    server.device.settings.update(speed_settings(50.0, 2000.0))  # 30 mm take about 0.6 s
+    with ZaberStage(server.port, **STAGE) as stage:
+        stage.home()
+        assert stage.position_known and stage.last_position_mm == 0.0
+        started = time.monotonic()
+        thread, out = run_thread(lambda: stage.move_to(30.0))
+        wait_for_motion(server.device)
+        stop_called = time.monotonic()
+        stage.stop()
+        thread.join()
+        error = out["error"]
+        assert isinstance(error, StageStopped)
+        # promptly: the mover notices at its next poll, plus one stop command
+        assert out["ended"] - stop_called <= STAGE["poll_s"] + 2 * TIMEOUT_S + 0.5
+        assert out["ended"] - started <= stage.move_deadline_s(30.0) + 2 * TIMEOUT_S + 0.5
+        assert re.search(rf"^{stage.port_name}: '/1 1 \d\d move abs 300000:..' \(target 30 mm\) was "
+                         r"stopped by stop\(\) from another thread: .*device (BUSY|IDLE) at .* mm\); "
+                         "axis stopped; position unknown", str(error))
+        assert error.target_mm == 30.0 and 0.0 < error.position_mm < 30.0
+        time.sleep(0.1)  # the deceleration from 50 mm/s at 2000 mm/s^2 takes 25 ms
+        assert not server.device.busy and 0 < server.device.position < 300_000
+        assert not stage.position_known
+        with pytest.raises(StagePositionUnknown, match=rf"{stage.port_name}: rest position unknown: "
+                           "move to 30 mm ended with StageStopped"):
+            stage.last_position_mm
+        assert stage.move_to(30.0) == pytest.approx(30.0)  # the next move recovers
+        assert stage.position_known and stage.last_position_mm == pytest.approx(30.0)
+        assert server.device.position == 300_000
+
+
+def test_stop_from_another_thread_ends_homing_with_stage_stopped(server: FakeZaberPty) -> None:
+    server.device.settings.update(speed_settings(5.0, 2000.0))  # homing from 10 mm: 2 s
+    with ZaberStage(server.port, **STAGE) as stage:
+        thread, out = run_thread(stage.home)
+        deadline = time.monotonic() + 2.0
+        while server.device.position > 95_000:
+            assert time.monotonic() < deadline
+            time.sleep(0.002)
+        stage.stop()
+        thread.join()
+        assert isinstance(out["error"], StageStopped) and out["error"].target_mm is None
+        assert re.search(r"home:..' \(target home\) was stopped by stop\(\)", str(out["error"]))
+        assert not server.device.homed and not stage.position_known
+
+
+def test_second_move_from_another_thread_is_refused_with_stage_busy(server: FakeZaberPty) -> None:
     server.device.settings.update(speed_settings(50.0, 2000.0))
     with ZaberStage(server.port, **STAGE) as stage:
         stage.home()
-        thread, out = in_background(lambda: stage.move_to(30.0))
-        time.sleep(0.1)
-        stage.stop()
+        thread, out = run_thread(lambda: stage.move_to(30.0))
+        wait_for_motion(server.device)
+        sent = len(server.device.received)
+        for second, what in ((lambda: stage.move_to(5.0), "move to 5 mm"), (stage.home, "home")):
+            started = time.monotonic()
+            with pytest.raises(StageBusy, match=rf"^{stage.port_name}: {what} refused: move to 30 mm "
+                               r"is in progress \(started by another thread\); nothing sent$") as info:
+                second()
+            assert time.monotonic() - started < 0.05  # at once, not after the first move
+            assert info.value.in_progress == "move to 30 mm"
+        assert thread.is_alive()  # the first move was not disturbed ...
+        new_lines = server.device.received[sent:]
+        assert not any("move" in line or "home" in line or "stop" in line for line in new_lines)
         thread.join()
-    assert isinstance(out["error"], StageTimeout)
-    assert re.search(r"no progress for 0.15 s: .*device IDLE at .* mm, target 30 mm\); axis stopped",
-                     str(out["error"]))
+    assert out["result"] == pytest.approx(30.0)  # ... and completed correctly
+    assert server.device.position == 300_000 and not server.device.busy
+    assert count(server.device, "move abs") == 1 and count(server.device, "stop") == 0
+
+
+def test_many_threads_polling_while_moving_never_interleave_bytes(server: FakeZaberPty) -> None:
+    server.device.settings.update(speed_settings(50.0, 2000.0))
+    with ZaberStage(server.port, **STAGE) as stage:
+        stage.home()
+        first = len(server.device.received)
+        mover, out = run_thread(lambda: stage.move_to(30.0))
+        seen: dict[int, list[float]] = {}
+        errors: list[BaseException] = []
+
+        def poll(n: int) -> None:
+            seen[n] = []
+            try:
+                while mover.is_alive():
+                    seen[n].append(stage.position_mm)
+            except BaseException as exc:  # anything at all is a failure of this test
+                errors.append(exc)
+
+        pollers = [threading.Thread(target=poll, args=(n,)) for n in range(8)]
+        for t in pollers:
+            t.start()
+        for t in pollers + [mover]:
+            t.join()
+        assert errors == [] and out["result"] == pytest.approx(30.0)
+        for values in seen.values():
+            assert len(values) >= 3 and values == sorted(values)  # a move only goes forward
+            assert all(0.0 <= v <= 30.0 for v in values)
+        lines = server.device.received[first:]
+        assert len(lines) > 50
+        ids = []
+        for line in lines:  # every line the device got is one whole command ...
+            match = re.fullmatch(r"/1 1 (\d\d) (get pos|move abs 300000):[0-9A-F]{2}", line)
+            assert match and checksum_ok(line), line
+            ids.append(int(match.group(1)))
+        # ... and they arrived one at a time, in the order their message ids were given out
+        assert all((b - a) % 100 == 1 for a, b in zip(ids, ids[1:]))
 
 
 # ----- fault switches --------------------------------------------------------------------------
@@ -335,7 +479,11 @@ def test_stall_mid_move_raises_fault(homed: ZaberStage, device: FakeZaberDevice)
                        "stopped") as info:
         homed.move_to(30.0)
     assert info.value.warning == "FS"
+    assert not homed.position_known  # the move did not complete
+    with pytest.raises(StagePositionUnknown, match="move to 30 mm ended with StageFault"):
+        homed.last_position_mm
     assert homed.move_to(30.0) == pytest.approx(30.0)  # a new move clears the stall
+    assert homed.position_known and homed.last_position_mm == pytest.approx(30.0)
 
 
 def test_stall_at_once_is_reported_by_the_move_reply(homed: ZaberStage, device: FakeZaberDevice) -> None:
@@ -386,6 +534,7 @@ def test_move_deadline_stops_the_axis(homed: ZaberStage, device: FakeZaberDevice
 def test_computed_timeout_covers_a_full_travel_move(homed: ZaberStage) -> None:
     # 40 mm at 200 mm/s: 0.2 s + 2 * 0.02 s + 0.3 s margin
     assert homed._motion_time(400_000) == pytest.approx(0.2 + 0.04 + 0.3, rel=1e-3)
+    assert homed.move_deadline_s(40.0) == pytest.approx(0.2 + 0.04 + 0.3, rel=1e-3)
     assert homed.move_to(40.0) == pytest.approx(40.0)
 
 
@@ -555,6 +704,8 @@ class TamperPort:
         (lambda b: b.replace(b" OK ", b" OX "), r"got '@01 0 \d\d OX IDLE WR 50081': garbled reply"),
         (lambda b: re.sub(rb"^(@\d\d \d) \d\d ", rb"\1 ", b), r"got '@01 0 OK IDLE WR 50081': reply "
          "carries no message id"),
+        (lambda b: b.replace(b"50081", b"50_081"), r"got '@01 0 \d\d OK IDLE WR 50_081': expected an integer"),
+        (lambda b: b.replace(b"50081", b"+50081"), r"got '@01 0 \d\d OK IDLE WR \+50081': expected an integer"),
         (lambda b: b.replace(b"@01", b"@02"), r"got '@02 0 \d\d OK IDLE WR 50081': reply from device 2 "
          "axis 0, expected device 1 axis 0"),
     ],

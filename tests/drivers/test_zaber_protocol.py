@@ -111,10 +111,37 @@ def test_parse_reply_fields() -> None:
         ("@01 1 OK", ZaberFormatError, "truncated Zaber reply"),
         ("@01 1 OK SLEEPY -- 0", ZaberFormatError, "malformed Zaber reply"),
         ("@01 1 OK IDLE xx 0", ZaberFormatError, "malformed Zaber reply"),
-        ("@1 1 OK IDLE -- 0", ZaberFormatError, "expected a 2-2 digit number, got '1'"),
-        ("@01 1 123 OK IDLE -- 0", ZaberFormatError, "expected a 1-2 digit number, got '123'"),
+        ("@1 1 OK IDLE -- 0", ZaberFormatError,
+         r"malformed Zaber reply: '@1 1 OK IDLE -- 0' \(expected a 2-2 digit address, got '1'\)"),
+        ("@01 1 123 OK IDLE -- 0", ZaberFormatError,
+         r"'@01 1 123 OK IDLE -- 0' \(expected a 1-2 digit message id, got '123'\)"),
+        ("@01 1 05 OK IDLE --", ZaberFormatError,
+         r"truncated Zaber reply \(no data field\): '@01 1 05 OK IDLE --'"),
+        ("@01 1 OK IDLE -- \xe9:00", ZaberFormatError,
+         r"non-ASCII characters in Zaber reply: '@01 1 OK IDLE -- \xe9:00'"),
     ],
 )
 def test_parse_reply_rejects_malformed_lines(line: str, error: type, match: str) -> None:
     with pytest.raises(error, match=match):
         parse_reply(line)
+
+
+def test_speed_and_accel_units_are_defined_once_in_the_protocol_module() -> None:
+    import pathlib
+
+    import drivers.stage
+    import fakes.hardware
+    import fakes.zaber.device
+    from drivers import zaber_protocol
+
+    # HARDWARE.md: speed in microsteps/s = maxspeed / 1.6384; microsteps/s^2 = accel * 10000 / 1.6384
+    assert zaber_protocol.SPEED_UNIT == 1.6384
+    assert 16 / zaber_protocol.ACCEL_UNIT == pytest.approx(16 * 10000 / 1.6384, rel=1e-12)
+    for module in (drivers.stage, fakes.zaber.device, fakes.hardware):
+        assert module.SPEED_UNIT is zaber_protocol.SPEED_UNIT
+    root = pathlib.Path(zaber_protocol.__file__).parents[1]
+    defining = sorted(str(path.relative_to(root)) for package in ("drivers", "fakes", "station")
+                      for path in (root / package).rglob("*.py")
+                      if any(line.startswith(("SPEED_UNIT =", "ACCEL_UNIT ="))
+                             for line in path.read_text().splitlines()))
+    assert defining == ["drivers/zaber_protocol.py"]

@@ -165,6 +165,42 @@ def test_profile_shapes() -> None:
     assert (stopping.end, stopping.duration) == (pytest.approx(500.0), pytest.approx(1.0))
 
 
+def test_profile_without_ramp() -> None:
+    """accel 0 (Zaber's "no ramp"): full speed from the first instant, a dead stop at the end."""
+    flat = Profile(100.0, 1100.0, 2.0, vmax=500.0, accel=0.0)
+    assert flat.no_ramp and flat.duration == pytest.approx(2.0)  # 1000 steps at 500 steps/s
+    assert flat.state(2.0) == (100.0, 500.0)
+    assert flat.state(2.5) == pytest.approx((350.0, 500.0))
+    assert flat.state(3.999) == pytest.approx((1099.5, 500.0))
+    assert flat.state(4.0) == (1100.0, 0.0)
+    back = Profile(0.0, -300.0, 0.0, vmax=100.0, accel=0.0)
+    assert back.duration == pytest.approx(3.0) and back.state(1.5) == pytest.approx((-150.0, 100.0))
+    halt = flat.stopping(3.0)  # a stop without ramp ends the motion where it is
+    assert (halt.start, halt.end, halt.duration) == (pytest.approx(600.0), pytest.approx(600.0), 0.0)
+    assert Profile(7.0, 7.0, 0.0, vmax=1.0, accel=0.0).duration == 0.0
+
+
+def test_device_with_accel_zero_moves_at_full_speed_at_once(clock: ManualClock) -> None:
+    dev = FakeZaberDevice(clock=clock, limit_max=200_000, maxspeed=SPEED, accel=0, position=5000)
+    assert ask(dev, "/1 1 get accel") == "@01 1 OK IDLE WR 0\r\n"
+    ask(dev, "/1 1 home")
+    clock.advance(0.25)  # 2500 of the 5000 steps home at 10000 steps/s, no ramp
+    assert dev.position == 2500 and dev.busy
+    clock.advance(0.25)
+    assert dev.position == 0 and dev.homed and not dev.busy
+    assert ask(dev, "/1 1 move abs 100000") == "@01 1 OK BUSY -- 0\r\n"
+    clock.advance(0.001)  # no acceleration phase: 10 steps in the first millisecond
+    assert dev.position == 10
+    clock.advance(4.999)
+    assert dev.position == 50_000
+    assert ask(dev, "/1 1 stop") == "@01 1 OK IDLE NI 0\r\n"  # stops dead, no deceleration
+    clock.advance(1.0)
+    assert dev.position == 50_000 and not dev.busy
+    ask(dev, "/1 1 move abs 0")
+    clock.advance(5.0)
+    assert ask(dev, "/1 1 get pos") == "@01 1 OK IDLE -- 0\r\n"
+
+
 def test_stop_decelerates_and_estop_halts(dev: FakeZaberDevice, clock: ManualClock) -> None:
     homed(dev, clock)
     ask(dev, "/1 1 move abs 100000")
