@@ -14,36 +14,37 @@ so ``import sim`` is cheap::
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from sim._lazy import lazy_exports
 
 _EXPORTS = {
-    "Scanner": "sim.scanner",
-    "Rig": "sim.optics.rig",
-    "DeviceCalibration": "sim.optics.rig",
-    "PinholeLens": "sim.optics.lens",
-    "GaussianLens": "sim.optics.lens",
-    "AberratedLens": "sim.optics.lens",
-    "LensModel": "sim.optics.lens",
-    "MeasuredLens": "sim.optics.measured_lens",
-    "load_lens": "sim.optics.measured_lens",
-    "save_lens": "sim.optics.measured_lens",
-    "Scene": "sim.render.scene",
-    "load_scene_file": "sim.render.scene",
-    "PhaseShiftSet": "sim.render.fringe_patterns",
-    "GrayCodeSet": "sim.render.fringe_patterns",
-    "RenderSettings": "sim.render.images",
-    "RenderResult": "sim.render.images",
-    "DecodeSettings": "sim.fpp.decode",
-    "scan": "sim.fpp.decode",
-    "PointCloud": "sim.fpp.cloud",
-    "read_ply": "sim.fpp.cloud",
-    "write_ply": "sim.fpp.cloud",
-    "load_scan_input": "sim.fpp.scan_input",
-    "fit_sphere": "sim.metrology.spheres",
-    "find_spheres": "sim.metrology.spheres",
-    "measure_ball_bar": "sim.metrology.spheres",
-    "compare_clouds": "sim.metrology.compare",
+    "Scanner": "scanner",
+    "Rig": "optics.rig",
+    "DeviceCalibration": "optics.rig",
+    "PinholeLens": "optics.lens",
+    "GaussianLens": "optics.lens",
+    "AberratedLens": "optics.lens",
+    "LensModel": "optics.lens",
+    "MeasuredLens": "optics.measured_lens",
+    "load_lens": "optics.measured_lens",
+    "save_lens": "optics.measured_lens",
+    "Scene": "render.scene",
+    "load_scene_file": "render.scene",
+    "PhaseShiftSet": "render.fringe_patterns",
+    "GrayCodeSet": "render.fringe_patterns",
+    "RenderSettings": "render.images",
+    "RenderResult": "render.images",
+    "DecodeSettings": "fpp.decode",
+    "scan": "fpp.decode",
+    "PointCloud": "fpp.cloud",
+    "read_ply": "fpp.cloud",
+    "write_ply": "fpp.cloud",
+    "load_scan_input": "fpp.scan_input",
+    "fit_sphere": "metrology.spheres",
+    "find_spheres": "metrology.spheres",
+    "measure_ball_bar": "metrology.spheres",
+    "compare_clouds": "metrology.compare",
 }
 __all__ = sorted(_EXPORTS)
 
@@ -62,13 +63,4 @@ if TYPE_CHECKING:
     from sim.scanner import Scanner
 
 
-def __getattr__(name: str) -> Any:
-    if name in _EXPORTS:
-        value = getattr(importlib.import_module(_EXPORTS[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'sim' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())

@@ -18,22 +18,23 @@ Stages, earliest first: ``station.acquisition`` -> ``station.ltc`` -> ``station.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from sim._lazy import lazy_exports
 
 _EXPORTS = {
-    "Bench": "station.api",
-    "open_bench": "station.api",
-    "load_config": "station.api",
-    "acquire": "station.api",
-    "reconstruct_ltc": "station.api",
-    "derive_lens": "station.api",
-    "run_sequence": "station.sequence",
-    "StationConfig": "station.acquisition.config",
-    "ConfigError": "station.acquisition.config",
-    "LensResult": "station.lens.derive",
-    "StationError": "station.errors",
-    "UsageError": "station.errors",
+    "Bench": "api",
+    "open_bench": "api",
+    "load_config": "api",
+    "acquire": "api",
+    "reconstruct_ltc": "api",
+    "derive_lens": "api",
+    "run_sequence": "sequence",
+    "StationConfig": "acquisition.config",
+    "ConfigError": "acquisition.config",
+    "LensResult": "lens.derive",
+    "StationError": "errors",
+    "UsageError": "errors",
 }
 __all__ = sorted(_EXPORTS)
 
@@ -45,13 +46,4 @@ if TYPE_CHECKING:
     from station.sequence import run_sequence
 
 
-def __getattr__(name: str) -> Any:
-    if name in _EXPORTS:
-        value = getattr(importlib.import_module(_EXPORTS[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'station' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
