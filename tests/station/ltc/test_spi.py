@@ -479,7 +479,7 @@ def test_cli_reports_store_errors(clean_run, capsys):
     assert code == 1
     assert "ltc reconstruct: error:" in capsys.readouterr().err
     assert cli_main(["reconstruct", str(root / "run.zarr"), "--out", str(root / "ltc.zarr")]) == 2
-    assert "already exists" in capsys.readouterr().err
+    assert "exists; pass --force" in capsys.readouterr().err
 
 
 def test_reconstruct_refuses_incomplete_run_and_bad_tile(tmp_path):
