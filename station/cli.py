@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import sys
 from importlib import metadata
 
+from station.commands import add_command
 from station.errors import StationError, UsageError, describe_os_error
 
-# Each module defines ``register(subparsers)`` which adds its parser and sets ``func``.
+# One module per subcommand, declared as ``station.commands`` describes.
 COMMAND_MODULES = (
     "check",
     "config",
@@ -55,8 +57,19 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"ltc {version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
-        importlib.import_module(f"station.commands.{name}").register(sub)
+        add_command(sub, name, importlib.import_module(f"station.commands.{name}"))
     return parser
+
+
+def _print(module, args: argparse.Namespace, result: dict | str | None) -> int:
+    """Print what a command's ``run`` returned; the exit code (1 for a report not ``ok``)."""
+    if isinstance(result, str):
+        sys.stdout.write(result)
+        return 0
+    if result is None:
+        return 0
+    print(json.dumps(result) if getattr(args, "json", False) else module.text(result))
+    return 0 if result.get("ok", True) else 1
 
 
 def _fail(command: str, message: str, code: int) -> int:
@@ -69,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     command = args.command
     try:
-        return int(args.func(args) or 0)
+        return _print(args.module, args, args.module.run(args))
     except UsageError as exc:
         return _fail(command, str(exc), 2)
     except KeyboardInterrupt:

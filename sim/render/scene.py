@@ -25,6 +25,7 @@ Scene file (TOML; paths relative to the file; example ``examples/sphere_scene.to
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -36,7 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from sim.render.fringe_patterns import PatternSet
 from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens
-from sim.render.images import RenderResult, RenderSettings, render_views
+from sim.render.images import RenderResult, RenderSettings, render_views, write_pngs, write_zarr
 from sim.optics.rig import DeviceCalibration, Rig, _matrix
 from sim.validation import format_validation_error
 from sim.render.trace import TraceGeometry
@@ -299,6 +300,49 @@ class LoadedScene:
         return render_views(self.geometry, self.rig, self.lenses, imgs, self.config.render,
                             np.random.default_rng(self.config.seed), progress=progress,
                             where=str(self.source))
+
+    def save(self, result: RenderResult, out: str | Path, radiance: bool = False) -> dict:
+        """Write a rendering into the new folder ``out`` (docs/formats.md, "ltc render
+        folder"): 8/16-bit PNGs per camera (unless unquantised), ``render.zarr`` with the
+        images and truth maps, ``summary.json``. Returns the summary."""
+        out = Path(out)
+        out.mkdir(parents=True)
+        cam = self.config.render.camera
+        png_dirs = [str(out / f"camera_{i}") if cam.quantize else None
+                    for i in range(len(result.cameras))]
+        for c, d in zip(result.cameras, png_dirs):
+            if d is not None:
+                write_pngs(d, c.images, cam.bit_depth)
+        summary = self._summary(result, out, png_dirs)
+        descriptors = self.config.patterns.descriptors(self.rig.projector.size)
+        attrs = {"summary": summary, "scene": self.config.model_dump(mode="json"),
+                 "rig": self.rig.model_dump(mode="json"),
+                 "patterns": [d.model_dump(mode="json") for d in descriptors],
+                 "png_note": "12-bit images are stored unscaled (0..4095) in 16-bit PNG"}
+        write_zarr(out / "render.zarr", result, attrs, radiance=radiance)
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        return summary
+
+    def _summary(self, result: RenderResult, out: Path, png_dirs: list[str | None]) -> dict:
+        cfg = self.config
+        cams = []
+        for i, (c, dev) in enumerate(zip(result.cameras, self.rig.cameras)):
+            depth = c.depth[np.isfinite(c.depth)]
+            cams.append({
+                "name": c.name, "group": f"camera_{i}", "size": list(dev.size),
+                "lens": cfg.lenses[i].kind, "rays": c.n_rays,
+                "seen_fraction": float(np.mean(c.object_id >= 0)),
+                "lit_fraction": float(np.mean(c.lit)),
+                "depth_mm": [float(depth.min()), float(depth.max())] if depth.size else None,
+                "png_dir": png_dirs[i], "timings": c.timings,
+            })
+        return {
+            "scene": str(self.source), "rig": str(self.source.parent / cfg.rig), "out": str(out),
+            "zarr": str(out / "render.zarr"), "images": int(result.cameras[0].images.shape[0]),
+            "bit_depth": cfg.render.camera.bit_depth, "quantized": cfg.render.camera.quantize,
+            "pattern_set": cfg.patterns.model_dump(mode="json"), "cameras": cams,
+            "timings": result.timings,
+        }
 
 
 def load_scene_file(path: str | Path) -> LoadedScene:

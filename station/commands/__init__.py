@@ -1,11 +1,48 @@
-"""The ``ltc`` subcommands, one module each: ``register(subparsers)`` adds the parser, ``run``
-calls the Python API. Heavy libraries are imported inside ``run`` (``ltc --help`` stays fast).
-Errors are raised, not printed: ``station.cli.main`` turns them into one line and an exit code.
+"""The ``ltc`` subcommands, one module each, declared rather than wired by hand.
+
+A command module holds:
+
+- its docstring: the first paragraph is the one-line help of ``ltc --help``, the rest the
+  description of ``ltc COMMAND --help`` (plain text, no markup);
+- ``OPTIONS``: the shared options it takes, in order, each mapped to its help text or ``None``
+  for the shared default (see :data:`SHARED`);
+- optionally ``arguments(parser)``: the command's own arguments;
+- ``run(args)``: calls the Python API and returns what to print: a report ``dict`` (printed as
+  one JSON object with ``--json``, else through the module's ``text(report)``; a report with
+  ``"ok": False`` exits 1) or a ``str`` printed as it is.
+
+Heavy libraries are imported inside ``run`` (``ltc --help`` stays fast). Errors are raised,
+not printed: ``station.cli.main`` turns them into one line and an exit code.
 """
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+# The options several commands share: name -> (flags, argparse keywords, default help).
+SHARED: dict[str, tuple[tuple[str, ...], dict[str, Any], str]] = {
+    "config": (("config",), {"type": Path}, "station config (TOML)"),
+    "out": (("--out",), {"type": Path, "required": True}, "output to create"),
+    "force": (("--force",), {"action": "store_true"}, "overwrite --out if it exists"),
+    "json": (("--json",), {"action": "store_true"}, "print one JSON object"),
+    "quiet": (("--quiet",), {"action": "store_true"}, "no progress bars"),
+}
+
+
+def add_command(sub: argparse._SubParsersAction, name: str, module: ModuleType) -> None:
+    """Add the subcommand ``name`` declared by ``module`` (see the package docstring)."""
+    summary, _, description = (module.__doc__ or name).strip().partition("\n\n")
+    parser = sub.add_parser(name, help=" ".join(summary.split()).rstrip("."),
+                            description=" ".join(f"{summary}\n{description}".split()))
+    for option, help_text in getattr(module, "OPTIONS", {}).items():
+        flags, keywords, default_help = SHARED[option]
+        parser.add_argument(*flags, help=help_text or default_help, **keywords)
+    if hasattr(module, "arguments"):
+        module.arguments(parser)
+    parser.set_defaults(module=module)
 
 
 def at_least(minimum: int):

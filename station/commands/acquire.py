@@ -1,35 +1,28 @@
-"""``ltc acquire CONFIG --out RUN.zarr [--resume] [--json] [--quiet]``."""
+"""Measure: show the Fourier and localisation patterns at every depth, capture them.
+
+Run an acquisition into a run store (zarr). Every frame is written durably; an interrupted run
+continues with --resume at the first frame not done.
+"""
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import shutil
-from pathlib import Path
 
 from station.errors import UsageError
 
+OPTIONS = {"config": None, "out": "run store to create (RUN.zarr)",
+           "force": "delete an existing run store in --out and start again",
+           "json": None, "quiet": None}
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "acquire",
-        help="measure: show the Fourier and localisation patterns at every depth, capture them",
-        description="Run an acquisition into a run store (zarr). Every frame is written durably; "
-        "an interrupted run continues with --resume at the first frame not done.",
-    )
-    p.add_argument("config", type=Path, help="station config (TOML)")
-    p.add_argument("--out", type=Path, required=True, help="run store to create (RUN.zarr)")
+
+def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true",
                    help="finish the run in --out (its config must be the same)")
-    p.add_argument("--force", action="store_true",
-                   help="delete an existing run store in --out and start again")
-    p.add_argument("--json", action="store_true", help="print a JSON summary")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> dict:
     from station.api import acquire, load_config
 
     if not logging.getLogger().handlers:
@@ -42,11 +35,10 @@ def run(args: argparse.Namespace) -> int:
                              "--force to delete it and start again, or choose another path")
         shutil.rmtree(args.out) if args.out.is_dir() else args.out.unlink()
     summary = acquire(config, args.out, resume=args.resume, progress=not args.quiet)
-    if args.json:
-        print(json.dumps(summary))
-    else:
-        print(f"ltc acquire: {summary['status']}: {summary['frames_written']} frames in "
-              f"{summary['seconds']:.1f} s ({summary['frames_per_second']:.1f}/s) -> {args.out}; "
-              f"retries {summary['retries'] or 'none'}; saturated frames "
-              f"{summary['saturated_frames']}")
-    return 0
+    return {**summary, "out": str(args.out)}
+
+
+def text(s: dict) -> str:
+    return (f"ltc acquire: {s['status']}: {s['frames_written']} frames in {s['seconds']:.1f} s "
+            f"({s['frames_per_second']:.1f}/s) -> {s['out']}; retries {s['retries'] or 'none'}; "
+            f"saturated frames {s['saturated_frames']}")

@@ -1,34 +1,25 @@
-"""``ltc lens LTC.zarr --out LENS.npz [--figures DIR] [--json] [--focus-mm Z] [--samples K]``.
+"""Derive the measured lens (principal rays, optical centre, aperture samples) from an LTC store.
 
-Derives the measured lens from an LTC store (``station.derive_lens``) and writes the lens
-model file (``sim.MeasuredLens``). The camera matrix comes from the store's
-``camera_matrix`` attribute or from ``--rig RIG --rig-camera NAME`` (a rig file).
+Centroids, principal rays, optical centre, focus, the LTC at the optical centre and K aperture
+samples per pixel; writes the lens model file (.npz, docs/formats.md). The camera matrix comes
+from the store's camera_matrix attribute or from --rig RIG --rig-camera NAME (a rig file).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from station.commands import at_least
 from station.errors import check_output
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "lens",
-        help="derive the measured lens (principal rays, optical centre, aperture samples) "
-        "from an LTC store",
-        description="Centroids -> principal rays -> optical centre -> focus -> LTC at the "
-        "optical centre -> K aperture samples per pixel; writes the lens model (.npz).",
-    )
+OPTIONS = {"out": "lens model file to write (.npz)", "force": None, "json": None, "quiet": None}
+
+
+def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("store", type=Path, help="LTC store (zarr) from 'ltc reconstruct'")
-    p.add_argument("--out", type=Path, required=True, help="lens model file to write (.npz)")
-    p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     p.add_argument("--figures", type=Path, help="folder for the figures (PNG)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--focus-mm", type=float, help="focus distance from the optical centre, mm "
                    "(used instead of the fitted one; both are reported)")
     p.add_argument("--samples", type=at_least(1), default=32,
@@ -42,10 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "auto (pinhole when K is known)")
     p.add_argument("--rig", type=Path, help="rig calibration (JSON/YAML) giving K")
     p.add_argument("--rig-camera", help="camera name in --rig (default: the first camera)")
-    p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> dict:
     from station.api import derive_lens
 
     check_output(args.out, args.force)
@@ -59,11 +49,10 @@ def run(args: argparse.Namespace) -> int:
     result.lens.save(args.out)
     report = {**result.summary(), "out": str(args.out),
               "figures": [str(f) for f in result.figures]}
-    print(json.dumps(report) if args.json else format_report(report))
-    return 0
+    return report
 
 
-def format_report(r: dict) -> str:
+def text(r: dict) -> str:
     """Human-readable summary of ``LensResult.summary()`` plus output paths."""
     o, s = r["optical_centre_mm"], r["optical_centre_std_mm"]
     q = r["principal_ray_intersection_mm"]

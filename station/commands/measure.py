@@ -1,36 +1,27 @@
-"""``ltc measure CLOUD.ply (--sphere | --ballbar | --reference MESH | --against CLOUD2.ply) [--json]``.
+"""Sphere, ball-bar, cloud-to-CAD and cloud-to-cloud metrology on a point cloud.
 
-- ``--sphere``: sphere fit with outlier rejection: centre, diameter, fit RMS and peak-to-valley
-  (with ``--diameter D`` the sphere of about that size is first found among other points, and
-  the diameter error is reported);
-- ``--ballbar``: the two balls (nominal ``--diameter``, required) and their centre distance
-  (with ``--length L`` also the length error);
-- ``--reference MESH``: signed distances to a CAD mesh (positive outside), after ICP alignment
-  unless ``--no-align``;
-- ``--against CLOUD2.ply``: ICP-align the cloud to CLOUD2, then mean and RMSE of the signed
-  distances of corresponding points.
-
-``--png FILE`` writes a colour map of the signed distances (reference and against). Lengths mm.
+--sphere: sphere fit with outlier rejection: centre, diameter, fit RMS and peak-to-valley
+(with --diameter D the sphere of about that size is first found among other points, and the
+diameter error is reported). --ballbar: the two balls (nominal --diameter, required) and their
+centre distance (with --length L also the length error). --reference MESH: signed distances to
+a CAD mesh (positive outside), after ICP alignment unless --no-align. --against CLOUD2.ply:
+ICP-align the cloud to CLOUD2, then mean and RMSE of the signed distances of corresponding
+points. --png FILE writes a colour map of the signed distances (reference and against).
+Lengths in mm.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from station.commands import positive_float
 from station.errors import UsageError, check_output
 
+OPTIONS = {"json": None}
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``measure`` subcommand."""
-    p = subparsers.add_parser(
-        "measure",
-        help="sphere, ball-bar, cloud-to-CAD and cloud-to-cloud metrology on a point cloud",
-        description="Sphere fit, ball-bar length, signed distances to a CAD mesh, or to another "
-        "cloud after ICP. Lengths in mm.",
-    )
+
+def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("cloud", type=Path, help="point cloud (PLY)")
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--sphere", action="store_true",
@@ -45,11 +36,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--png", type=Path,
                    help="write a colour map of the signed distances here (--reference, --against)")
     p.add_argument("--force", action="store_true", help="overwrite --png if it exists")
-    p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
-    p.set_defaults(func=run)
 
 
-def measure(args: argparse.Namespace) -> dict:
+def run(args: argparse.Namespace) -> dict:
     """The measurement asked for, as a JSON-able dict (raises ValueError / OSError on bad input)."""
     from sim.fpp.cloud import read_ply
     from sim.metrology import measure as m
@@ -77,7 +66,7 @@ def measure(args: argparse.Namespace) -> dict:
     return out
 
 
-def _text(r: dict) -> str:
+def text(r: dict) -> str:
     if r["kind"] == "sphere":
         c = r["centre_mm"]
         s = (f"sphere: diameter {r['diameter_mm']:.4f} mm, fit RMS {1e3 * r['fit_rms_mm']:.2f} um, "
@@ -91,9 +80,3 @@ def _text(r: dict) -> str:
     return (f"{r['kind']}: {r['points']} points, mean {1e3 * r['mean_mm']:+.2f} um, "
             f"RMSE {1e3 * r['rmse_mm']:.2f} um, range [{r['min_mm']:.4f}, {r['max_mm']:.4f}] mm")
 
-
-def run(args: argparse.Namespace) -> int:
-    """Measure and print."""
-    result = measure(args)
-    print(json.dumps(result) if args.json else _text(result))
-    return 0

@@ -1,53 +1,44 @@
-"""``ltc reconstruct RUN.zarr --out LTC.zarr [--json] [--tile N]``: LTC store from a run store."""
+"""Reconstruct per-pixel LTC from a complete acquisition run.
+
+Demodulate the Fourier frames of a run store, unfold with the localisation map and write an
+LTC store, tile by tile (bounded memory).
+"""
 
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 from pathlib import Path
 
 from station.commands import at_least
 from station.errors import check_output
 
+OPTIONS = {"out": "LTC store to create (LTC.zarr)", "force": "replace --out if it exists",
+           "json": None, "quiet": None}
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``reconstruct`` subcommand."""
-    p = subparsers.add_parser(
-        "reconstruct",
-        help="reconstruct per-pixel LTC from a complete acquisition run",
-        description="Demodulate the Fourier frames of a run store, unfold with the "
-        "localisation map and write an LTC store, tile by tile (bounded memory).",
-    )
+
+def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", type=Path, metavar="RUN.zarr", help="run store written by 'ltc acquire'")
-    p.add_argument("--out", type=Path, required=True, metavar="LTC.zarr",
-                   help="LTC store to create")
-    p.add_argument("--force", action="store_true", help="replace --out if it exists")
     p.add_argument("--tile", type=at_least(1), default=None, metavar="N",
                    help="camera tile edge in pixels (default: the run store's chunk)")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run the command; returns the exit code."""
+def run(args: argparse.Namespace) -> dict:
     from station.api import reconstruct_ltc
 
     if check_output(args.out, args.force).exists():
         shutil.rmtree(args.out) if args.out.is_dir() else args.out.unlink()
-    summary = reconstruct_ltc(args.run, args.out, tile_px=args.tile, progress=not args.quiet)
-    if args.json:
-        print(json.dumps(summary, indent=2))
-        return 0
-    print(f"LTC store {summary['out']}: {summary['camera_size'][0]}x{summary['camera_size'][1]} "
-          f"pixels, P = {summary['period']}, {summary['patterns_per_depth']} patterns per depth, "
-          f"{summary['seconds']:.1f} s ({summary['pixels_per_second']:.0f} pixels/s)")
-    for d in summary["depths"]:
-        print(f"  z = {d['depth_mm']:g} mm: valid {100 * d['valid_fraction']:.1f} %, "
-              f"gain {_fmt(d['gain_median_adu'])} ADU, noise {_fmt(d['noise_median'])}, "
-              f"edge mass p95 {_fmt(d['edge_mass_p95'])}")
-    return 0
+    return reconstruct_ltc(args.run, args.out, tile_px=args.tile, progress=not args.quiet)
+
+
+def text(s: dict) -> str:
+    lines = [f"LTC store {s['out']}: {s['camera_size'][0]}x{s['camera_size'][1]} pixels, "
+             f"P = {s['period']}, {s['patterns_per_depth']} patterns per depth, "
+             f"{s['seconds']:.1f} s ({s['pixels_per_second']:.0f} pixels/s)"]
+    lines += [f"  z = {d['depth_mm']:g} mm: valid {100 * d['valid_fraction']:.1f} %, gain "
+              f"{_fmt(d['gain_median_adu'])} ADU, noise {_fmt(d['noise_median'])}, edge mass "
+              f"p95 {_fmt(d['edge_mass_p95'])}" for d in s["depths"]]
+    return "\n".join(lines)
 
 
 def _fmt(v: float | None) -> str:

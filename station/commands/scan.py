@@ -1,14 +1,14 @@
-"""``ltc scan IMAGES --rig RIG --out CLOUD.ply [--json]``: fringe images to a point cloud.
+"""Reconstruct a point cloud from fringe images (ltc render output or a zarr stack).
 
-IMAGES is an ``ltc render`` folder, a zarr stack, or a folder with ``camera_0/`` and
-``camera_1/`` image folders (``sim.fpp.scan_input``; docs/formats.md). Stereo between the rig's
-two cameras by default; ``--camera i`` triangulates camera i against the projector instead.
+Phase, unwrapping, stereo matching (or camera against projector), triangulation. IMAGES is an
+ltc render folder, a zarr stack, or a folder with camera_0/ and camera_1/ image folders
+(docs/formats.md). Stereo between the rig's two cameras by default; --camera i triangulates
+camera i against the projector instead.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -16,29 +16,21 @@ from station.commands import positive_float
 from station.errors import check_output
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``scan`` subcommand."""
-    p = subparsers.add_parser(
-        "scan",
-        help="reconstruct a point cloud from fringe images (ltc render output or a zarr stack)",
-        description="Fringe images to a point cloud: phase, unwrapping, stereo matching (or "
-        "camera against projector), triangulation.",
-    )
+OPTIONS = {"out": "point cloud to write (PLY)", "force": None, "json": None}
+
+
+def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("images", type=Path, help="ltc render folder, zarr stack, or camera_<i>/ folder")
     p.add_argument("--rig", type=Path, required=True, help="rig calibration (JSON or OpenCV YAML)")
-    p.add_argument("--out", type=Path, required=True, help="point cloud to write (PLY)")
-    p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     p.add_argument("--patterns", type=Path, help="pattern set JSON (overrides the one in IMAGES)")
     p.add_argument("--camera", type=int, help="triangulate this camera against the projector")
     p.add_argument("--min-modulation", type=positive_float, default=2.0,
                    help="smallest fringe amplitude kept, image units (default 2)")
     p.add_argument("--unwrap", choices=("auto", "hierarchical", "heterodyne"), default="auto",
                    help="temporal unwrapping of phase-shift sets (default auto)")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
-    p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> dict:
     """Read, decode, match, triangulate, write."""
     from sim.fpp.cloud import write_ply
     from sim.fpp.decode import DecodeSettings, scan
@@ -62,9 +54,8 @@ def run(args: argparse.Namespace) -> int:
         "timings": {"read_s": t_read, "scan_s": t1 - t0 - t_read,
                     "total_s": time.perf_counter() - t0},
     }
-    if args.json:
-        print(json.dumps(summary))
-    else:
-        print(f"{summary['points']} points ({summary['mode']}) in {summary['timings']['total_s']:.2f} s; "
-              f"wrote {args.out}")
-    return 0
+    return summary
+
+
+def text(s: dict) -> str:
+    return f"{s['points']} points ({s['mode']}) in {s['timings']['total_s']:.2f} s; wrote {s['out']}"
