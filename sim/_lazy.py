@@ -7,11 +7,15 @@ import importlib
 from typing import Any, Callable
 
 
-def lazy_exports(package: str, exports: dict[str, str],
-                 namespace: dict[str, Any]) -> tuple[Callable[[str], Any], Callable[[], list[str]]]:
-    """The module ``__getattr__`` and ``__dir__`` of ``package`` whose public ``exports`` map
-    each name to its submodule (relative, e.g. ``"lens"``); a resolved name is stored in the
-    package's ``namespace`` (its ``globals()``), so the next use is a plain attribute."""
+def lazy_exports(package: str, namespace: dict[str, Any], where: dict[str, str]
+                 ) -> tuple[Callable[[str], Any], Callable[[], list[str]], list[str]]:
+    """The module ``__getattr__``, ``__dir__`` and ``__all__`` of ``package``.
+
+    ``where`` maps each submodule (relative, e.g. ``"optics.lens"``) to the public names it
+    defines, separated by spaces; a resolved name is stored in the package's ``namespace`` (its
+    ``globals()``), so the next use is a plain attribute.
+    """
+    exports = {name: sub for sub, names in where.items() for name in names.split()}
 
     def __getattr__(name: str) -> Any:
         sub = exports.get(name)
@@ -24,4 +28,4 @@ def lazy_exports(package: str, exports: dict[str, str],
     def __dir__() -> list[str]:
         return sorted(set(namespace) | set(exports))
 
-    return __getattr__, __dir__
+    return __getattr__, __dir__, sorted(exports)

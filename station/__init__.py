@@ -18,32 +18,12 @@ Stages, earliest first: ``station.acquisition`` -> ``station.ltc`` -> ``station.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from sim._lazy import lazy_exports
 
-_EXPORTS = {
-    "Bench": "api",
-    "open_bench": "api",
-    "load_config": "api",
-    "acquire": "api",
-    "reconstruct_ltc": "api",
-    "derive_lens": "api",
-    "run_sequence": "sequence",
-    "StationConfig": "acquisition.config",
-    "ConfigError": "acquisition.config",
-    "LensResult": "lens.derive",
-    "StationError": "errors",
-    "UsageError": "errors",
-}
-__all__ = sorted(_EXPORTS)
-
-if TYPE_CHECKING:
-    from station.acquisition.config import ConfigError, StationConfig
-    from station.api import Bench, acquire, derive_lens, load_config, open_bench, reconstruct_ltc
-    from station.errors import StationError, UsageError
-    from station.lens.derive import LensResult
-    from station.sequence import run_sequence
-
-
-__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
+__getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
+    "api": "Bench open_bench load_config acquire reconstruct_ltc derive_lens",
+    "sequence": "run_sequence",
+    "acquisition.config": "StationConfig ConfigError",
+    "lens.derive": "LensResult",
+    "errors": "StationError UsageError",
+})

@@ -6,16 +6,12 @@ used.
 
 from sim._lazy import lazy_exports
 
-_EXPORTS = {
-    **dict.fromkeys(("WrappedPhase", "wrapped_phase", "quality_mask", "unwrap_with_reference",
-                     "unwrap_hierarchical", "unwrap_heterodyne", "unwrap_gray_code",
-                     "absolute_phase_to_projector", "fringe_order_error", "gray_to_index",
-                     "gray_bits", "beat"), "phase"),
-    **dict.fromkeys(("DecodeSettings", "DecodedView", "decode_view", "scan"), "decode"),
-    **dict.fromkeys(("PointCloud", "Rectification", "stereo_cloud", "camera_projector_cloud",
-                     "stereo_rectification", "triangulate", "grid_normals", "relative_pose"),
-                    "stereo"),
-    **dict.fromkeys(("read_ply", "write_ply"), "cloud"),
-}
-__all__ = sorted(_EXPORTS)
-__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
+__getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
+    "phase": "WrappedPhase wrapped_phase quality_mask unwrap_with_reference unwrap_hierarchical "
+             "unwrap_heterodyne unwrap_gray_code absolute_phase_to_projector fringe_order_error "
+             "gray_to_index gray_bits beat",
+    "decode": "DecodeSettings DecodedView decode_view scan",
+    "stereo": "PointCloud Rectification stereo_cloud camera_projector_cloud stereo_rectification "
+              "triangulate grid_normals relative_pose",
+    "cloud": "read_ply write_ply",
+})

@@ -6,15 +6,11 @@ a name is used.
 
 from sim._lazy import lazy_exports
 
-_EXPORTS = {
-    **dict.fromkeys(("RayBundle", "LensModel", "PinholeLens", "AberratedLens", "GaussianLens",
-                     "sunflower_disk", "hit_plane"), "lens"),
-    **dict.fromkeys(("MeasuredLens", "LensFileError", "save_lens", "load_lens"), "measured_lens"),
-    "subpixel_offsets": "plane_ltc",  # (plane_ltc itself: a name of its submodule too)
-    **dict.fromkeys(("pixel_to_normalized", "normalized_to_pixel", "project_points",
-                     "camera_to_world", "directions_to_world"), "projection"),
-    **dict.fromkeys(("DeviceCalibration", "Rig", "look_at", "default_rig", "small_rig",
-                     "format_validation_error"), "rig"),
-}
-__all__ = sorted(_EXPORTS)
-__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
+__getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
+    "lens": "RayBundle LensModel PinholeLens AberratedLens GaussianLens sunflower_disk hit_plane",
+    "measured_lens": "MeasuredLens LensFileError save_lens load_lens",
+    "plane_ltc": "subpixel_offsets",
+    "projection": "pixel_to_normalized normalized_to_pixel project_points camera_to_world "
+                  "directions_to_world",
+    "rig": "DeviceCalibration Rig look_at default_rig small_rig format_validation_error",
+})

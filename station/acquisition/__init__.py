@@ -11,34 +11,14 @@ from __future__ import annotations
 
 from sim._lazy import lazy_exports
 
-
-_WHERE = {
-    "ConfigError": "config",
-    "StationConfig": "config",
-    "parse_config": "config",
-    "load_config": "config",
-    "example_config": "config",
-    "example_text": "config",
-    "Hardware": "backend",
-    "open_hardware": "backend",
-    "load_lut": "backend",
-    "FourierPatternSet": "patterns",
-    "LocalisationPatternSet": "patterns",
-    "StationPatternPlan": "patterns",
-    "apply_lut": "patterns",
-    "shown_luminance": "patterns",
-    "RunStore": "run_store",
-    "RunStoreError": "run_store",
-    "FrameMeta": "run_store",
-    "AcquisitionError": "acquire",
-    "GammaError": "gamma",
-    "measure_lut": "gamma",
-    "AlignError": "align",
-    "run_align": "align",
-    "run_check": "check",
-}
-
-__all__ = sorted(_WHERE)
-
-
-__getattr__, __dir__ = lazy_exports(__name__, _WHERE, globals())
+__getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
+    "config": "ConfigError StationConfig parse_config load_config example_config example_text",
+    "backend": "Hardware open_hardware load_lut",
+    "patterns": "FourierPatternSet LocalisationPatternSet StationPatternPlan apply_lut "
+                "shown_luminance",
+    "run_store": "RunStore RunStoreError FrameMeta",
+    "acquire": "AcquisitionError",
+    "gamma": "GammaError measure_lut",
+    "align": "AlignError run_align",
+    "check": "run_check",
+})

@@ -10,28 +10,11 @@ from __future__ import annotations
 
 from sim._lazy import lazy_exports
 
-
-_WHERE = {
-    "Centroids": "centroids",
-    "WindowStats": "centroids",
-    "compute_centroids": "centroids",
-    "window_stats": "centroids",
-    "PrincipalRays": "rays",
-    "RayFitError": "rays",
-    "fit_principal_rays": "rays",
-    "OpticalCentre": "centre",
-    "intersect_rays": "centre",
-    "pinhole_centre": "centre",
-    "LensFitConfig": "geometry",
-    "LensFitError": "geometry",
-    "LensGeometry": "geometry",
-    "fit_geometry": "geometry",
-    "LensResult": "derive",
-    "derive_lens": "derive",
-    "write_figures": "figures",
-}
-
-__all__ = sorted(_WHERE)
-
-
-__getattr__, __dir__ = lazy_exports(__name__, _WHERE, globals())
+__getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
+    "centroids": "Centroids WindowStats compute_centroids window_stats",
+    "rays": "PrincipalRays RayFitError fit_principal_rays",
+    "centre": "OpticalCentre intersect_rays pinhole_centre",
+    "geometry": "LensFitConfig LensFitError LensGeometry fit_geometry",
+    "derive": "LensResult derive_lens",
+    "figures": "write_figures",
+})

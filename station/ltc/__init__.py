@@ -9,23 +9,9 @@ from __future__ import annotations
 
 from sim._lazy import lazy_exports
 
-
-_WHERE = {
-    "LtcBlock": "spi",
-    "reconstruct": "spi",
-    "reconstruct_frames": "spi",
-    "LcdMap": "localise",
-    "lcd_coordinates": "localise",
-    "LtcStoreError": "store",
-    "LtcVolume": "store",
-    "LtcVolumeError": "store",
-    "create_ltc_store": "store",
-    "open_ltc_store": "store",
-    "open_ltc_volume": "store",
-    "write_ltc_tile": "store",
-}
-
-__all__ = sorted(_WHERE)
-
-
-__getattr__, __dir__ = lazy_exports(__name__, _WHERE, globals())
+__getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
+    "spi": "LtcBlock reconstruct reconstruct_frames",
+    "localise": "LcdMap lcd_coordinates",
+    "store": "LtcStoreError LtcVolume LtcVolumeError create_ltc_store open_ltc_store "
+             "open_ltc_volume write_ltc_tile",
+})
