@@ -22,17 +22,27 @@ Direction = Literal["u", "v", "both"]
 
 
 class PatternDescriptor(BaseModel):
-    """What one image of a set shows."""
+    """What one pattern image shows: the one vocabulary of the renderer's pattern sets and the
+    station's pattern plan (``station.acquisition.patterns``). Axes follow OpenCV: ``u`` along
+    columns (projector or LCD x), ``v`` along rows.
+
+    Phase patterns are ``A + B cos(2 pi c / period_px - phase_rad)`` with ``c`` the coordinate
+    along ``direction`` and ``phase_rad = 2 pi shift / steps``; Fourier patterns (station) are
+    ``a + b cos(2 pi (k x + l y) / period_px + phase_rad)``.
+    """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     index: int = Field(ge=0, description="position in the set")
-    kind: Literal["phase", "gray", "gray_inverse", "white", "black"]
+    kind: Literal["phase", "gray", "gray_inverse", "white", "black", "fourier"]
     direction: Literal["u", "v"] | None = Field(None, description="axis the pattern varies along")
-    period_px: float | None = Field(None, description="fringe period, projector pixels (phase)")
-    shift: int | None = Field(None, description="shift index i of N (phase)")
-    steps: int | None = Field(None, description="N, shifts per period (phase)")
+    period_px: float | None = Field(None, description="period, projector/LCD pixels (phase, fourier)")
+    shift: int | None = Field(None, description="shift index i of N (phase, fourier)")
+    steps: int | None = Field(None, description="N, shifts per period (phase, fourier)")
     bit: int | None = Field(None, description="Gray-code bit plane, 0 = most significant")
-    stripe_width_px: float | None = Field(None, description="Gray-code stripe width, projector pixels")
+    stripe_width_px: float | None = Field(None, description="Gray-code stripe width, pixels")
+    k: int | None = Field(None, description="fourier: cycles per period along u")
+    l: int | None = Field(None, description="fourier: cycles per period along v")
+    phase_rad: float | None = Field(None, description="phase of this shift, rad (phase, fourier)")
 
 
 def _axes(direction: Direction) -> list[str]:
@@ -98,7 +108,8 @@ class PhaseShiftSet(_Fringes):
             for p in self.periods_px:
                 for i in range(self.steps):
                     out.append(PatternDescriptor(index=len(out), kind="phase", direction=axis,
-                                                 period_px=p, shift=i, steps=self.steps))
+                                                 period_px=p, shift=i, steps=self.steps,
+                                                 phase_rad=2 * math.pi * i / self.steps))
         return out
 
     def images(self, projector_size: tuple[int, int]) -> np.ndarray:
@@ -152,7 +163,8 @@ class GrayCodeSet(_Fringes):
                               1.0 - plane))
         phase = self._phase_images(axis, self.period_px, size)
         for i in range(self.steps):
-            info = {"kind": "phase", "period_px": self.period_px, "shift": i, "steps": self.steps}
+            info = {"kind": "phase", "period_px": self.period_px, "shift": i, "steps": self.steps,
+                    "phase_rad": 2 * math.pi * i / self.steps}
             items.append((info, phase[i]))
         return [({**d, "direction": axis}, img) for d, img in items]
 

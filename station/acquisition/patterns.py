@@ -19,6 +19,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from sim.render.fringe_patterns import PatternDescriptor
+
 PLAN_FORMAT = "station-pattern-plan"
 PLAN_VERSION = 1
 
@@ -127,20 +129,6 @@ class LocalisationPatternSet(BaseModel):
         return all(n <= (2**b) * half for n, b in zip(lcd_size, (self.bits_x, self.bits_y)))
 
 
-class PatternDescriptor(BaseModel):
-    """What pattern ``index`` of a plan is."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    index: int = Field(ge=0, description="position in the plan")
-    kind: Literal["white", "black", "gray", "phase", "fourier"]
-    axis: Literal["x", "y"] | None = Field(None, description="LCD axis of gray/phase patterns")
-    bit: int | None = Field(None, description="gray: bit number, 0 = most significant")
-    k: int | None = Field(None, description="fourier: cycles per period along x")
-    l: int | None = Field(None, description="fourier: cycles per period along y")
-    step: int | None = Field(None, description="phase/fourier: phase step m")
-    phase_rad: float | None = Field(None, description="phase/fourier: phase of this step, rad")
-
-
 class StationPatternPlan(BaseModel):
     """The ordered patterns of one depth of an acquisition run."""
 
@@ -224,15 +212,16 @@ class StationPatternPlan(BaseModel):
         if d.kind in ("white", "black"):
             return np.full((1, 1), 1.0 if d.kind == "white" else 0.0)
         if d.kind == "fourier":
-            return self.fourier.tile(d.k, d.l, d.step)
-        coord = np.arange(w if d.axis == "x" else h)
+            return self.fourier.tile(d.k, d.l, d.shift)
+        along_u = d.direction == "u"
+        coord = np.arange(w if along_u else h)
         if d.kind == "gray":
-            bits = loc.bits_x if d.axis == "x" else loc.bits_y
+            bits = loc.bits_x if along_u else loc.bits_y
             m = coord // (loc.period // 2)
             line = (((m ^ (m >> 1)) >> (bits - 1 - d.bit)) & 1).astype(np.float64)
         else:
             line = 0.5 + 0.5 * np.cos(2 * np.pi * coord / loc.period - d.phase_rad)
-        return line[None, :] if d.axis == "x" else line[:, None]
+        return line[None, :] if along_u else line[:, None]
 
     def image(
         self, index: int, lcd_size: tuple[int, int], lut: np.ndarray | None = None
@@ -258,15 +247,17 @@ def _frequencies(period: int) -> tuple[np.ndarray, np.ndarray]:
 def _descriptors(plan: StationPatternPlan) -> tuple[PatternDescriptor, ...]:
     out: list[dict] = [{"kind": "white"}, {"kind": "black"}]
     loc, f = plan.localisation, plan.fourier
-    for axis, bits in (("x", loc.bits_x), ("y", loc.bits_y)):
-        out += [{"kind": "gray", "axis": axis, "bit": b} for b in range(bits)]
-    for axis in ("x", "y"):
-        out += [{"kind": "phase", "axis": axis, "step": i,
-                 "phase_rad": 2 * np.pi * i / loc.steps} for i in range(loc.steps)]
+    for axis, bits in (("u", loc.bits_x), ("v", loc.bits_y)):
+        out += [{"kind": "gray", "direction": axis, "bit": b,
+                 "stripe_width_px": loc.period / 2} for b in range(bits)]
+    for axis in ("u", "v"):
+        out += [{"kind": "phase", "direction": axis, "period_px": loc.period, "shift": i,
+                 "steps": loc.steps, "phase_rad": 2 * np.pi * i / loc.steps}
+                for i in range(loc.steps)]
     reg, sc = f.frequencies
     for (k, l), n in [(kl, f.steps) for kl in reg] + [(kl, 2) for kl in sc]:
-        out += [{"kind": "fourier", "k": int(k), "l": int(l), "step": m,
-                 "phase_rad": 2 * np.pi * m / n} for m in range(n)]
+        out += [{"kind": "fourier", "k": int(k), "l": int(l), "period_px": f.period, "shift": m,
+                 "steps": n, "phase_rad": 2 * np.pi * m / n} for m in range(n)]
     return tuple(PatternDescriptor(index=i, **d) for i, d in enumerate(out))
 
 

@@ -141,12 +141,13 @@ def test_indices_agree_with_descriptors():
     assert kinds[0] == "white" and kinds[1] == "black"
     for name in ("gray_x", "gray_y", "phase_x", "phase_y"):
         kind, axis = name.split("_")
-        assert all(plan.descriptors[i].kind == kind and plan.descriptors[i].axis == axis
+        direction = {"x": "u", "y": "v"}[axis]
+        assert all(plan.descriptors[i].kind == kind and plan.descriptors[i].direction == direction
                    for i in idx[name])
     reg, _ = plan.fourier.frequencies
     for (k, l), row in zip(reg, idx["regular"]):
         ds = [plan.descriptors[i] for i in row]
-        assert [(d.k, d.l, d.step) for d in ds] == [(k, l, m) for m in range(3)]
+        assert [(d.k, d.l, d.shift, d.steps) for d in ds] == [(k, l, m, 3) for m in range(3)]
     n_used = sum(v.size for v in idx.values())
     assert n_used == len(plan)
 
