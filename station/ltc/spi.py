@@ -206,66 +206,6 @@ def unfold(folded: np.ndarray, origin: np.ndarray) -> np.ndarray:
     return folded[np.arange(n)[:, None, None], rows[:, :, None], cols[:, None, :]]
 
 
-def centroid(
-    window: np.ndarray, origin: np.ndarray, region: int | None = None
-) -> np.ndarray:
-    """Grey-scale centroid (..., 2) LCD (x, y) of LTC windows (..., P, P) with origins (..., 2).
-
-    region : None for the whole window; an int r for the (2r+1) x (2r+1) square of the window
-        that holds the most weight (the peak of the LTC), whose noise is far lower when it is
-        only as large as the LTC. NaN where the weight summed is not positive.
-    """
-    w = np.asarray(window, dtype=np.float64)
-    o = np.asarray(origin, dtype=np.float64)
-    if w.ndim < 2 or o.shape != w.shape[:-2] + (2,):
-        raise ValueError(f"window (..., P, P) and origin (..., 2) do not match: "
-                         f"{w.shape} and {o.shape}")
-    ph, pw = w.shape[-2:]
-    if region is not None:
-        r = int(region)
-        size = 2 * r + 1
-        if r < 0 or size > min(ph, pw):
-            raise ValueError(f"region must be 0..{(min(ph, pw) - 1) // 2} (a (2r+1)^2 square "
-                             f"inside the {ph}x{pw} window), got {region}")
-        c = np.zeros(w.shape[:-2] + (ph + 1, pw + 1))
-        c[..., 1:, 1:] = np.nan_to_num(w).cumsum(-2).cumsum(-1)
-        box = (c[..., size:, size:] - c[..., :-size, size:] - c[..., size:, :-size]
-               + c[..., :-size, :-size])
-        best = box.reshape(box.shape[:-2] + (-1,)).argmax(-1)
-        r0, c0 = np.divmod(best, box.shape[-1])
-        rr, cc = np.arange(ph), np.arange(pw)
-        mask = ((rr >= r0[..., None]) & (rr < r0[..., None] + size))[..., :, None] & \
-               ((cc >= c0[..., None]) & (cc < c0[..., None] + size))[..., None, :]
-        w = np.where(mask, w, 0.0)
-    total = w.sum(axis=(-2, -1))
-    xs = (w.sum(axis=-2) * np.arange(pw)).sum(-1)
-    ys = (w.sum(axis=-1) * np.arange(ph)).sum(-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ok = total > 0
-        xy = np.stack([xs / total, ys / total], axis=-1) + o
-    return np.where(ok[..., None], xy, np.nan)
-
-
-def peak_region(window: np.ndarray, origin: np.ndarray) -> int:
-    """Radius r for :func:`centroid` that covers a depth's LTC: ``round(2 sigma + 1/4)``,
-    sigma the median over pixels of the larger per-axis std of the windows (n, P, P) with
-    origins (n, 2) (a uniform disk of std sigma has radius 2 sigma), at least 1 and at most
-    what fits the window."""
-    w = np.asarray(window, dtype=np.float64)
-    p = w.shape[-1]
-    c = centroid(w, origin)
-    o = np.asarray(origin, dtype=np.float64)
-    x = np.arange(p)
-    vx = (w.sum(-2) * (x + o[:, :1] - c[:, :1]) ** 2).sum(-1)
-    vy = (w.sum(-1) * (x + o[:, 1:] - c[:, 1:]) ** 2).sum(-1)
-    var = np.maximum(vx, vy)
-    var = var[np.isfinite(var) & (var > 0)]
-    if var.size == 0:
-        raise ValueError("peak_region: no window with a positive, finite second moment")
-    r = int(np.round(2.0 * np.sqrt(np.median(var)) + 0.25))
-    return min(max(r, 1), (p - 1) // 2)
-
-
 def reconstruct_frames(
     frames: np.ndarray, plan: StationPatternPlan, *, lut: np.ndarray | None = None,
     level_correction: bool = True, min_snr: float = 10.0, min_harmonic: float = 0.05,
