@@ -2,9 +2,10 @@
 position, through the exact per-pixel LTC, with a physical noise model.
 
 Signal chain per pixel: electrons ``e = white_e_per_ms * exposure_ms * (h . L)`` with
-``h`` the true (unnormalised) LTC and ``L`` the LCD luminance in [0, 1]; Poisson shot noise;
-clipping at the full well; Gaussian read noise (electrons); ``ADU = black_level + gain * e``
-rounded to integers and clipped to the bit depth.
+``h`` the true (unnormalised) LTC and ``L`` the LCD luminance in [0, 1], then the sensor model
+shared with the renderer (``sim.optics.sensor``): Poisson shot noise; clipping at the full
+well; Gaussian read noise (electrons); ``ADU = black_level + gain * e`` rounded to integers
+and clipped to the bit depth.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from drivers.camera import CameraTimeout
 from drivers.interfaces import Camera, Frame
 from fakes.bench import FakeBench
 from fakes.lcd import FakeLCD
+from sim.optics.sensor import Sensor
 
 
 class NoiseModel(BaseModel):
@@ -43,18 +45,24 @@ class NoiseModel(BaseModel):
         """Conversion gain: the full well maps to full scale above the black level."""
         return (2**self.bit_depth - 1 - self.black_level_adu) / self.full_well_e
 
+    @property
+    def sensor(self) -> Sensor:
+        """The sensor model (``sim.optics.sensor``) of this camera."""
+        return Sensor(full_well_e=self.full_well_e, dn_per_e=self.gain_adu_per_e,
+                      black_level_dn=self.black_level_adu, bit_depth=self.bit_depth,
+                      shot_noise=self.enabled, read_noise_e=self.read_noise_e * self.enabled)
+
     def electrons_per_ms_white(self) -> float:
         """Signal rate for full white and transmittance 1, electrons per ms."""
         return self.white_fraction * self.full_well_e / self.reference_exposure_ms
 
     def mean_adu(self, electrons: np.ndarray) -> np.ndarray:
         """Expected ADU for expected electrons (no saturation)."""
-        return self.black_level_adu + self.gain_adu_per_e * np.asarray(electrons)
+        return self.sensor.mean_dn(electrons)
 
     def variance_adu(self, electrons: np.ndarray) -> np.ndarray:
         """Expected ADU variance: shot + read noise, plus uniform quantisation (1/12)."""
-        g = self.gain_adu_per_e
-        return g**2 * (np.asarray(electrons) + self.read_noise_e**2) + 1.0 / 12.0
+        return self.sensor.variance_dn(electrons)
 
 
 @dataclass
@@ -140,16 +148,8 @@ class FakeCamera(Camera):
         return (rate * (m @ self.lcd.luminance().ravel().astype(np.float64))).reshape(h, w)
 
     def _digitise(self, electrons: np.ndarray) -> np.ndarray:
-        n = self.noise
-        e = electrons
-        if n.enabled:
-            e = self.rng.poisson(np.maximum(e, 0)).astype(np.float64)
-        e = np.minimum(e, n.full_well_e)
-        if n.enabled and n.read_noise_e > 0:
-            e = e + self.rng.normal(0.0, n.read_noise_e, e.shape)
-        adu = np.rint(n.black_level_adu + n.gain_adu_per_e * e)
-        adu = np.clip(adu, 0, 2**n.bit_depth - 1)
-        return adu.astype(np.uint8 if n.bit_depth <= 8 else np.uint16)
+        sensor = self.noise.sensor
+        return sensor.digitise(sensor.expose(electrons, self.rng))
 
     def capture(self, timeout: float | None = None) -> Frame:
         """One frame of what the camera sees now."""

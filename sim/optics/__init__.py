@@ -13,4 +13,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "projection": "pixel_to_normalized normalized_to_pixel project_points camera_to_world "
                   "directions_to_world",
     "rig": "DeviceCalibration Rig look_at default_rig small_rig format_validation_error",
+    "sensor": "Sensor",
 })

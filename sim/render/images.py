@@ -7,7 +7,8 @@ Signal chain for pattern image ``P`` (values in [0, 1]) and camera pixel ``p``:
    projector pixels (edges replicated);
 2. gather: ``radiance_p = sum_k w_k * P'(u_k, v_k)`` with ``P'`` sampled bilinearly (pixel
    centres at integers, clamped to the edge pixels) at each ray's projector coordinate;
-3. camera (``CameraResponse``): electrons ``e = exposure_e * radiance``, Poisson shot noise,
+3. camera (``CameraResponse``, the sensor model ``sim.optics.sensor`` shared with the fake
+   station camera): electrons ``e = exposure_e * radiance``, Poisson shot noise,
    clipped at the full well, plus Gaussian read noise; ``DN = gain * (2^bits - 1) / full_well_e
    * e + black_level_dn``, clipped to ``[0, 2^bits - 1]`` (saturation) and rounded.
 
@@ -35,6 +36,7 @@ from sim.optics.lens import LensModel
 from sim.render.pattern_stack import PatternStack
 from sim.render.image_kernels import BLOCK_RAYS, IDENTITY, digitise, gather_rows
 from sim.optics.rig import Rig
+from sim.optics.sensor import Sensor
 from sim.render.trace import TraceGeometry, Transport, trace_camera
 
 TILE_RAYS = 1 << 22  # rays traced per tile in render_views (about 50 MB of transport)
@@ -73,6 +75,13 @@ class CameraResponse(BaseModel):
     @property
     def dn_per_e(self) -> float:
         return self.gain * self.max_dn / self.full_well_e
+
+    @property
+    def sensor(self) -> Sensor:
+        """The sensor model (``sim.optics.sensor``) of these cameras."""
+        return Sensor(full_well_e=self.full_well_e, dn_per_e=self.dn_per_e,
+                      black_level_dn=self.black_level_dn, bit_depth=self.bit_depth,
+                      shot_noise=self.shot_noise, read_noise_e=self.read_noise_e)
 
 
 class RenderSettings(BaseModel):
@@ -181,10 +190,6 @@ def _gather_rows(tr: Transport, dest: np.ndarray, stack: PatternStack, out: np.n
          stack.form, stack.slot, c(stack.full), c(stack.rows), c(stack.cols), resp, quantize, out)
 
 
-def _noisy(camera: CameraResponse) -> bool:
-    return camera.shot_noise or camera.read_noise_e > 0
-
-
 def _response_args(camera: CameraResponse, electrons: bool = False) -> tuple:
     """Arguments of ``sim.render.image_kernels.response`` for the camera (rounding is
     ``camera.quantize``): from radiance, or from electrons already exposed and clipped
@@ -204,19 +209,14 @@ def camera_response(radiance: np.ndarray, camera: CameraResponse,
                     out: np.ndarray | None = None) -> np.ndarray:
     """Digital images (same shape) of radiance: uint8 (8 bits), uint16 (12, 16) or float32 DN;
     written into ``out`` (C-contiguous, that shape and type) when given."""
-    noisy = _noisy(camera)
+    sensor = camera.sensor
+    noisy = sensor.noisy
     if noisy and rng is None:
         raise ValueError("camera_response: rng is required when shot_noise or read_noise_e is on")
     x = np.ascontiguousarray(radiance, dtype=np.float32)
     if noisy:
-        f32 = np.float32
-        e = np.maximum(x * f32(camera.exposure_e), f32(0.0))
-        if camera.shot_noise:
-            e = rng.poisson(e).astype(np.float32)
-        np.minimum(e, f32(camera.full_well_e), out=e)
-        if camera.read_noise_e > 0:
-            e += f32(camera.read_noise_e) * rng.standard_normal(e.shape, dtype=np.float32)
-        x = e
+        e = np.maximum(x * np.float32(camera.exposure_e), np.float32(0.0))
+        x = np.ascontiguousarray(sensor.expose(e, rng, np.float32))
     if out is None:
         out = np.empty(x.shape, _image_dtype(camera))
     else:
@@ -234,7 +234,7 @@ def render(tr: Transport, pattern_images: np.ndarray | PatternStack, settings: R
     projected = _check_patterns(tr, project_patterns(pattern_images, settings.projector))
     w, h = tr.camera_size
     cam = settings.camera
-    if _noisy(cam):
+    if cam.sensor.noisy:
         rad = np.zeros((len(projected), w * h), np.float32)
         gather_into(tr, projected, rad)
         return camera_response(rad.reshape(-1, h, w), cam, rng)
