@@ -83,17 +83,22 @@ def format_command(
     return append_checksum(line) if checksum else line
 
 
+def _body(line: str, lead: str, what: str) -> str:
+    """The text of a stripped message ``line`` after its ``lead`` character and before any
+    checksum; ZaberFormatError / ZaberChecksumError quoting the line."""
+    if not line.startswith(lead):
+        raise ZaberFormatError(f"not a Zaber {what}: {line!r}")
+    if not line.isascii():
+        raise ZaberFormatError(f"non-ASCII characters in Zaber {what}: {line!r}")
+    if checksum_ok(line) is False:
+        raise ZaberChecksumError(f"bad checksum in {line!r}")
+    return split_checksum(line)[0][1:]
+
+
 def parse_command(line: str) -> Command:
     """Parse a host command line; raise ZaberFormatError / ZaberChecksumError."""
     line = line.strip()
-    if not line.startswith("/"):
-        raise ZaberFormatError(f"not a Zaber command: {line!r}")
-    if not line.isascii():
-        raise ZaberFormatError(f"non-ASCII characters in Zaber command: {line!r}")
-    if checksum_ok(line) is False:
-        raise ZaberChecksumError(f"bad checksum in {line!r}")
-    body, _ = split_checksum(line)
-    tokens = body[1:].split()
+    tokens = _body(line, "/", "command").split()
     numbers: list[int] = []
     while tokens and len(numbers) < 3 and tokens[0].isdigit():
         numbers.append(int(tokens.pop(0)))
@@ -146,14 +151,7 @@ def parse_reply(line: str) -> Reply:
     (also a reply without its data field); every message quotes the (stripped) line.
     """
     line = line.strip()
-    if not line.startswith("@"):
-        raise ZaberFormatError(f"not a Zaber reply: {line!r}")
-    if not line.isascii():
-        raise ZaberFormatError(f"non-ASCII characters in Zaber reply: {line!r}")
-    if checksum_ok(line) is False:
-        raise ZaberChecksumError(f"bad checksum in {line!r}")
-    body, _ = split_checksum(line)
-    tokens = body[1:].split(" ")
+    tokens = _body(line, "@", "reply").split(" ")
     try:
         address = _number(tokens.pop(0), 2, 2, "address")
         axis = _number(tokens.pop(0), 1, 1, "axis")

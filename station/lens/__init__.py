@@ -1,10 +1,5 @@
 """The measured lens: centroids -> principal rays -> optical centre -> focus plane
-(``geometry``) -> aperture samples -> lens model file (``derive``).
-
-Public names are re-exported lazily (PEP 562):
-``from station.lens import derive_lens`` imports only the submodule
-that defines it, so importing the package stays cheap.
-"""
+(``geometry``) -> aperture samples -> lens model file (``derive``). Names load lazily."""
 
 from __future__ import annotations
 

@@ -1,9 +1,5 @@
-"""LTC reconstruction (Fourier single-pixel imaging), localisation and the LTC store.
-
-Public names are re-exported lazily (PEP 562):
-``from station.ltc import reconstruct`` imports only the submodule
-that defines it, so importing the package stays cheap.
-"""
+"""LTC reconstruction (Fourier single-pixel imaging), localisation and the LTC store; names
+load on first use (``import station.ltc`` stays cheap)."""
 
 from __future__ import annotations
 
