@@ -1,11 +1,13 @@
 """Grey-scale centroids and second moments of every pixel's LTC at every depth (OPTICS.md 6.1).
 
 A pixel's LTC window is searched for its peak (after a 3 x 3 box smoothing); the region is
-the connected set of smoothed weights above a noise threshold that holds the peak (the 3 x 3
-smoothing already reaches one pixel beyond the raw weights above it). Growing it by a margin
-only adds noise: with the default fake noise, P = 16, a 2-pixel margin gave 0.118 / 0.047 /
-0.095 px p95 centroid error at 40 / 100 / 150 mm, no margin 0.059 / 0.014 / 0.041 px, and the
-same error noise-free (tests/station/ltc/test_spi.py). Over that region
+the connected set of smoothed weights above a noise threshold that holds the peak, grown by
+a margin of REGION_MARGIN_PX. The margin trades noise (a centroid's noise grows with the area
+summed) against the tails the aperture samples are drawn from. Measured (default fake noise,
+P = 16, centroid p95 at 40 / 100 / 150 mm; benchmarks/validation.py --quick, measured-LTC
+scanner RMSE against the real one at slight / large defocus): margin 0: 0.059 / 0.014 / 0.041
+px, 23.8 / 77.8 um (tails lost); margin 1: 0.092 / 0.031 / 0.070 px, 20.6 / 46.9 um;
+margin 2: 0.118 / 0.047 / 0.095 px, 24.9 / 62.8 um. Over that region
 
     x_g = sum x h / sum h,   var(x_g) = sigma_h^2 sum (x - x_g)^2 / (sum h)^2
 
@@ -36,7 +38,7 @@ STATUS_NO_SIGNAL = 1  # NaN window, or no weight above the noise threshold
 STATUS_TRUNCATED = 2  # the region reaches the window border: LTC folded or cut off
 NOISE_SIGMAS = 3.0  # region threshold on the 3x3-smoothed weights, in their noise stds
 PEAK_FRACTION = 0.02  # ...and at least this fraction of the smoothed peak
-REGION_MARGIN_PX = 0  # the region is grown by this many LCD pixels (see below)
+REGION_MARGIN_PX = 1  # the region is grown by this many LCD pixels (see above)
 READ_BUDGET_BYTES = 1 << 27  # LTC windows read at once (float64), bytes
 WINDOWS_PER_BATCH = 4096  # windows analysed at once (temporaries ~ 10 x this x P^2 x 8 B)
 
