@@ -23,6 +23,7 @@ from station.errors import StationError, UsageError, describe_os_error
 # Each module defines ``register(subparsers)`` which adds its parser and sets ``func``.
 COMMAND_MODULES = (
     "check",
+    "cameras",
     "config",
     "acquire",
     "gamma",
