@@ -32,12 +32,12 @@ UM = 0.1  # microstep, um
 TRAVEL_MM = (0.0, 40.0)
 TOLERANCE_MM = 0.0002  # 2 microsteps
 START_MM = 10.0  # where the carriage is at power-up
-TIMEOUT_S = 0.2  # one command's reply deadline
+TIMEOUT_S = 0.5  # one command's reply deadline (generous: the test machine is shared)
 DEVICE = dict(limit_max=500_000, position=round(START_MM * 1000 / UM),
               maxspeed=round(50.0 * 1000 / UM * SPEED_UNIT),  # 50 mm/s, 2000 mm/s^2:
               accel=round(2000.0 * 1000 / UM * ACCEL_UNIT))  # 30 mm take about 0.6 s
 SETTINGS = dict(microstep_um=UM, travel_mm=TRAVEL_MM, tolerance_um=TOLERANCE_MM * 1000,
-                timeout_s=TIMEOUT_S, settle_s=0.0, poll_s=0.005, margin_s=0.3, no_progress_s=0.15)
+                timeout_s=TIMEOUT_S, settle_s=0.0, poll_s=0.005, margin_s=0.3, no_progress_s=0.5)
 _names = itertools.count(1)
 
 
