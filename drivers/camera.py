@@ -28,7 +28,10 @@ import numpy as np
 
 from drivers.interfaces import Camera, DeviceError, Frame
 
-__all__ = ["Camera", "CameraError", "CameraTimeout", "Frame", "OpenCVCamera"]
+__all__ = ["Camera", "CameraError", "CameraTimeout", "Frame", "OpenCVCamera", "VideoDevice",
+           "list_video_devices"]
+
+SYSFS_VIDEO = "/sys/class/video4linux"
 
 
 class CameraError(DeviceError):
@@ -79,6 +82,37 @@ def _to_mono(image: np.ndarray, source: str) -> np.ndarray:
     if image.ndim != 2:
         raise CameraError(f"camera {source}: unsupported frame shape {image.shape}")
     return image
+
+
+@dataclass(frozen=True)
+class VideoDevice:
+    """A Linux video device (V4L2) that OpenCV can open by its index."""
+
+    index: int  # the N of /dev/videoN: OpenCV's device index (source = N)
+    path: str  # /dev/videoN
+    name: str  # the driver's card name, e.g. 'Integrated Camera: Integrated C'
+
+
+def list_video_devices(sysfs: str | os.PathLike | None = None) -> list[VideoDevice]:
+    """V4L2 devices from sysfs (``SYSFS_VIDEO`` when None), by index, without opening any
+    (cheap; [] off Linux). A webcam often has a second node for metadata that OpenCV cannot
+    read: try the lowest index first."""
+    sysfs = SYSFS_VIDEO if sysfs is None else sysfs
+    found = []
+    try:
+        entries = os.listdir(sysfs)
+    except OSError:
+        return []
+    for entry in entries:
+        if not (entry.startswith("video") and entry[5:].isdigit()):
+            continue
+        try:
+            with open(os.path.join(sysfs, entry, "name"), encoding="utf-8", errors="replace") as f:
+                name = f.read().strip()
+        except OSError:
+            name = ""
+        found.append(VideoDevice(int(entry[5:]), f"/dev/{entry}", name))
+    return sorted(found, key=lambda d: d.index)
 
 
 def _read_into(capture: Any, future: Future) -> None:

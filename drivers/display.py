@@ -114,8 +114,8 @@ class _RendererDisplay(PatternDisplay):
         with self._bound():
             self._renderer.draw(image, code, xy)
             self._present()
-            self._renderer.ctx.finish()
             shown = ShownFrame(index=self._index, swap_time=time.monotonic(), frame_code=frame_code)
+        self._after_present()
         self._index += 1
         return shown
 
@@ -125,7 +125,12 @@ class _RendererDisplay(PatternDisplay):
             return self._renderer.read()
 
     def _present(self) -> None:
-        """Put the drawn framebuffer on screen (nothing to do offscreen)."""
+        """Put the drawn framebuffer on screen and return when it is there: offscreen, when
+        the GPU has finished drawing it (``glFinish``)."""
+        self._renderer.ctx.finish()
+
+    def _after_present(self) -> None:
+        """Housekeeping after the frame is shown and timed (window events)."""
 
 
 class OffscreenDisplay(_RendererDisplay):
@@ -258,10 +263,18 @@ class GlfwDisplay(_RendererDisplay):
         }
 
     def _present(self) -> None:
+        """Copy the drawn pattern into the back buffer, ``glFinish`` (the frame is complete
+        before it is queued), swap, and ``glFinish`` again: with swap interval 1 the second
+        one blocks until the swap has happened at the refresh, so :meth:`show` returns only
+        once the pattern is on screen, as careful SLM and display tools do."""
         ctx = self._renderer.ctx
         ctx.copy_framebuffer(ctx.screen, self._renderer.framebuffer)
+        ctx.finish()
         glfw.swap_buffers(self._window)
-        glfw.poll_events()
+        ctx.finish()
+
+    def _after_present(self) -> None:
+        glfw.poll_events()  # keep the window responsive; after the swap is timed
 
     def close(self) -> None:
         """Close the window; terminate GLFW when no other GlfwDisplay is open; idempotent."""

@@ -25,6 +25,7 @@ from station.errors import StationError, UsageError, describe_os_error
 # One module per subcommand, declared as ``station.commands`` describes.
 COMMAND_MODULES = (
     "check",
+    "cameras",
     "config",
     "acquire",
     "gamma",

@@ -1,4 +1,6 @@
-"""Open the station's three devices, real or fake, as the config says.
+"""Open the station's three devices, real or fake, as the config says: ``backend`` picks the
+stage and display (the fake bench's, or a Zaber stage and a GLFW window), ``[camera] kind``
+the camera (the fake bench's, OpenCV or GenICam).
 
 The only station module allowed to import ``fakes`` (import-linter enforces it).
 """
@@ -14,7 +16,12 @@ import numpy as np
 
 from drivers.frame_code import FrameCodeLayout
 from drivers.interfaces import Camera, PatternDisplay, Stage
-from station.acquisition.config import ConfigError, StationConfig
+from station.acquisition.config import (
+    ConfigError,
+    GenICamCameraConfig,
+    OpenCVCameraConfig,
+    StationConfig,
+)
 
 
 @dataclass
@@ -62,6 +69,26 @@ def open_fake_hardware(config: StationConfig, *, lut: np.ndarray | None = None):
     return fake
 
 
+def open_camera(camera: OpenCVCameraConfig | GenICamCameraConfig) -> Camera:
+    """The real camera ``[camera]`` describes (kind 'opencv' or 'genicam'), opened and set up."""
+    if camera.kind == "genicam":
+        from drivers.genicam import GenICamCamera
+
+        return GenICamCamera(
+            camera.device_id, serial=camera.serial, exposure_ms=camera.exposure_ms,
+            gain=camera.gain, pixel_format=camera.pixel_format, roi=camera.roi,
+            trigger=None if camera.trigger == "free-run" else camera.trigger,
+            frame_rate_hz=camera.frame_rate_hz, timeout_s=camera.timeout_s,
+            control_timeout_s=camera.control_timeout_s, n_buffers=camera.buffers,
+        )
+    if camera.kind == "opencv":
+        from drivers.camera import OpenCVCamera
+
+        return OpenCVCamera(camera.source, exposure_ms=camera.exposure_ms, gain=camera.gain,
+                            timeout_s=camera.timeout_s, backend=camera.api)
+    raise ConfigError(f"camera.kind = {camera.kind!r} is not a real camera")
+
+
 @contextlib.contextmanager
 def open_hardware(config: StationConfig, *, lut: np.ndarray | None = None) -> Iterator[Hardware]:
     """Open stage, display and camera; close all of them on exit, whatever happened."""
@@ -70,10 +97,13 @@ def open_hardware(config: StationConfig, *, lut: np.ndarray | None = None) -> It
     s = config.stage
     if config.backend == "fake":
         with open_fake_hardware(config, lut=lut) as fake:
-            yield Hardware(fake.stage, fake.lcd, fake.camera)
+            if config.camera.kind == "fake":
+                yield Hardware(fake.stage, fake.lcd, fake.camera)
+            else:  # the fake stage and display with a real camera
+                with open_camera(config.camera) as camera:
+                    yield Hardware(fake.stage, fake.lcd, camera)
         return
 
-    from drivers.camera import OpenCVCamera
     from drivers.display import GlfwDisplay
     from drivers.stage import ZaberStage
 
@@ -86,8 +116,5 @@ def open_hardware(config: StationConfig, *, lut: np.ndarray | None = None) -> It
         display = stack.enter_context(GlfwDisplay(
             config.display.monitor, lut=lut, frame_code=frame_code_layout(config) or False,
         ))
-        c = config.camera
-        camera = stack.enter_context(OpenCVCamera(
-            c.source, exposure_ms=c.exposure_ms, gain=c.gain, timeout_s=c.timeout_s,
-        ))
+        camera = stack.enter_context(open_camera(config.camera))
         yield Hardware(stage, display, camera)

@@ -5,12 +5,12 @@ from __future__ import annotations
 import tomllib
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from drivers.frame_code import FrameCodeLayout
-from sim.validation import format_validation_error
+from sim.validation import field_path
 
 
 class ConfigError(ValueError):
@@ -60,22 +60,89 @@ class DisplayConfig(_Strict):
     pitch_mm: float = Field(0.2715, gt=0, description="LCD pixel pitch, mm")
 
 
-class CameraConfig(_Strict):
-    """The camera under test."""
+CameraMatrix = tuple[tuple[float, float, float], tuple[float, float, float],
+                     tuple[float, float, float]]
 
-    source: int | str = Field(0, description="OpenCV device index, path or URL")
+CAMERA_KINDS = ("fake", "opencv", "genicam")
+GENICAM_PIXEL_FORMATS = ("Mono8", "Mono10", "Mono12", "Mono16")
+
+
+class _CameraCommon(_Strict):
+    """Fields every camera kind has."""
+
     exposure_ms: float = Field(33.333, gt=0, description="exposure, ms (a multiple of the refresh period)")
-    gain: float | None = Field(None, description="camera gain in backend units; None leaves it")
     timeout_s: float = Field(2.0, gt=0, description="capture deadline, s")
     saturation_fraction: float = Field(
         0.98, gt=0, le=1, description="pixels at or above this fraction of full scale count as saturated"
     )
-    matrix: tuple[tuple[float, float, float], tuple[float, float, float],
-                  tuple[float, float, float]] | None = Field(
+    matrix: CameraMatrix | None = Field(
         None, description="camera matrix K (3x3, pixels) from a calibration, e.g. the FPP rig's; "
         "`ltc lens` places the optical centre with it and `ltc align` takes the principal point "
         "from it. None: unknown (principal point at the image centre)"
     )
+
+
+class FakeCameraConfig(_CameraCommon):
+    """The fake bench's camera (``backend = "fake"`` only; its sensor is set in ``[fake]``)."""
+
+    kind: Literal["fake"] = "fake"
+
+
+class OpenCVCameraConfig(_CameraCommon):
+    """A camera behind OpenCV's ``VideoCapture`` (UVC webcams, video files, streams)."""
+
+    kind: Literal["opencv"] = "opencv"
+    source: int | str = Field(0, description="OpenCV device index, path or URL")
+    api: str | None = Field(
+        None, description="OpenCV backend ('V4L2', 'FFMPEG', 'DSHOW', ...); None: any"
+    )
+    gain: float | None = Field(None, description="camera gain in backend units; None leaves it")
+
+
+class GenICamCameraConfig(_CameraCommon):
+    """A GigE Vision or USB3 Vision camera through Aravis (``drivers.genicam``)."""
+
+    kind: Literal["genicam"] = "genicam"
+    device_id: str | None = Field(
+        None, description="Aravis device id ('Vendor-Model-Serial', as `ltc cameras` lists it) "
+        "or the camera's IP address; give this or serial"
+    )
+    serial: str | None = Field(None, description="the camera's serial number; give this or device_id")
+    gain: float | None = Field(
+        None, description="gain in the device's units (GenICam Gain, usually dB); None leaves it"
+    )
+    pixel_format: Literal[GENICAM_PIXEL_FORMATS] = Field(  # type: ignore[valid-type]
+        "Mono8", description="Mono8, Mono10, Mono12 or Mono16 (unpacked); sets the bit depth"
+    )
+    roi: tuple[int, int, int, int] | None = Field(
+        None, description="region of interest (x, y, width, height), sensor pixels; None: whole sensor"
+    )
+    trigger: str = Field(
+        "software", min_length=1, description="'software' (one frame per shown pattern), a "
+        "hardware line the camera offers ('Line0', ...), or 'free-run'"
+    )
+    frame_rate_hz: float | None = Field(
+        None, gt=0, description="frame rate with trigger = 'free-run', Hz; None leaves the camera's"
+    )
+    control_timeout_s: float = Field(3.0, gt=0, description="deadline for one setting or trigger command, s")
+    buffers: int = Field(8, ge=1, description="stream buffers in the pool")
+
+    @model_validator(mode="after")
+    def _one_identity(self) -> GenICamCameraConfig:
+        if (self.device_id is None) == (self.serial is None):
+            raise ValueError("give exactly one of camera.device_id and camera.serial "
+                             "(`ltc cameras` lists both)")
+        if self.roi is not None and (min(self.roi[:2]) < 0 or min(self.roi[2:]) < 1):
+            raise ValueError(f"camera.roi must be (x >= 0, y >= 0, width >= 1, height >= 1), "
+                             f"got {self.roi}")
+        if self.frame_rate_hz is not None and self.trigger != "free-run":
+            raise ValueError("camera.frame_rate_hz applies only with trigger = 'free-run'")
+        return self
+
+
+CameraConfig = Annotated[
+    FakeCameraConfig | OpenCVCameraConfig | GenICamCameraConfig, Field(discriminator="kind")
+]
 
 
 class PatternConfig(_Strict):
@@ -165,12 +232,33 @@ class StationConfig(_Strict):
     depths_mm: list[float] = Field(min_length=1, description="stage readings to measure at, mm")
     stage: StageConfig = StageConfig()
     display: DisplayConfig = DisplayConfig()
-    camera: CameraConfig = CameraConfig()
+    camera: CameraConfig = Field(
+        default_factory=FakeCameraConfig, description="[camera]: kind 'fake' (the default with "
+        "backend 'fake'), 'opencv' (the default with backend 'real') or 'genicam'"
+    )
     patterns: PatternConfig = PatternConfig()
     frame_check: FrameCheckConfig = FrameCheckConfig()
     acquire: AcquireConfig = AcquireConfig()
     sequence: SequenceConfig = SequenceConfig()
     fake: dict[str, Any] = Field(default_factory=dict, description="fake bench settings")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_camera_kind(cls, data: Any) -> Any:
+        """``[camera]`` without ``kind``: the fake camera on the fake bench, else OpenCV."""
+        if isinstance(data, dict):
+            camera = data.get("camera", {})
+            if isinstance(camera, dict) and "kind" not in camera:
+                kind = "fake" if data.get("backend") == "fake" else "opencv"
+                data = {**data, "camera": {**camera, "kind": kind}}
+        return data
+
+    @model_validator(mode="after")
+    def _fake_camera_on_fake_bench(self) -> StationConfig:
+        if self.camera.kind == "fake" and self.backend != "fake":
+            raise ValueError("camera.kind = 'fake' needs backend = 'fake' (the fake camera looks "
+                             "at the fake LCD); use 'genicam' or 'opencv' for a real camera")
+        return self
 
     @model_validator(mode="after")
     def _depths_in_travel(self) -> StationConfig:
@@ -194,7 +282,26 @@ def parse_config(text: str, source: str = "<config>") -> StationConfig:
     try:
         return StationConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(format_validation_error(source, exc)) from exc
+        raise ConfigError(_format_errors(source, exc)) from exc
+
+
+def _format_errors(source: str, exc: ValidationError) -> str:
+    """One line per error, ``source: field 'camera.gain': ...``: the camera kind pydantic puts
+    in the path of a tagged union is taken out, and a bad kind is named as ``camera.kind``."""
+    lines = []
+    for e in exc.errors():
+        loc = tuple(e["loc"])
+        msg = e["msg"]
+        if loc[:1] == ("camera",) and len(loc) > 1 and loc[1] in CAMERA_KINDS:
+            if e["type"] == "extra_forbidden":
+                msg += f" (not a field of camera kind {loc[1]!r})"
+            loc = loc[:1] + loc[2:]
+        if e["type"] == "union_tag_invalid":
+            loc = loc + ("kind",)
+            msg = f"unknown camera kind {e['input'].get('kind')!r}; expected one of " \
+                  f"{', '.join(repr(k) for k in CAMERA_KINDS)}"
+        lines.append(f"{source}: field '{field_path(loc)}': {msg}")
+    return "\n".join(lines)
 
 
 def load_config(path: str | Path) -> StationConfig:

@@ -133,6 +133,33 @@ def test_show_numbers_frames_and_returns_after_the_swap(kind):
     assert before < times[0] < times[1] < times[2] < after
 
 
+def test_show_finishes_the_frame_before_the_swap_and_waits_for_the_swap(xvfb_display, monkeypatch):
+    """glFinish, swap, glFinish: show() is timed and returns only once the swap has happened."""
+    import glfw
+
+    calls: list[tuple[str, float]] = []
+    with GlfwDisplay(0) as display:
+        ctx = display._renderer.ctx
+        real_finish, real_swap = ctx.finish, glfw.swap_buffers
+
+        def finish() -> None:
+            real_finish()
+            calls.append(("finish", time.monotonic()))
+
+        def swap(window) -> None:
+            calls.append(("swap", time.monotonic()))
+            real_swap(window)
+
+        monkeypatch.setattr(ctx, "finish", finish)
+        monkeypatch.setattr(glfw, "swap_buffers", swap)
+        pattern = np.random.default_rng(9).integers(0, 256, SIZE[::-1], dtype=np.uint8)
+        shown = display.show(pattern)
+        np.testing.assert_array_equal(np.asarray(ImageGrab.grab(xdisplay=xvfb_display.display)),
+                                      as_rgb(pattern))
+    assert [name for name, _ in calls] == ["finish", "swap", "finish"]
+    assert shown.swap_time >= calls[-1][1]
+
+
 def test_offscreen_and_window_work_side_by_side(xvfb_display):
     pattern = np.random.default_rng(5).integers(0, 256, SIZE[::-1], dtype=np.uint8)
     with OffscreenDisplay(SIZE) as offscreen, GlfwDisplay(0) as window:
