@@ -1,4 +1,4 @@
-"""``ltc acquire CONFIG --out RUN.zarr [--resume] [--json] [--quiet]``."""
+"""``ltc acquire CONFIG --out RUN.zarr [--resume] [--force] [--json] [--quiet]``."""
 
 from __future__ import annotations
 
@@ -23,13 +23,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true",
                    help="finish the run in --out (its config must be the same)")
     p.add_argument("--force", action="store_true",
-                   help="delete an existing run store in --out and start again")
+                   help="delete an existing run store in --out and start again; with --resume, "
+                   "take over the writer lock left by a killed run (never a live writer's)")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from station.acquisition.lock import StoreLock
     from station.api import acquire, load_config
 
     if not logging.getLogger().handlers:
@@ -40,8 +42,14 @@ def run(args: argparse.Namespace) -> int:
         if not args.force:
             raise UsageError(f"--out {args.out} exists; pass --resume to finish that run, "
                              "--force to delete it and start again, or choose another path")
-        shutil.rmtree(args.out) if args.out.is_dir() else args.out.unlink()
-    summary = acquire(config, args.out, resume=args.resume, progress=not args.quiet)
+        if args.out.is_dir():
+            with StoreLock(args.out, force=True):  # refuses a store a live writer holds
+                pass
+            shutil.rmtree(args.out)
+        else:
+            args.out.unlink()
+    summary = acquire(config, args.out, resume=args.resume, progress=not args.quiet,
+                      force=args.force)
     if args.json:
         print(json.dumps(summary))
     else:
