@@ -131,6 +131,7 @@ class FrameWriter:
         if self._thread is not None and self._thread.is_alive():
             self._queue.put(None)
             self._thread.join()
+        self._call("the done flags", self.store.flush, ())
         self.raise_error()
 
 

@@ -15,7 +15,7 @@ Layout, ``format_version`` 2 (HARDWARE.md "Acquisition runs", issues 3 and 13; d
   flushed to disk (fsync). A frame whose flag is False is not trusted (readers refuse it).
 * per-frame metadata ``[depth, pattern]``, one array per field of :class:`FrameMeta`, plus
   ``saturated_px`` (pixels at full scale, counted by the store) and ``frame_crc32c`` (crc32c of
-  the frame's whole shard file; -1 while not done).
+  the frame's pixels, rows x cols in C order, little-endian; -1 while not done).
 * attributes: ``format``, ``format_version``, ``config`` (the whole station config, a dict),
   ``pattern_set`` (:class:`station.acquisition.patterns.StationPatternPlan` as JSON), ``software``
   (versions), ``start_time`` (ISO 8601, UTC), ``depths_mm``, ``camera_size`` (w, h),
@@ -35,7 +35,9 @@ built under a temporary name beside ``path`` and renamed into place when complet
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import datetime as _dt
+import functools
 import json
 import os
 import platform
@@ -137,8 +139,40 @@ def _fsync(path: Path) -> None:
         os.close(fd)
 
 
+def _barrier(store: Path, written: list[Path]) -> None:
+    """Make everything written so far durable before what comes next: one ``syncfs`` of the
+    store's filesystem on Linux (one journal commit, about as fast as one fsync), else an
+    fsync of each file in ``written`` and of its folder."""
+    syncfs = getattr(_libc(), "syncfs", None)
+    if syncfs is not None:
+        fd = os.open(store, os.O_RDONLY)
+        try:
+            if syncfs(fd) != 0:
+                err = ctypes.get_errno()
+                raise OSError(err, os.strerror(err), str(store))
+        finally:
+            os.close(fd)
+        return
+    for path in written:
+        _fsync(path)
+        _fsync(path.parent)
+
+
+@functools.cache
+def _libc() -> object:
+    try:
+        return ctypes.CDLL(None, use_errno=True) if platform.system() == "Linux" else None
+    except OSError:
+        return None
+
+
 def _crc(data: bytes) -> int:
     return google_crc32c.value(data)
+
+
+def _frame_crc(image: np.ndarray) -> int:
+    """crc32c of a frame's pixels, (rows, cols) in C order, little-endian."""
+    return _crc(np.ascontiguousarray(image, image.dtype.newbyteorder("<")).tobytes())
 
 
 class ShardCodec:
@@ -206,6 +240,7 @@ class RunStore:
         self._meta = {name: group[name] for name in META_ARRAYS}
         w, h = self.camera_size
         self.codec = ShardCodec(h, w, self.tile_px, self._frames.dtype)
+        self._unflushed: Path | None = None
 
     # ---- creation and opening -------------------------------------------------------------
     @classmethod
@@ -409,8 +444,9 @@ class RunStore:
 
     # ---- writing ----------------------------------------------------------------------------
     def write_frame(self, depth: int, pattern: int, image: np.ndarray, meta: FrameMeta) -> None:
-        """Write one frame (its shard, flushed), then its metadata with the shard's crc32c,
-        then mark it done, each flushed to disk: an interruption loses at most this frame.
+        """Write one frame (its shard), then its metadata with the frame's crc32c, flush both
+        to disk, then mark it done: an interruption loses at most this frame (a done flag
+        not yet flushed by :meth:`flush` or the next write may be lost too, never set early).
         Safe to call from one writer thread while another thread captures."""
         self._check_index(depth, pattern)
         img = np.asarray(image)
@@ -442,28 +478,31 @@ class RunStore:
                 view = memoryview(shard)
                 while view:
                     view = view[os.write(fd, view):]
-                os.fsync(fd)
             finally:
                 os.close(fd)
             os.replace(tmp, final)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
-        _fsync(final.parent)
         values = {**meta.model_dump(), "saturated_px": int(np.count_nonzero(img >= full)),
-                  "frame_crc32c": _crc(shard)}
+                  "frame_crc32c": _frame_crc(img)}
 
         async def write_meta() -> None:  # one batch: the fields are independent chunks
             await asyncio.gather(*(arr.async_array.setitem((depth, pattern), values[name])
                                    for name, arr in self._meta.items()))
 
         zarr_sync(write_meta())
-        for name in self._meta:
-            _fsync(self._small_chunk(name, depth))
-            _fsync(self._small_chunk(name, depth).parent)
+        # the frame and its metadata reach the disk before the done flag can
+        _barrier(self.path, [final, *(self._small_chunk(name, depth) for name in self._meta)])
         self._done[depth, pattern] = True
-        _fsync(self._small_chunk("done", depth))
-        _fsync(self._small_chunk("done", depth).parent)
+        self._unflushed = self._small_chunk("done", depth)
+
+    def flush(self) -> None:
+        """Make the done flags written so far durable (else the next frame's write does; a
+        flag lost in a crash only means that frame is captured again)."""
+        if self._unflushed is not None:
+            _barrier(self.path, [self._unflushed])
+            self._unflushed = None
 
     def add_code_mask(self, depth: int, mask: np.ndarray) -> None:
         """Mark camera pixels (rows, cols) bool that saw the check code at ``depth`` (OR-ed
@@ -509,15 +548,17 @@ class RunStore:
                                 "it may be partial and is not trusted")
         c = self.codec
         raw = self._read_bytes(depth, pattern, 0, c.size, whole=True)
-        expect = int(self._meta["frame_crc32c"][depth, pattern])
-        if _crc(raw) != expect:
-            self._corrupt(depth, pattern, "fails its crc32c (recorded in 'frame_crc32c')")
+        if raw[-len(c.index):] != c.index:
+            self._corrupt(depth, pattern, "has a damaged shard index")
         chunks, bad = c.decode_chunks(raw, c.nr * c.nc)
         if bad >= 0:
             self._corrupt(depth, pattern, f"fails the crc32c of chunk {divmod(bad, c.nc)}")
         t = c.t
         img = chunks.reshape(c.nr, c.nc, t, t).transpose(0, 2, 1, 3).reshape(c.nr * t, c.nc * t)
-        return np.ascontiguousarray(img[: c.h, : c.w]).astype(self.dtype, copy=False)
+        img = np.ascontiguousarray(img[: c.h, : c.w]).astype(self.dtype)
+        if _frame_crc(img) != int(self._meta["frame_crc32c"][depth, pattern]):
+            self._corrupt(depth, pattern, "differs from its crc32c recorded in 'frame_crc32c'")
+        return img
 
     def read_tile(self, depth: int, row0: int, col0: int, rows: int, cols: int,
                   check_index: bool = False) -> Tile:
