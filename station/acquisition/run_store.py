@@ -192,22 +192,25 @@ class ShardCodec:
         self.index = index + np.uint32(_crc(index)).astype("<u4").tobytes()
         self.size = n * self.chunk_bytes + len(self.index)
 
-    def encode(self, image: np.ndarray) -> bytes:
-        """The shard of one frame (rows, cols)."""
+    def encode(self, image: np.ndarray) -> np.ndarray:
+        """The chunks of one frame's shard (rows, cols), uint8, without the index (append
+        ``self.index``). The buffer is reused: valid until the next call, one thread at once."""
         t = self.t
-        buf = np.zeros((self.nr, self.nc, self.chunk_bytes), np.uint8)
+        if not hasattr(self, "_buf"):  # allocated once: no page faults per frame
+            self._buf = np.zeros((self.nr, self.nc, self.chunk_bytes), np.uint8)
+            self._padded = np.zeros((self.nr * t, self.nc * t), self.dtype)
+        buf = self._buf
         pix = buf[:, :, : self.data_bytes].view(self.dtype).reshape(self.nr, self.nc, t, t)
         if image.shape == (self.nr * t, self.nc * t):
             pix[...] = image.reshape(self.nr, t, self.nc, t).transpose(0, 2, 1, 3)
-        else:  # edge chunks padded with the fill value 0
-            padded = np.zeros((self.nr * t, self.nc * t), self.dtype)
-            padded[: self.h, : self.w] = image
-            pix[...] = padded.reshape(self.nr, t, self.nc, t).transpose(0, 2, 1, 3)
+        else:  # edge chunks padded with the fill value 0 (the padding stays 0)
+            self._padded[: self.h, : self.w] = image
+            pix[...] = self._padded.reshape(self.nr, t, self.nc, t).transpose(0, 2, 1, 3)
         flat = buf.reshape(-1, self.chunk_bytes)
         crcs = np.fromiter((_crc(row[: self.data_bytes].tobytes()) for row in flat),
                            np.uint32, len(flat))
         flat[:, self.data_bytes :] = crcs.astype("<u4").view(np.uint8).reshape(-1, 4)
-        return buf.tobytes() + self.index
+        return buf.reshape(-1)
 
     def decode_chunks(self, raw: bytes, n_chunks: int) -> tuple[np.ndarray, int]:
         """(chunks (n, t, t), index of the first chunk failing its crc32c or -1)."""
@@ -475,9 +478,9 @@ class RunStore:
         try:
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
             try:
-                view = memoryview(shard)
-                while view:
-                    view = view[os.write(fd, view):]
+                for part in (memoryview(shard), memoryview(self.codec.index)):
+                    while part:
+                        part = part[os.write(fd, part):]
             finally:
                 os.close(fd)
             os.replace(tmp, final)
