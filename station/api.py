@@ -86,13 +86,14 @@ def open_bench(config: StationConfig | str | Path, *, lut: np.ndarray | None = N
 
 
 def acquire(config: StationConfig | str | Path, out: str | Path, *, resume: bool = False,
-            progress: bool = True) -> dict:
+            progress: bool = True, force: bool = False) -> dict:
     """Show every Fourier and localisation pattern at every depth, capture, and write each
     frame durably to the run store ``out`` (zarr). A killed run continues with
-    ``resume=True``. Returns a JSON-able summary (frames, retries, seconds)."""
+    ``resume=True`` (with ``force=True`` when the killed run's writer lock must be taken
+    over). Returns a JSON-able summary (frames, retries, seconds)."""
     from station.acquisition.acquire import acquire as _acquire
 
-    return _acquire(_config(config), out, resume=resume, progress=progress)
+    return _acquire(_config(config), out, resume=resume, progress=progress, force=force)
 
 
 def reconstruct_ltc(run: str | Path, out: str | Path, *, tile_px: int | None = None,

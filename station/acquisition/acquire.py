@@ -8,9 +8,15 @@ stamped in, wait the display latency, capture, reject a frame that timed out, is
 shows the wrong code (re-capture, at most ``acquire.max_retries`` times, each retry logged
 and counted), count saturated pixels, write the frame and its metadata, mark it done.
 
+Capture and storage overlap: the engine hands each frame to a :class:`FrameWriter`, whose
+thread writes it while the next frame is captured, through a bounded queue (a few frames).
 Durability comes from the run store: a frame is done only once it and its metadata are on
-disk, so a killed run loses at most the frame in flight, and ``resume=True`` takes up the
-first frame not done, refusing a store made with another config. Teardown (blank display,
+disk (fsync), so a killed run loses at most the frames in flight (queued or being written),
+and ``resume=True`` takes up the first frame not done, refusing a store made with another
+config. A writer error (a full disk, say) stops the run at the next frame with one
+:class:`AcquisitionError` naming the frame; frames written before it stay done. The run holds
+the store's writer lock (:class:`station.acquisition.lock.StoreLock`) throughout; a store is
+created atomically (:meth:`RunStore.create`). Teardown (blank display,
 stop the stage after a failure, close the devices, record the run's status) always runs; a
 failed cleanup is logged and attached to the run's error as a note, never raised in its
 place (after a run that went well, it is the error).
@@ -25,6 +31,8 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import logging
+import queue
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
@@ -46,16 +54,85 @@ from drivers.frame_code import (
 from drivers.interfaces import Frame, ShownFrame
 from station.acquisition.backend import Hardware, load_lut, open_hardware
 from station.acquisition.config import StationConfig
+from station.acquisition.lock import StoreLock
 from station.acquisition.patterns import StationPatternPlan, apply_lut
 from station.acquisition.run_store import FrameMeta, RunStore, RunStoreError
-from station.errors import StationError
+from station.errors import StationError, describe_os_error
 
 log = logging.getLogger(__name__)
 
+WRITER_QUEUE_FRAMES = 4  # frames captured ahead of the writer (memory: this many frames)
 
 
 class AcquisitionError(StationError):
     """The run cannot start or cannot go on; the message says where and why."""
+
+
+class FrameWriter:
+    """Store writes in one background thread, fed through a queue of at most ``depth`` items
+    (``depth`` 0: write in the caller's thread, serially). :meth:`submit` blocks while the
+    queue is full and raises the writer's first error as :class:`AcquisitionError`; after an
+    error nothing more is written. :meth:`close` writes what is queued and stops the thread."""
+
+    def __init__(self, store: RunStore, depth: int = WRITER_QUEUE_FRAMES) -> None:
+        self.store = store
+        self.error: BaseException | None = None
+        self.failed_on = ""
+        self.reported = False
+        self._queue: queue.Queue = queue.Queue(maxsize=max(int(depth), 1))
+        self._thread = None
+        if depth > 0:
+            self._thread = threading.Thread(target=self._loop, name="run-store writer",
+                                            daemon=True)
+            self._thread.start()
+
+    def submit(self, what: str, fn: Callable[..., object], *args: object) -> None:
+        """Run ``fn(*args)`` in the writer; ``what`` names it in an error message."""
+        if self._thread is None:
+            self._call(what, fn, args)
+            self.raise_error()
+            return
+        self.raise_error()
+        while True:
+            try:
+                self._queue.put((what, fn, args), timeout=0.05)
+                return
+            except queue.Full:
+                self.raise_error()
+
+    def _call(self, what: str, fn: Callable[..., object], args: tuple) -> None:
+        if self.error is not None:
+            return
+        try:
+            fn(*args)
+        except BaseException as exc:  # noqa: BLE001 - reported to the capture loop
+            self.error, self.failed_on = exc, what
+
+    def _loop(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            self._call(*item)
+
+    def raise_error(self) -> None:
+        """Raise the writer's error (once) as an :class:`AcquisitionError`."""
+        if self.error is None or self.reported:
+            return
+        self.reported = True
+        exc = self.error
+        why = describe_os_error(exc) if isinstance(exc, OSError) else f"{exc}"
+        raise AcquisitionError(
+            f"{self.store.path}: could not write {self.failed_on}: {why}; the frames written "
+            "before it are done and kept") from exc
+
+    def close(self) -> None:
+        """Write what is queued, stop the thread, then raise a writer error not yet raised."""
+        if self._thread is not None and self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join()
+        self._call("the done flags", self.store.flush, ())
+        self.raise_error()
 
 
 @dataclass(frozen=True)
@@ -105,8 +182,9 @@ class Acquisition:
     and :meth:`teardown`, on opened hardware and an open run store."""
 
     def __init__(self, config: StationConfig, hw: Hardware, store: RunStore,
-                 lut: np.ndarray | None) -> None:
+                 lut: np.ndarray | None, writer: FrameWriter | None = None) -> None:
         self.config, self.hw, self.store, self.lut = config, hw, store, lut
+        self.writer = FrameWriter(store, 0) if writer is None else writer
         self.plan = store.plan
         self.layout = config.frame_check.layout(store.lcd_size) if config.frame_check.enabled \
             else None
@@ -152,7 +230,8 @@ class Acquisition:
                         "enlarge frame_check.block_px") from exc
                 self._retry("code calibration", f"depth {depth}", attempt, str(exc))
         mask = self.calibration.polluted
-        self.store.add_code_mask(depth, mask)
+        self.writer.submit(f"the code mask of depth {depth}", self.store.add_code_mask, depth,
+                           mask)
         self.mask_fraction[depth] = float(mask.mean())
 
     def _calibrate(self, depth: int, first_pattern: int) -> CodeCalibration:
@@ -216,9 +295,11 @@ class Acquisition:
                          swap_index=shown.index, swap_time_s=shown.swap_time,
                          camera_timestamp_s=frame.timestamp, frame_id=frame.frame_id,
                          exposure_ms=frame.exposure_ms, retries=len(reasons))
-        self.store.write_frame(d, p, frame.image, meta)
+        self.writer.submit(f"frame (depth {d}, pattern {p})", self.store.write_frame, d, p,
+                           frame.image, meta)
         if reasons:
-            self.store.log_retries(d, p, reasons)
+            self.writer.submit(f"the retry log of frame (depth {d}, pattern {p})",
+                               self.store.log_retries, d, p, reasons)
 
     def _show(self, image: np.ndarray) -> ShownFrame:
         shown = self.hw.display.show(image)
@@ -299,33 +380,54 @@ def acquire(
     progress: bool = True,
     hw: Hardware | None = None,
     before_event: Callable[[Event, Hardware], None] | None = None,
+    force: bool = False,
+    writer_queue: int = WRITER_QUEUE_FRAMES,
 ) -> dict:
     """Run (or with ``resume`` finish) the acquisition of ``config`` into the run store ``out``.
 
     hw : opened hardware to use (left open); by default the config's backend is opened and
         closed here. before_event : called before each event (e.g. to trigger a fake's fault).
+    force : with ``resume``, take over the writer lock left by a process that is gone.
+    writer_queue : frames captured ahead of the store writer's thread (0: write serially).
     Returns a JSON-able summary. Raises :class:`AcquisitionError` (or the device's error)
-    when the run cannot start or go on; frames already done stay done.
+    when the run cannot start or go on; frames already done stay done. A store locked by
+    another writer is refused (:class:`station.acquisition.lock.StoreLockedError`).
     """
     out = Path(out)
     lut = load_lut(config.display.lut_path) if config.display.lut_path else None
     record = run_record(config, lut)
     store = None
-    if resume:
-        store = _open_for_resume(out, record)
-    elif out.exists():
-        raise AcquisitionError(f"{out}: already exists; pass --resume to finish that run, or "
-                               "choose a new --out")
+    with contextlib.ExitStack() as locks:
+        if resume:
+            if out.is_dir():
+                locks.enter_context(StoreLock(out, force=force))
+            store = _open_for_resume(out, record)
+        elif out.exists():
+            raise AcquisitionError(f"{out}: already exists; pass --resume to finish that run, "
+                                   "or choose a new --out")
+        return _acquire(config, out, store, record, lut, locks, progress, hw, before_event,
+                        writer_queue, resume)
+
+
+def _acquire(config: StationConfig, out: Path, store: RunStore | None, record: dict,
+             lut: np.ndarray | None, locks: contextlib.ExitStack, progress: bool,
+             hw: Hardware | None, before_event: Callable[[Event, Hardware], None] | None,
+             writer_queue: int, resume: bool) -> dict:
     t0 = time.perf_counter()
     with _hardware(config, hw) as devices:
+        created = store is None
         store = _check_and_create(config, devices, out, store, record, lut)
-        engine = Acquisition(config, devices, store, lut)
+        if created:
+            locks.enter_context(StoreLock(out))
+        writer = FrameWriter(store, writer_queue)
+        engine = Acquisition(config, devices, store, lut, writer)
         todo = plan_events(store.done())
         status = "failed"
         error: BaseException | None = None
         try:
             engine.setup()
             _run_events(engine, todo, progress, before_event)
+            writer.close()
             status = "complete"
         except KeyboardInterrupt as exc:
             status, error = "interrupted", exc
@@ -334,6 +436,12 @@ def acquire(
             error = exc
             raise
         finally:
+            try:
+                writer.close()  # the frames captured so far are written (a no-op when done)
+            except AcquisitionError as exc:
+                if error is None:
+                    raise
+                error.add_note(str(exc))
             cleanup = engine.teardown(failed=error is not None)
             try:
                 store.set_status(status, end_time=_now())
@@ -402,16 +510,18 @@ def _check_and_create(config: StationConfig, hw: Hardware, out: Path, store: Run
     if outside:
         raise AcquisitionError(f"depths_mm {outside} outside the stage's travel ({lo}, {hi}) mm")
     if store is None:
-        store = RunStore.create(
-            out, config=record, plan=plan, depths_mm=config.depths_mm,
-            camera_size=hw.camera.size, bit_depth=hw.camera.bit_depth, lcd_size=lcd_size,
-            lcd_pitch_mm=config.display.pitch_mm, display_lut=lut, start_time=_now())
         layout = config.frame_check.layout(lcd_size) if config.frame_check.enabled else None
-        store.set_frame_check(None if layout is None else {
+        frame_check = None if layout is None else {
             "rect_xywh": list(frame_code_rect(layout, lcd_size)), "bits": layout.bits,
-            "block_px": layout.block_px, "columns": layout.grid[1]})
-        store.set_status("running")
-        return store
+            "block_px": layout.block_px, "columns": layout.grid[1]}
+        try:  # atomic: a run killed here leaves no store, or one --resume takes up
+            return RunStore.create(
+                out, config=record, plan=plan, depths_mm=config.depths_mm,
+                camera_size=hw.camera.size, bit_depth=hw.camera.bit_depth, lcd_size=lcd_size,
+                lcd_pitch_mm=config.display.pitch_mm, display_lut=lut, start_time=_now(),
+                attrs={"frame_check": frame_check, "status": "running"})
+        except RunStoreError as exc:
+            raise AcquisitionError(f"cannot create the run store: {exc}") from exc
     try:
         store.require_same_config(record, plan)
     except RunStoreError as exc:

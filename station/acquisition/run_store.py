@@ -1,16 +1,21 @@
 """The run store (zarr v3) of an LTC acquisition run: raw frames, per-frame metadata and a
-completion mask, written durably frame by frame so an interrupted run can resume.
+completion mask, written durably frame by frame so an interrupted run can resume, and checked
+on every read so a damaged store is never read as data.
 
-Layout (HARDWARE.md "Acquisition runs", issue 3):
+Layout, ``format_version`` 2 (HARDWARE.md "Acquisition runs", issues 3 and 13; docs/formats.md):
 
 * ``frames[depth, pattern, row, col]`` in the camera's dtype (uint8 up to 8 bits, else
-  uint16). One frame is one stored object (a zarr shard), so each frame write is a single
-  atomic file replacement; inside it, ``tile_px`` x ``tile_px`` inner chunks let readers
-  fetch one tile of every frame without decoding whole frames.
-* ``done[depth, pattern]`` bool: True only after the frame and its metadata were written.
-  A frame whose flag is False is not trusted (readers refuse it).
+  uint16). One frame is one stored object, a zarr shard of ``tile_px`` x ``tile_px`` inner
+  chunks, uncompressed (``bytes`` little-endian) each followed by its ``crc32c``; the shard's
+  index (``bytes`` + ``crc32c``) is at its end. The store writes the shard itself (the same bytes
+  zarr writes, in milliseconds instead of seconds) and reads tiles from it directly, verifying
+  each chunk's crc32c; any zarr v3 reader reads the array too. Chosen by measurement
+  (``benchmarks/run_store_io.py``, numbers in ``benchmarks/README.md``).
+* ``done[depth, pattern]`` bool: True only after the frame and its metadata were written and
+  flushed to disk (fsync). A frame whose flag is False is not trusted (readers refuse it).
 * per-frame metadata ``[depth, pattern]``, one array per field of :class:`FrameMeta`, plus
-  ``saturated_px`` (pixels at full scale, counted by the store).
+  ``saturated_px`` (pixels at full scale, counted by the store) and ``frame_crc32c`` (crc32c of
+  the frame's pixels, rows x cols in C order, little-endian; -1 while not done).
 * attributes: ``format``, ``format_version``, ``config`` (the whole station config, a dict),
   ``pattern_set`` (:class:`station.acquisition.patterns.StationPatternPlan` as JSON), ``software``
   (versions), ``start_time`` (ISO 8601, UTC), ``depths_mm``, ``camera_size`` (w, h),
@@ -20,23 +25,35 @@ Layout (HARDWARE.md "Acquisition runs", issue 3):
 * written by the acquisition through the store's methods only: ``code_mask[depth, row,
   col]`` (``add_code_mask``), attributes ``retry_log`` (``log_retries``), ``status`` and
   ``end_time`` (``set_status``), ``frame_check`` (``set_frame_check``).
+* ``writer.lock``: present while a writer holds the store (:mod:`station.acquisition.lock`).
+
+Opening cross-checks the attributes against the arrays and the per-frame records (e.g. every
+done frame's recorded stage target against ``depths_mm``). Creating is atomic: the store is
+built under a temporary name beside ``path`` and renamed into place when complete.
 """
 
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import datetime as _dt
+import functools
 import json
+import os
 import platform
+import shutil
+import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from importlib import metadata as _metadata
 from pathlib import Path
 
+import google_crc32c
 import numpy as np
 import pydantic
 import zarr
 from pydantic import BaseModel, ConfigDict, Field
+from zarr.codecs import BytesCodec, Crc32cCodec
 from zarr.core.sync import sync as zarr_sync
 
 from station.acquisition.patterns import StationPatternPlan, apply_lut
@@ -44,11 +61,18 @@ from station.acquisition.patterns import StationPatternPlan, apply_lut
 CODE_MASK = "code_mask"  # array [depth, row, col] bool: camera pixels that see the check code
 
 FORMAT = "ltc-run-store"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+_CRC_BYTES = 4  # a crc32c, little-endian uint32, after each inner chunk and after the index
+_EMPTY = 2**64 - 1
 
 
 class RunStoreError(ValueError):
     """The run store is missing, malformed, incomplete or misused; the message names the path."""
+
+
+class FrameCorruptError(RunStoreError):
+    """A frame marked done is missing, truncated or fails its checksum; the message names the
+    store, depth and pattern."""
 
 
 class FrameMeta(BaseModel):
@@ -71,6 +95,7 @@ META_ARRAYS: dict[str, str] = {
     for name, f in FrameMeta.model_fields.items()
 }
 META_ARRAYS["saturated_px"] = "int64"
+META_ARRAYS["frame_crc32c"] = "int64"
 
 
 @dataclass(frozen=True)
@@ -105,6 +130,100 @@ def software_versions() -> dict[str, str]:
     return out
 
 
+def _fsync(path: Path) -> None:
+    """Flush a file's (or a folder's entries') data to disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _barrier(store: Path, written: list[Path]) -> None:
+    """Make everything written so far durable before what comes next: one ``syncfs`` of the
+    store's filesystem on Linux (one journal commit, about as fast as one fsync), else an
+    fsync of each file in ``written`` and of its folder."""
+    syncfs = getattr(_libc(), "syncfs", None)
+    if syncfs is not None:
+        fd = os.open(store, os.O_RDONLY)
+        try:
+            if syncfs(fd) != 0:
+                err = ctypes.get_errno()
+                raise OSError(err, os.strerror(err), str(store))
+        finally:
+            os.close(fd)
+        return
+    for path in written:
+        _fsync(path)
+        _fsync(path.parent)
+
+
+@functools.cache
+def _libc() -> object:
+    try:
+        return ctypes.CDLL(None, use_errno=True) if platform.system() == "Linux" else None
+    except OSError:
+        return None
+
+
+def _crc(data: bytes) -> int:
+    return google_crc32c.value(data)
+
+
+def _frame_crc(image: np.ndarray) -> int:
+    """crc32c of a frame's pixels, (rows, cols) in C order, little-endian."""
+    return _crc(np.ascontiguousarray(image, image.dtype.newbyteorder("<")).tobytes())
+
+
+class ShardCodec:
+    """The bytes of one frame's shard: ``tile`` x ``tile`` chunks in row-major order, each its
+    little-endian pixels then their crc32c, then the index ((offset, nbytes) uint64 per chunk)
+    and its crc32c: zarr v3 ``sharding_indexed`` with inner codecs ``[bytes, crc32c]``."""
+
+    def __init__(self, height: int, width: int, tile: int, dtype: np.dtype) -> None:
+        self.h, self.w, self.t = height, width, tile
+        self.dtype = np.dtype(dtype).newbyteorder("<")
+        self.nr, self.nc = -(-height // tile), -(-width // tile)
+        self.data_bytes = tile * tile * self.dtype.itemsize
+        self.chunk_bytes = self.data_bytes + _CRC_BYTES
+        n = self.nr * self.nc
+        offsets = np.arange(n, dtype="<u8") * self.chunk_bytes
+        index = np.stack([offsets, np.full(n, self.chunk_bytes, "<u8")], axis=1).tobytes()
+        self.index = index + np.uint32(_crc(index)).astype("<u4").tobytes()
+        self.size = n * self.chunk_bytes + len(self.index)
+
+    def encode(self, image: np.ndarray) -> np.ndarray:
+        """The chunks of one frame's shard (rows, cols), uint8, without the index (append
+        ``self.index``). The buffer is reused: valid until the next call, one thread at once."""
+        t = self.t
+        if not hasattr(self, "_buf"):  # allocated once: no page faults per frame
+            self._buf = np.zeros((self.nr, self.nc, self.chunk_bytes), np.uint8)
+            self._padded = np.zeros((self.nr * t, self.nc * t), self.dtype)
+        buf = self._buf
+        pix = buf[:, :, : self.data_bytes].view(self.dtype).reshape(self.nr, self.nc, t, t)
+        if image.shape == (self.nr * t, self.nc * t):
+            pix[...] = image.reshape(self.nr, t, self.nc, t).transpose(0, 2, 1, 3)
+        else:  # edge chunks padded with the fill value 0 (the padding stays 0)
+            self._padded[: self.h, : self.w] = image
+            pix[...] = self._padded.reshape(self.nr, t, self.nc, t).transpose(0, 2, 1, 3)
+        flat = buf.reshape(-1, self.chunk_bytes)
+        crcs = np.fromiter((_crc(row[: self.data_bytes].tobytes()) for row in flat),
+                           np.uint32, len(flat))
+        flat[:, self.data_bytes :] = crcs.astype("<u4").view(np.uint8).reshape(-1, 4)
+        return buf.reshape(-1)
+
+    def decode_chunks(self, raw: bytes, n_chunks: int) -> tuple[np.ndarray, int]:
+        """(chunks (n, t, t), index of the first chunk failing its crc32c or -1)."""
+        for i in range(n_chunks):
+            o = i * self.chunk_bytes
+            stored = int.from_bytes(raw[o + self.data_bytes : o + self.chunk_bytes], "little")
+            if _crc(raw[o : o + self.data_bytes]) != stored:
+                return np.empty(0), i
+        arr = np.frombuffer(raw, np.uint8, n_chunks * self.chunk_bytes).reshape(n_chunks, -1)
+        pix = arr[:, : self.data_bytes].view(self.dtype).reshape(n_chunks, self.t, self.t)
+        return pix, -1
+
+
 class RunStore:
     """A run store on disk; create with :meth:`create`, open with :meth:`open`."""
 
@@ -122,6 +241,9 @@ class RunStore:
         self._frames = group["frames"]
         self._done = group["done"]
         self._meta = {name: group[name] for name in META_ARRAYS}
+        w, h = self.camera_size
+        self.codec = ShardCodec(h, w, self.tile_px, self._frames.dtype)
+        self._unflushed: Path | None = None
 
     # ---- creation and opening -------------------------------------------------------------
     @classmethod
@@ -139,15 +261,20 @@ class RunStore:
         tile_px: int = 64,
         display_lut: np.ndarray | None = None,
         start_time: str | None = None,
+        attrs: dict | None = None,
     ) -> RunStore:
-        """Create an empty run store; refuses to overwrite anything at ``path``.
+        """Create an empty run store, atomically; refuses to overwrite anything at ``path``.
 
         config : the whole station config as a JSON-able dict (stored verbatim).
         camera_size, lcd_size : (width, height) in pixels; bit_depth : camera bits (1..16).
         tile_px : edge of the inner chunks readers fetch per frame, pixels.
         display_lut : the LUT given to ``StationPatternPlan.image`` for every pattern (None:
             identity); reconstruction models the levels shown through it.
-        start_time : ISO 8601; default now (UTC).
+        start_time : ISO 8601; default now (UTC). attrs : more attributes to store (JSON).
+
+        The store is built as ``.NAME.creating-<id>`` beside ``path``, flushed, and renamed to
+        ``path``: a process killed meanwhile leaves no store at ``path`` (the temporary folder
+        may stay; delete it).
         """
         path = Path(path)
         if path.exists():
@@ -171,44 +298,62 @@ class RunStore:
                 apply_lut(np.zeros(1), display_lut)
             except ValueError as exc:
                 raise RunStoreError(f"{path}: display_lut: {exc}") from exc
+        extra = _json_config(path, dict(attrs or {}))
         d, n = len(depths_mm), len(plan)
         t = int(tile_px)
         dtype = "uint8" if int(bit_depth) <= 8 else "uint16"
-        g = zarr.open_group(str(path), mode="w-", zarr_format=3)
-        shard = (1, 1, -(-h // t) * t, -(-w // t) * t)
-        g.create_array("frames", shape=(d, n, h, w), shards=shard, chunks=(1, 1, t, t),
-                       dtype=dtype, fill_value=0)
-        # small arrays: one chunk per depth, rewritten whole (atomically) at every frame
-        g.create_array("done", shape=(d, n), chunks=(1, n), dtype="bool", fill_value=False,
-                       compressors=None)
-        # camera pixels that see the acquisition's check code, per depth (excluded from LTC)
-        g.create_array(CODE_MASK, shape=(d, h, w), chunks=(1, h, w), dtype="bool",
-                       fill_value=False)
-        for name, dt in META_ARRAYS.items():
-            fill = np.nan if dt == "float64" else _INT_FILL
-            g.create_array(name, shape=(d, n), chunks=(1, n), dtype=dt, fill_value=fill,
-                           compressors=None)
-        g.attrs.update({
-            "format": FORMAT,
-            "format_version": FORMAT_VERSION,
-            "config": config,
-            "pattern_set": plan.model_dump(mode="json"),
-            "software": software_versions(),
-            "start_time": start_time or _dt.datetime.now(_dt.timezone.utc).isoformat(),
-            "depths_mm": [float(z) for z in depths_mm],
-            "camera_size": [w, h],
-            "bit_depth": int(bit_depth),
-            "lcd_size": [int(v) for v in lcd_size],
-            "lcd_pitch_mm": float(lcd_pitch_mm),
-            "tile_px": t,
-            "display_lut": None if display_lut is None
-            else [float(v) for v in np.asarray(display_lut).ravel()],
-        })
-        return cls(path, g, plan)
+        tmp = path.parent / f".{path.name}.creating-{uuid.uuid4().hex[:12]}"
+        try:
+            g = zarr.open_group(str(tmp), mode="w-", zarr_format=3)
+            shard = (1, 1, -(-h // t) * t, -(-w // t) * t)
+            g.create_array("frames", shape=(d, n, h, w), shards=shard, chunks=(1, 1, t, t),
+                           dtype=dtype, fill_value=0, serializer=BytesCodec(endian="little"),
+                           compressors=[Crc32cCodec()])
+            # small arrays: one chunk per depth, rewritten whole (atomically) at every frame
+            g.create_array("done", shape=(d, n), chunks=(1, n), dtype="bool",
+                           fill_value=False, compressors=None)
+            # camera pixels that see the acquisition's check code, per depth (excluded from LTC)
+            g.create_array(CODE_MASK, shape=(d, h, w), chunks=(1, h, w), dtype="bool",
+                           fill_value=False)
+            for name, dt in META_ARRAYS.items():
+                fill = np.nan if dt == "float64" else _INT_FILL
+                g.create_array(name, shape=(d, n), chunks=(1, n), dtype=dt, fill_value=fill,
+                               compressors=None)
+            g.attrs.update({
+                "format": FORMAT,
+                "format_version": FORMAT_VERSION,
+                "config": config,
+                "pattern_set": plan.model_dump(mode="json"),
+                "software": software_versions(),
+                "start_time": start_time or _dt.datetime.now(_dt.timezone.utc).isoformat(),
+                "depths_mm": [float(z) for z in depths_mm],
+                "camera_size": [w, h],
+                "bit_depth": int(bit_depth),
+                "lcd_size": [int(v) for v in lcd_size],
+                "lcd_pitch_mm": float(lcd_pitch_mm),
+                "tile_px": t,
+                "display_lut": None if display_lut is None
+                else [float(v) for v in np.asarray(display_lut).ravel()],
+                **extra,
+            })
+            for folder, _, files in os.walk(tmp):
+                for f in files:
+                    _fsync(Path(folder) / f)
+                _fsync(Path(folder))
+            if path.exists():
+                raise RunStoreError(f"{path}: appeared while creating the run store; "
+                                    "refusing to overwrite it")
+            os.rename(tmp, path)
+            _fsync(path.parent)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return cls.open(path, mode="r+")
 
     @classmethod
     def open(cls, path: str | Path, mode: str = "r") -> RunStore:
-        """Open and validate a run store; ``mode`` "r" (read) or "r+" (resume writing)."""
+        """Open, validate and cross-check a run store; ``mode`` "r" (read) or "r+" (resume
+        writing)."""
         path = Path(path)
         if mode not in ("r", "r+"):
             raise RunStoreError(f"{path}: mode must be 'r' or 'r+', got {mode!r}")
@@ -222,9 +367,16 @@ class RunStore:
         if a.get("format") != FORMAT:
             raise RunStoreError(f"{path}: attribute 'format' is {a.get('format')!r}, "
                                 f"expected {FORMAT!r}")
-        if a.get("format_version") != FORMAT_VERSION:
-            raise RunStoreError(f"{path}: attribute 'format_version' is "
-                                f"{a.get('format_version')!r}, expected {FORMAT_VERSION}")
+        version = a.get("format_version")
+        if isinstance(version, int) and version < FORMAT_VERSION:
+            raise RunStoreError(
+                f"{path}: attribute 'format_version' is {version}, an older run-store layout "
+                f"this software does not read (it reads version {FORMAT_VERSION}: checksummed "
+                "frames); acquire the run again, or read it with the ltc-fpp release that "
+                "wrote it")
+        if version != FORMAT_VERSION:
+            raise RunStoreError(f"{path}: attribute 'format_version' is {version!r}, "
+                                f"expected {FORMAT_VERSION}")
         keys = ("config", "pattern_set", "software", "start_time", "depths_mm", "camera_size",
                 "bit_depth", "lcd_size", "lcd_pitch_mm", "tile_px", "display_lut")
         missing = [k for k in keys if k not in a]
@@ -245,6 +397,7 @@ class RunStore:
             if tuple(g[name].shape) != shape:
                 raise RunStoreError(f"{path}: array '{name}' has shape {tuple(g[name].shape)}, "
                                     f"expected {shape} from the attributes")
+        _cross_check(path, g, plan)
         return cls(path, g, plan)
 
     # ---- state ------------------------------------------------------------------------------
@@ -294,8 +447,10 @@ class RunStore:
 
     # ---- writing ----------------------------------------------------------------------------
     def write_frame(self, depth: int, pattern: int, image: np.ndarray, meta: FrameMeta) -> None:
-        """Write one frame, then its metadata, then mark it done: each step a completed,
-        atomically replaced zarr chunk, so an interruption loses at most this frame."""
+        """Write one frame (its shard), then its metadata with the frame's crc32c, flush both
+        to disk, then mark it done: an interruption loses at most this frame (a done flag
+        not yet flushed by :meth:`flush` or the next write may be lost too, never set early).
+        Safe to call from one writer thread while another thread captures."""
         self._check_index(depth, pattern)
         img = np.asarray(image)
         w, h = self.camera_size
@@ -308,19 +463,49 @@ class RunStore:
         if not isinstance(meta, FrameMeta):
             raise RunStoreError(f"{self.path}: meta must be a FrameMeta, got "
                                 f"{type(meta).__name__}")
+        if meta.stage_target_mm != self.depths_mm[depth]:
+            raise RunStoreError(f"{self.path}: frame ({depth}, {pattern}) has stage target "
+                                f"{meta.stage_target_mm} mm, but depth {depth} is "
+                                f"{self.depths_mm[depth]} mm (attribute 'depths_mm')")
         full = 2**self.bit_depth - 1
         if img.size and int(img.max()) > full:
             raise RunStoreError(f"{self.path}: frame ({depth}, {pattern}) has values above "
                                 f"{full}, the camera's {self.bit_depth}-bit full scale")
-        self._frames[depth, pattern] = img
-        values = {**meta.model_dump(), "saturated_px": int(np.count_nonzero(img >= full))}
+        shard = self.codec.encode(img)
+        final = self._shard_path(depth, pattern)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp = final.with_name(f".{final.name}.{uuid.uuid4().hex[:12]}.partial")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            try:
+                for part in (memoryview(shard), memoryview(self.codec.index)):
+                    while part:
+                        part = part[os.write(fd, part):]
+            finally:
+                os.close(fd)
+            os.replace(tmp, final)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        values = {**meta.model_dump(), "saturated_px": int(np.count_nonzero(img >= full)),
+                  "frame_crc32c": _frame_crc(img)}
 
         async def write_meta() -> None:  # one batch: the fields are independent chunks
             await asyncio.gather(*(arr.async_array.setitem((depth, pattern), values[name])
                                    for name, arr in self._meta.items()))
 
         zarr_sync(write_meta())
+        # the frame and its metadata reach the disk before the done flag can
+        _barrier(self.path, [final, *(self._small_chunk(name, depth) for name in self._meta)])
         self._done[depth, pattern] = True
+        self._unflushed = self._small_chunk("done", depth)
+
+    def flush(self) -> None:
+        """Make the done flags written so far durable (else the next frame's write does; a
+        flag lost in a crash only means that frame is captured again)."""
+        if self._unflushed is not None:
+            _barrier(self.path, [self._unflushed])
+            self._unflushed = None
 
     def add_code_mask(self, depth: int, mask: np.ndarray) -> None:
         """Mark camera pixels (rows, cols) bool that saw the check code at ``depth`` (OR-ed
@@ -350,9 +535,6 @@ class RunStore:
     # ---- reading ----------------------------------------------------------------------------
     def code_mask(self, depth: int) -> np.ndarray:
         """(rows, cols) bool: camera pixels that saw the check code at this depth (no LTC)."""
-        if CODE_MASK not in self.group:  # stores written before the mask existed
-            h, w = self.camera_size[1], self.camera_size[0]
-            return np.zeros((h, w), bool)
         return np.asarray(self.group[CODE_MASK][depth])
 
     def read_meta(self, depth: int) -> dict[str, np.ndarray]:
@@ -361,16 +543,87 @@ class RunStore:
         return {name: np.asarray(arr[depth]) for name, arr in self._meta.items()}
 
     def read_frame(self, depth: int, pattern: int) -> np.ndarray:
-        """One whole frame (rows, cols); refuses a frame that is not done."""
+        """One whole frame (rows, cols), checked against its recorded crc32c; refuses a frame
+        that is not done (:class:`RunStoreError`) or is damaged (:class:`FrameCorruptError`)."""
         self._check_index(depth, pattern)
         if not bool(self._done[depth, pattern]):
             raise RunStoreError(f"{self.path}: frame ({depth}, {pattern}) is not done; "
                                 "it may be partial and is not trusted")
-        return np.asarray(self._frames[depth, pattern])
+        c = self.codec
+        raw = self._read_bytes(depth, pattern, 0, c.size, whole=True)
+        if raw[-len(c.index):] != c.index:
+            self._corrupt(depth, pattern, "has a damaged shard index")
+        chunks, bad = c.decode_chunks(raw, c.nr * c.nc)
+        if bad >= 0:
+            self._corrupt(depth, pattern, f"fails the crc32c of chunk {divmod(bad, c.nc)}")
+        t = c.t
+        img = chunks.reshape(c.nr, c.nc, t, t).transpose(0, 2, 1, 3).reshape(c.nr * t, c.nc * t)
+        img = np.ascontiguousarray(img[: c.h, : c.w]).astype(self.dtype)
+        if _frame_crc(img) != int(self._meta["frame_crc32c"][depth, pattern]):
+            self._corrupt(depth, pattern, "differs from its crc32c recorded in 'frame_crc32c'")
+        return img
 
-    def iter_tiles(self, depth: int, tile_px: int | None = None) -> Iterator[Tile]:
-        """All frames of ``depth`` over square tiles in row-major order (edge tiles smaller).
-        The depth must be complete; ``tile_px`` defaults to the store's inner chunk."""
+    def read_tile(self, depth: int, row0: int, col0: int, rows: int, cols: int,
+                  check_index: bool = False) -> Tile:
+        """All frames of ``depth`` over camera rows ``row0 : row0 + rows`` and columns
+        ``col0 : col0 + cols`` (clipped to the sensor), every chunk read checked against its
+        crc32c. Each frame is one open and one read per chunk row the tile spans, so tiles
+        aligned to ``tile_px`` read fastest. ``check_index`` also verifies each shard's index.
+        The depth must be complete."""
+        self._check_index(depth, 0)
+        missing = np.flatnonzero(~self.done()[depth])
+        if len(missing):
+            raise RunStoreError(f"{self.path}: depth {depth} has {len(missing)} frame(s) not "
+                                f"done (first: pattern {missing[0]}); finish it with --resume")
+        return self._read_tile(depth, row0, col0, rows, cols, check_index)
+
+    def _read_tile(self, depth: int, row0: int, col0: int, rows: int, cols: int,
+                   check_index: bool) -> Tile:
+        c, t = self.codec, self.codec.t
+        r1, c1 = min(row0 + rows, c.h), min(col0 + cols, c.w)
+        if not (0 <= row0 < r1 and 0 <= col0 < c1):
+            raise RunStoreError(f"{self.path}: tile rows {row0}+{rows}, cols {col0}+{cols} "
+                                f"outside the camera's {c.w} x {c.h} pixels")
+        cr0, cr1 = row0 // t, -(-r1 // t)
+        cc0, cc1 = col0 // t, -(-c1 // t)
+        k = cc1 - cc0
+        out = np.empty((self.n_patterns, r1 - row0, c1 - col0), self.dtype)
+        band = np.empty(((cr1 - cr0) * t, k * t), c.dtype)
+        for p in range(self.n_patterns):
+            path = self._shard_path(depth, p)
+            try:
+                fd = os.open(path, os.O_RDONLY)
+            except FileNotFoundError:
+                self._corrupt(depth, p, "is missing")
+            try:
+                size = os.fstat(fd).st_size
+                if size != c.size:
+                    self._corrupt(depth, p, f"is truncated or resized ({size} bytes, expected "
+                                            f"{c.size})")
+                if check_index and os.pread(fd, len(c.index), c.size - len(c.index)) != c.index:
+                    self._corrupt(depth, p, "has a damaged shard index")
+                for cr in range(cr0, cr1):
+                    raw = os.pread(fd, k * c.chunk_bytes, (cr * c.nc + cc0) * c.chunk_bytes)
+                    if len(raw) != k * c.chunk_bytes:
+                        self._corrupt(depth, p, "is truncated")
+                    chunks, bad = c.decode_chunks(raw, k)
+                    if bad >= 0:
+                        self._corrupt(depth, p, f"fails the crc32c of chunk {(cr, cc0 + bad)} "
+                                                f"(camera rows {cr * t}.., columns "
+                                                f"{(cc0 + bad) * t}..)")
+                    band[(cr - cr0) * t : (cr - cr0 + 1) * t] = \
+                        chunks.transpose(1, 0, 2).reshape(t, k * t)
+            finally:
+                os.close(fd)
+            out[p] = band[row0 - cr0 * t : r1 - cr0 * t, col0 - cc0 * t : c1 - cc0 * t]
+        return Tile(depth, row0, col0, out)
+
+    def iter_tiles(self, depth: int, tile_px: int | None = None,
+                   block_bytes: int = 256 * 2**20) -> Iterator[Tile]:
+        """All frames of ``depth`` over square tiles in row-major order (edge tiles smaller),
+        every byte checked (chunk crc32c, shard size and index). The depth must be complete;
+        ``tile_px`` defaults to the store's inner chunk. Frames are read in blocks of one tile
+        row by as many tiles as fit in ``block_bytes``, one read per frame and chunk row."""
         self._check_index(depth, 0)
         missing = np.flatnonzero(~self.done()[depth])
         if len(missing):
@@ -380,12 +633,104 @@ class RunStore:
         if t < 1:
             raise RunStoreError(f"{self.path}: tile_px must be >= 1, got {tile_px}")
         w, h = self.camera_size
+        per_tile = self.n_patterns * t * t * self.dtype.itemsize
+        cols = t * max(1, block_bytes // max(per_tile, 1))
         for r0 in range(0, h, t):
-            for c0 in range(0, w, t):
-                block = np.asarray(self._frames[depth, :, r0 : r0 + t, c0 : c0 + t])
-                yield Tile(depth, r0, c0, block)
+            for b0 in range(0, w, cols):
+                block = self._read_tile(depth, r0, b0, t, cols, check_index=r0 == 0 and b0 == 0)
+                for c0 in range(b0, min(b0 + cols, w), t):
+                    yield Tile(depth, r0, c0, np.ascontiguousarray(
+                        block.frames[:, :, c0 - b0 : c0 - b0 + t]))
+
+    def verify(self) -> int:
+        """Check every done frame against its recorded crc32c (reads the whole store); returns
+        the number of frames checked, raises :class:`FrameCorruptError` at the first bad one."""
+        done = self.done()
+        for d, p in np.argwhere(done):
+            self.read_frame(int(d), int(p))
+        return int(done.sum())
+
+    # ---- internals --------------------------------------------------------------------------
+    def _shard_path(self, depth: int, pattern: int) -> Path:
+        return self.path / "frames" / "c" / str(depth) / str(pattern) / "0" / "0"
+
+    def _small_chunk(self, name: str, depth: int) -> Path:
+        return self.path / name / "c" / str(depth) / "0"
+
+    def _read_bytes(self, depth: int, pattern: int, offset: int, n: int,
+                    whole: bool = False) -> bytes:
+        try:
+            with open(self._shard_path(depth, pattern), "rb") as f:
+                size = os.fstat(f.fileno()).st_size
+                if whole and size != self.codec.size:
+                    self._corrupt(depth, pattern, f"is truncated or resized ({size} bytes, "
+                                                  f"expected {self.codec.size})")
+                f.seek(offset)
+                return f.read(n)
+        except FileNotFoundError:
+            self._corrupt(depth, pattern, "is missing")
+
+    def _corrupt(self, depth: int, pattern: int, why: str) -> None:
+        raise FrameCorruptError(
+            f"{self.path}: frame (depth {depth} = {self.depths_mm[depth]:g} mm, pattern "
+            f"{pattern}) is marked done but its data {why} "
+            f"(frames/c/{depth}/{pattern}/0/0); the run store is damaged")
 
     def _check_index(self, depth: int, pattern: int) -> None:
         if not (0 <= depth < self.n_depths and 0 <= pattern < self.n_patterns):
             raise RunStoreError(f"{self.path}: frame index (depth={depth}, pattern={pattern}) "
                                 f"outside (0..{self.n_depths - 1}, 0..{self.n_patterns - 1})")
+
+
+def _cross_check(path: Path, g: zarr.Group, plan: StationPatternPlan) -> None:
+    """Refuse a store whose attributes disagree with its arrays or per-frame records; the
+    message names the attribute."""
+    a = g.attrs
+    frames = g["frames"]
+    t, bits = a["tile_px"], a["bit_depth"]
+    w, h = a["camera_size"]
+    want_dtype = np.dtype("uint8" if int(bits) <= 8 else "uint16")
+    if frames.dtype != want_dtype:
+        raise RunStoreError(f"{path}: attribute 'bit_depth' ({bits}) disagrees with array "
+                            f"'frames' dtype {frames.dtype}")
+    if tuple(frames.chunks) != (1, 1, t, t) or tuple(frames.shards or ()) != \
+            (1, 1, -(-h // t) * t, -(-w // t) * t):
+        raise RunStoreError(f"{path}: attribute 'tile_px' ({t}) disagrees with array 'frames' "
+                            f"chunks {frames.chunks} / shards {frames.shards}")
+    if not (isinstance(frames.serializer, BytesCodec) and frames.filters == ()
+            and len(frames.compressors) == 1 and isinstance(frames.compressors[0], Crc32cCodec)):
+        raise RunStoreError(f"{path}: array 'frames' has codecs {frames.compressors}, expected "
+                            "uncompressed chunks with crc32c (run-store format 2)")
+    if not plan.localisation.covers(a["lcd_size"]):
+        raise RunStoreError(f"{path}: attribute 'lcd_size' {a['lcd_size']} disagrees with the "
+                            "pattern set (its Gray code does not cover it)")
+    config = a["config"] if isinstance(a["config"], dict) else {}
+    for key, value in (("depths_mm", a["depths_mm"]),
+                       ("display_lut", a["display_lut"])):
+        if key in config and config[key] is not None and value is not None and \
+                not np.array_equal(np.asarray(config[key], float), np.asarray(value, float)):
+            raise RunStoreError(f"{path}: attribute '{key}' disagrees with the stored "
+                                f"config's {key}")
+    pitch = (config.get("display") or {}).get("pitch_mm") if isinstance(
+        config.get("display"), dict) else None
+    if pitch is not None and float(pitch) != float(a["lcd_pitch_mm"]):
+        raise RunStoreError(f"{path}: attribute 'lcd_pitch_mm' ({a['lcd_pitch_mm']}) disagrees "
+                            f"with the stored config's display.pitch_mm ({pitch})")
+    done = np.asarray(g["done"][...], bool)
+    if not done.any():
+        return
+    target = np.asarray(g["stage_target_mm"][...])
+    depths = np.asarray(a["depths_mm"], float)
+    bad = np.argwhere(done & (target != depths[:, None]))
+    if len(bad):
+        d, p = (int(v) for v in bad[0])
+        raise RunStoreError(
+            f"{path}: attribute 'depths_mm' {list(a['depths_mm'])} disagrees with the recorded "
+            f"stage target of {len(bad)} done frame(s) (first: depth {d}, pattern {p} at "
+            f"{target[d, p]} mm, attribute says {depths[d]} mm)")
+    crc = np.asarray(g["frame_crc32c"][...])
+    bad = np.argwhere(done & (crc < 0))
+    if len(bad):
+        d, p = (int(v) for v in bad[0])
+        raise RunStoreError(f"{path}: frame (depth {d}, pattern {p}) is marked done but has "
+                            "no checksum in 'frame_crc32c'; the run store is damaged")

@@ -1,7 +1,8 @@
 """Measure: show the Fourier and localisation patterns at every depth, capture them.
 
 Run an acquisition into a run store (zarr). Every frame is written durably; an interrupted run
-continues with --resume at the first frame not done.
+continues with --resume at the first frame not done. One writer at a time: the store's lock
+file names its holder.
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ import shutil
 from station.errors import UsageError
 
 OPTIONS = {"config": None, "out": "run store to create (RUN.zarr)",
-           "force": "delete an existing run store in --out and start again",
+           "force": "delete an existing run store in --out and start again; with --resume, take "
+                    "over the writer lock left by a killed run (never a live writer's)",
            "json": None, "quiet": None}
 
 
@@ -23,6 +25,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict:
+    from station.acquisition.lock import StoreLock
     from station.api import acquire, load_config
 
     if not logging.getLogger().handlers:
@@ -33,8 +36,14 @@ def run(args: argparse.Namespace) -> dict:
         if not args.force:
             raise UsageError(f"--out {args.out} exists; pass --resume to finish that run, "
                              "--force to delete it and start again, or choose another path")
-        shutil.rmtree(args.out) if args.out.is_dir() else args.out.unlink()
-    summary = acquire(config, args.out, resume=args.resume, progress=not args.quiet)
+        if args.out.is_dir():
+            with StoreLock(args.out, force=True):  # refuses a store a live writer holds
+                pass
+            shutil.rmtree(args.out)
+        else:
+            args.out.unlink()
+    summary = acquire(config, args.out, resume=args.resume, progress=not args.quiet,
+                      force=args.force)
     return {**summary, "out": str(args.out)}
 
 

@@ -20,8 +20,8 @@ def make(tmp_path, name="run.zarr", bit_depth=12, tile_px=4, **kw):
     return RunStore.create(tmp_path / name, **args)
 
 
-def meta(p, **kw):
-    base = {"stage_target_mm": 1.0, "stage_measured_mm": 1.0001, "swap_index": p,
+def meta(p, d=0, **kw):
+    base = {"stage_target_mm": 2.5 if d else 1.0, "stage_measured_mm": 1.0001, "swap_index": p,
             "swap_time_s": 10.0 + p, "camera_timestamp_s": 10.01 + p, "frame_id": 100 + p,
             "exposure_ms": 20.0, "retries": p % 2}
     base.update(kw)
@@ -57,7 +57,7 @@ def test_layout_attributes_and_chunking(tmp_path):
 def test_frames_and_metadata_read_back_exactly(tmp_path):
     s = make(tmp_path)
     for p in (0, 3, 7):
-        s.write_frame(1, p, frame(1, p), meta(p))
+        s.write_frame(1, p, frame(1, p), meta(p, 1))
     s2 = RunStore.open(tmp_path / "run.zarr")
     for p in (0, 3, 7):
         np.testing.assert_array_equal(s2.read_frame(1, p), frame(1, p))
@@ -100,9 +100,9 @@ def test_first_incomplete_and_is_complete_follow_plan_order(tmp_path):
     for d in range(2):
         for p in range(n):
             if (d, p) != (1, 5):
-                s.write_frame(d, p, frame(d, p), meta(p))
+                s.write_frame(d, p, frame(d, p), meta(p, d))
     assert s.first_incomplete() == (1, 5)
-    s.write_frame(1, 5, frame(1, 5), meta(5))
+    s.write_frame(1, 5, frame(1, 5), meta(5, 1))
     assert s.first_incomplete() is None and RunStore.open(s.path).is_complete()
 
 
@@ -136,7 +136,7 @@ def test_tiles_cover_the_sensor_exactly(tmp_path):
     s = make(tmp_path)
     n = len(PLAN)
     for p in range(n):
-        s.write_frame(1, p, frame(1, p), meta(p))
+        s.write_frame(1, p, frame(1, p), meta(p, 1))
     for t in (None, 3, 64):
         out = np.zeros((n, CAM[1], CAM[0]), np.int64) - 1
         for tile in s.iter_tiles(1, t):
@@ -211,9 +211,12 @@ def test_open_validates(tmp_path):
         RunStore.open(tmp_path / "other.zarr")
     g = zarr.open_group(str(tmp_path / "run.zarr"), mode="r+")
     g.attrs["format_version"] = 99
-    with pytest.raises(RunStoreError, match="'format_version' is 99, expected 1"):
+    with pytest.raises(RunStoreError, match="'format_version' is 99, expected 2"):
         RunStore.open(tmp_path / "run.zarr")
     g.attrs["format_version"] = 1
+    with pytest.raises(RunStoreError, match="'format_version' is 1, an older run-store layout"):
+        RunStore.open(tmp_path / "run.zarr")
+    g.attrs["format_version"] = 2
     g.attrs["pattern_set"] = {"fourier": {"period": 2}}
     with pytest.raises(RunStoreError, match="'pattern_set' is not a pattern plan"):
         RunStore.open(tmp_path / "run.zarr")

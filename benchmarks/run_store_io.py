@@ -1,0 +1,167 @@
+"""Run-store layout and compressor, measured at full size (issue 13).
+
+Writes a few full-size camera frames (4096 x 2168, 12-bit in uint16 and 8-bit in uint8, a
+blurred fringe with shot and read noise) in each candidate layout, with a raw sequential file
+write of the same bytes (fsync per frame) as the reference in the same run, then reads one
+row of 64 x 64 tiles of every frame (what reconstruction reads) against a raw read of the same
+bytes. Candidates:
+
+- ``store``: the run store as built (format 2): per-frame shard of 64 x 64 uncompressed chunks
+  with crc32c, written and read by the store itself (includes metadata, done flag, syncfs).
+- ``zarr-zstd``: format 1's layout written through zarr (per-frame shard, 64 x 64 inner chunks,
+  zarr's default zstd).
+- ``zarr-lz4`` / ``zarr-none``: the same with blosc lz4 + shuffle / no compressor.
+- ``zarr-k8``: shards of 8 frames x whole frame, inner chunks 8 x 64 x 64 (zstd), written 8
+  frames at a time (per frame: total / 8).
+
+Run: ``python benchmarks/run_store_io.py [--frames 6] [--dir /tmp]``. Prints a table; the
+numbers and the decision are in benchmarks/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import zarr
+from zarr.codecs import BloscCodec, BytesCodec, ZstdCodec
+
+from station.acquisition.patterns import StationPatternPlan
+from station.acquisition.run_store import FrameMeta, RunStore
+
+W, H, T = 4096, 2168, 64
+
+
+def frames(n: int, bits: int) -> list[np.ndarray]:
+    """Realistic camera frames: fringes through a blur, shot noise, read noise."""
+    rng = np.random.default_rng(0)
+    u = np.arange(W)[None, :]
+    v = np.arange(H)[:, None]
+    full = 2**bits - 1
+    out = []
+    for k in range(n):
+        lum = 0.5 + 0.45 * np.cos(2 * np.pi * (u * 0.9 + v * 0.2) / 24.0 + k * np.pi / 2)
+        e = rng.poisson(4000.0 * lum) + rng.normal(0.0, 5.0, (H, W))
+        out.append(np.clip(np.rint(e * full / 5000.0), 0, full).astype(
+            np.uint8 if bits <= 8 else np.uint16))
+    return out
+
+
+def du(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def raw_write(path: Path, imgs: list[np.ndarray]) -> float:
+    t0 = time.perf_counter()
+    with open(path, "wb") as f:
+        for img in imgs:
+            f.write(img.tobytes())
+            f.flush()
+            os.fsync(f.fileno())
+    return (time.perf_counter() - t0) / len(imgs)
+
+
+def raw_read_rows(path: Path, n: int, dtype: np.dtype) -> float:
+    """Read rows 0..T of every frame from the raw file (the same bytes a tile row holds)."""
+    row_bytes = W * dtype.itemsize
+    t0 = time.perf_counter()
+    with open(path, "rb") as f:
+        for k in range(n):
+            f.seek(k * H * row_bytes)
+            np.frombuffer(f.read(T * row_bytes), dtype)
+    return time.perf_counter() - t0
+
+
+def store_case(root: Path, imgs: list[np.ndarray], bits: int) -> tuple[float, float, int]:
+    n = len(imgs)
+    plan = StationPatternPlan.for_lcd((64, 48), 4, 4)
+    assert len(plan) >= n
+    s = RunStore.create(root / "store.zarr", config={}, plan=plan, depths_mm=[0.0],
+                        camera_size=(W, H), bit_depth=bits, lcd_size=(64, 48),
+                        lcd_pitch_mm=0.2715, tile_px=T)
+    meta = FrameMeta(stage_target_mm=0.0, stage_measured_mm=0.0, swap_index=0, swap_time_s=0,
+                     camera_timestamp_s=0, frame_id=0, exposure_ms=1.0)
+    t0 = time.perf_counter()
+    for p, img in enumerate(imgs):
+        s.write_frame(0, p, img, meta)
+    s.flush()
+    write = (time.perf_counter() - t0) / n
+    class FirstFrames(RunStore):  # the store seen through its first n patterns
+        n_patterns = property(lambda self: n)
+
+    part = FirstFrames.open(s.path)
+    t0 = time.perf_counter()  # one tile row of every frame, as iter_tiles reads it
+    tile = part._read_tile(0, 0, 0, T, W, check_index=True)  # noqa: SLF001
+    read = time.perf_counter() - t0
+    assert np.array_equal(tile.frames[-1], imgs[-1][:T])
+    return write, read, du(root / "store.zarr" / "frames")
+
+
+def zarr_case(root: Path, imgs: list[np.ndarray], name: str) -> tuple[float, float, int]:
+    n = len(imgs)
+    k = 8 if name == "zarr-k8" else 1
+    kw = {"zarr-zstd": {"compressors": [ZstdCodec(level=0)]},
+          "zarr-lz4": {"compressors": [BloscCodec(cname="lz4", clevel=5, shuffle="shuffle")]},
+          "zarr-none": {"compressors": None},
+          "zarr-k8": {"compressors": [ZstdCodec(level=0)]}}[name]
+    g = zarr.open_group(str(root / f"{name}.zarr"), mode="w-", zarr_format=3)
+    a = g.create_array("frames", shape=(1, n, H, W), dtype=imgs[0].dtype, fill_value=0,
+                       shards=(1, k, -(-H // T) * T, W), chunks=(1, k, T, T),
+                       serializer=BytesCodec(endian="little"), **kw)
+    t0 = time.perf_counter()
+    if k == 1:
+        for p, img in enumerate(imgs):
+            a[0, p] = img
+    else:
+        for p0 in range(0, n, k):
+            a[0, p0 : p0 + k] = np.stack(imgs[p0 : p0 + k])
+    write = (time.perf_counter() - t0) / n
+    t0 = time.perf_counter()
+    np.asarray(a[0, :, 0:T, :])
+    read = time.perf_counter() - t0
+    return write, read, du(root / f"{name}.zarr" / "frames")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=6)
+    ap.add_argument("--dir", type=Path, default=None)
+    ap.add_argument("--repeats", type=int, default=2)
+    args = ap.parse_args()
+    for bits in (12, 8):
+        imgs = frames(args.frames, bits)
+        nbytes = imgs[0].nbytes
+        rows: dict[str, list[tuple[float, float, int]]] = {}
+        for _ in range(args.repeats):
+            root = Path(tempfile.mkdtemp(prefix="run_store_io-", dir=args.dir))
+            try:
+                w = raw_write(root / "raw.bin", imgs)
+                r = raw_read_rows(root / "raw.bin", len(imgs), imgs[0].dtype)
+                rows.setdefault("raw", []).append((w, r, len(imgs) * nbytes))
+                rows.setdefault("store", []).append(store_case(root, imgs, bits))
+                for name in ("zarr-zstd", "zarr-lz4", "zarr-none", "zarr-k8"):
+                    rows.setdefault(name, []).append(zarr_case(root, imgs, name))
+            finally:
+                shutil.rmtree(root, ignore_errors=True)
+        raw_w = statistics.median(x[0] for x in rows["raw"])
+        raw_r = statistics.median(x[1] for x in rows["raw"])
+        print(f"\n{bits}-bit frames ({imgs[0].dtype}, {nbytes / 1e6:.1f} MB each), "
+              f"{args.frames} frames, median of {args.repeats}")
+        print(f"{'layout':<10} {'write s/frame':>14} {'MB/s':>8} {'vs raw':>7} "
+              f"{'tile-row read s':>16} {'vs raw':>7} {'size ratio':>10}")
+        for name, xs in rows.items():
+            w = statistics.median(x[0] for x in xs)
+            r = statistics.median(x[1] for x in xs)
+            size = xs[0][2] / (len(imgs) * nbytes)
+            print(f"{name:<10} {w:>14.3f} {nbytes / w / 1e6:>8.0f} {raw_w / w:>7.2f} "
+                  f"{r:>16.4f} {raw_r / r:>7.2f} {size:>10.2f}")
+
+
+if __name__ == "__main__":
+    main()
