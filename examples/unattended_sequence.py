@@ -1,10 +1,11 @@
 """An unattended station sequence from config to lens model, resumable after an interruption.
 
-    .venv/bin/python examples/unattended_sequence.py OUT_DIR [CONFIG.toml]
+    .venv/bin/python examples/unattended_sequence.py OUT_DIR [CONFIG.toml] [--force]
 
 Start it in the evening; if the machine is stopped (Ctrl-C, a crash, a power cut), run the
 same command again: finished steps are skipped, the acquisition continues at the first frame
-not written, and the rest runs as before. OUT_DIR/summary.json says how every step went.
+not written, and the rest runs as before. After a crash the run store still holds the dead
+run's writer lock: the error names it, and --force takes it over. OUT_DIR/summary.json says how every step went.
 Without CONFIG the built-in fake bench is used.
 """
 
@@ -17,9 +18,12 @@ import station
 from station.acquisition.config import example_config
 
 
-def main(out_dir: str, config_path: str | None = None) -> dict:
+def main(out_dir: str, config_path: str | None = None, force: bool = False) -> dict:
     config = station.load_config(config_path) if config_path else example_config("fake")
-    summary = station.run_sequence(config, out_dir)
+    try:
+        summary = station.run_sequence(config, out_dir, force=force)
+    except station.StationError as exc:
+        sys.exit(f"unattended_sequence: {exc}")
     for name, step in summary["steps"].items():
         print(f"{name}: {step['status']}")
     o = summary["steps"]["lens"]["result"]["optical_centre_mm"]
@@ -29,5 +33,6 @@ def main(out_dir: str, config_path: str | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else "out/sequence",
-         sys.argv[2] if len(sys.argv) > 2 else None)
+    args = [a for a in sys.argv[1:] if a != "--force"]
+    main(args[0] if args else "out/sequence", args[1] if len(args) > 1 else None,
+         force="--force" in sys.argv[1:])

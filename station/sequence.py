@@ -59,9 +59,10 @@ class Sequence:
     """One sequence folder: its config, its summary, and the steps still to do."""
 
     def __init__(self, config: StationConfig | str | Path, out: str | Path, *,
-                 progress: bool = True):
+                 progress: bool = True, force: bool = False):
         self.out = Path(out)
         self.progress = progress
+        self.force = force
         self.config_path = self.out / "config.toml"
         self.summary_path = self.out / "summary.json"
         text = _config_text(config)
@@ -183,7 +184,8 @@ class Sequence:
         from station.acquisition.acquire import acquire
 
         run = self.out / "run.zarr"
-        return acquire(self._run_config(), run, resume=run.exists(), progress=self.progress)
+        return acquire(self._run_config(), run, resume=run.exists(), progress=self.progress,
+                       force=self.force)
 
     def _reconstruct(self) -> dict:
         from station.ltc.spi import reconstruct
@@ -226,7 +228,8 @@ def _config_text(config: StationConfig | str | Path) -> str:
 
 
 def run_sequence(config: StationConfig | str | Path, out: str | Path, *,
-                 progress: bool = True) -> dict:
+                 progress: bool = True, force: bool = False) -> dict:
     """Run (or continue) the whole station sequence into the folder ``out``; see the module
-    docstring. Returns the summary (also in ``out/summary.json``)."""
-    return Sequence(config, out, progress=progress).run()
+    docstring. ``force`` takes over the run store's writer lock left by a killed run (never a
+    live writer's). Returns the summary (also in ``out/summary.json``)."""
+    return Sequence(config, out, progress=progress, force=force).run()

@@ -2,7 +2,8 @@
 
 Run the station sequence into one folder: bench check, gamma calibration (if [sequence] gamma
 = true), alignment report, acquisition at every depth, LTC reconstruction and lens derivation.
-Re-running with the same config and --out continues where it stopped. DIR/run.log logs every
+Re-running with the same config and --out continues where it stopped (after a crash or a
+kill, add --force to take over the lock the dead run left on its run store). DIR/run.log logs every
 step, DIR/summary.json records every step's outcome.
 """
 
@@ -13,6 +14,7 @@ from pathlib import Path
 
 OPTIONS = {"config": None,
            "out": "sequence folder (created, or continued when it holds this config's earlier run)",
+           "force": "take over the writer lock a killed run left (never a live writer's)",
            "json": None, "quiet": None}
 
 
@@ -20,7 +22,8 @@ def run(args: argparse.Namespace) -> dict:
     from station.sequence import run_sequence
 
     args.resume_hint = f"; continue with: ltc run {args.config} --out {args.out}"
-    return {**run_sequence(args.config, args.out, progress=not args.quiet), "out": str(args.out)}
+    summary = run_sequence(args.config, args.out, progress=not args.quiet, force=args.force)
+    return {**summary, "out": str(args.out)}
 
 
 def text(s: dict) -> str:

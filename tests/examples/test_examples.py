@@ -79,7 +79,12 @@ def test_unattended_sequence_resumes_after_a_kill_and_finds_the_true_optical_cen
     summary = json.loads((seq / "summary.json").read_text())
     assert summary["steps"]["check"]["status"] == "done"
     assert summary["steps"]["acquire"]["status"] == "running"
-    out = run_example("unattended_sequence.py", str(seq))
+    # the killed run's writer lock is still on the run store: named, and taken over only with
+    # --force
+    refused = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert refused.returncode == 1 and "--force" in refused.stderr, refused.stderr[-2000:]
+    assert f"pid {proc.pid}" in refused.stderr or str(proc.pid) in refused.stderr
+    out = run_example("unattended_sequence.py", str(seq), "--force")
     summary = json.loads((seq / "summary.json").read_text())
     assert summary["status"] == "complete"
     assert summary["steps"]["acquire"]["result"]["resumed"] is True

@@ -41,7 +41,7 @@ from station.acquisition.backend import Hardware, open_fake_hardware, open_hardw
 from station.cli import main
 from station.acquisition.config import example_text, parse_config
 from station.acquisition.run_store import CODE_MASK, RunStore
-from station.ltc.spi import centroid, peak_region
+from station.lens.centroids import window_stats
 
 EXAMPLE = example_text("fake")
 
@@ -517,13 +517,17 @@ def test_fake_example_acquire_and_reconstruct_recover_the_true_ltc(tmp_path, cap
         use = np.isfinite(h[..., 0, 0])
         assert mask.any() and not use[mask].any()  # reconstruction drops what saw the code
         assert use.mean() > 0.85  # few pixels lost to the check code and to darkness
-        region = peak_region(h[use], origin[use])
         true = bench.true_centroids_lcd_px(z)[use]
-        full = np.percentile(np.linalg.norm(centroid(h[use], origin[use]) - true, axis=1), 95)
-        near = np.percentile(np.linalg.norm(centroid(h[use], origin[use], region) - true, axis=1), 95)
+        hu, ou = h[use], origin[use]
+        p = hu.shape[-1]
+        whole = np.stack([(hu.sum(1) * np.arange(p)).sum(1), (hu.sum(2) * np.arange(p)).sum(1)],
+                         1) / hu.sum(axis=(1, 2))[:, None] + ou
+        full = np.percentile(np.linalg.norm(whole - true, axis=1), 95)
+        stats = window_stats(hu, np.asarray(g["noise"][d])[use])
+        near = np.percentile(np.linalg.norm(stats.centroid + ou - true, axis=1), 95)
         lines.append(f"z={z:g} mm: used {100 * use.mean():.1f} % of pixels (check code masks "
                      f"{100 * mask.mean():.1f} %), centroid p95 full window {full:.3f} px, "
-                     f"region r={region} {near:.3f} px")
+                     f"window_stats region {near:.3f} px")
         assert near <= 0.1 and near < full
     # the whole station: the lens derived from this run against the fake bench's truth
     assert main(["lens", str(ltc), "--out", str(tmp_path / "lens.npz"), "--json"]) == 0
