@@ -276,6 +276,12 @@ class LtcVolume:
         """(width, height) in pixels."""
         return int(self.ltc.shape[2]), int(self.ltc.shape[1])
 
+    @property
+    def chunk_rows(self) -> int:
+        """Camera rows per stored chunk of ``ltc`` (64 for in-memory arrays)."""
+        chunks = getattr(self.ltc, "chunks", None)
+        return int(chunks[1]) if chunks else 64
+
     def rows(self, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``ltc, origin, gain, noise`` of camera rows ``r0:r1`` as float64/int64 arrays."""
         return (
