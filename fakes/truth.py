@@ -20,8 +20,8 @@ def lens_truth(config: dict[str, Any]) -> dict[str, Any] | None:
     Returns ``optical_centre_mm`` (3,) station frame, mm, and ``focus_distance_mm`` (the
     bench's paraxial focus distance from the optical centre, mm).
     """
-    if config.get("backend") != "fake":
-        return None
+    if config.get("backend") != "fake" or config.get("fake", {}).get("model") == "synthetic":
+        return None  # a real bench, or the synthetic one (its truth: per-pixel moments)
     bench = FakeBench(parse_fake_settings(config.get("fake", {})).bench_config())
     return {"optical_centre_mm": bench.optical_centre_station_mm().tolist(),
             "focus_distance_mm": bench.config.focus_distance_mm}

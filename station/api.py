@@ -97,12 +97,19 @@ def acquire(config: StationConfig | str | Path, out: str | Path, *, resume: bool
 
 
 def reconstruct_ltc(run: str | Path, out: str | Path, *, tile_px: int | None = None,
-                    progress: bool = True) -> dict:
+                    progress: bool = True, resume: bool = False, workers: int | None = None,
+                    dask: bool = False, scheduler: str | None = None) -> dict:
     """Every camera pixel's LTC at every depth of a complete run store, written to a new
-    LTC store ``out`` (zarr), tile by tile in bounded memory. Returns a summary."""
+    LTC store ``out`` (zarr), tile by tile in bounded memory. Returns a summary.
+
+    resume : finish the store a killed reconstruction left (bit-identical result).
+    workers : worker processes (default every core; 1: this process); dask : on a local
+    Dask cluster of ``workers`` processes; scheduler : on an existing Dask cluster's
+    address. Every choice gives the same store, bit for bit."""
     from station.ltc.spi import reconstruct
 
-    return reconstruct(run, out, tile_px=tile_px, progress=progress)
+    return reconstruct(run, out, tile_px=tile_px, progress=progress, resume=resume,
+                       workers=workers, dask=dask, scheduler=scheduler)
 
 
 def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,

@@ -89,12 +89,35 @@ def open_camera(camera: OpenCVCameraConfig | GenICamCameraConfig) -> Camera:
     raise ConfigError(f"camera.kind = {camera.kind!r} is not a real camera")
 
 
+def open_synthetic_hardware(config: StationConfig, *, lut: np.ndarray | None = None):
+    """The synthetic full-size bench (``fakes.synthetic``, selected by ``[fake] model =
+    "synthetic"``): analytic per-pixel LTCs, zero-latency stage, display and camera."""
+    from fakes.synthetic import SyntheticHardware, parse_synthetic_settings
+
+    if lut is not None:
+        raise ConfigError("the synthetic bench has a linear panel: no display LUT")
+    if config.frame_check.enabled:
+        raise ConfigError("the synthetic bench renders the station's patterns only: set "
+                          "[frame_check] enabled = false")
+    try:
+        settings = parse_synthetic_settings(config.fake)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
+    return SyntheticHardware(settings, period=config.patterns.period,
+                             travel_mm=config.stage.travel_mm,
+                             exposure_ms=config.camera.exposure_ms)
+
+
 @contextlib.contextmanager
 def open_hardware(config: StationConfig, *, lut: np.ndarray | None = None) -> Iterator[Hardware]:
     """Open stage, display and camera; close all of them on exit, whatever happened."""
     if lut is None and config.display.lut_path:
         lut = load_lut(config.display.lut_path)
     s = config.stage
+    if config.backend == "fake" and config.fake.get("model") == "synthetic":
+        with open_synthetic_hardware(config, lut=lut) as fake:
+            yield Hardware(fake.stage, fake.lcd, fake.camera)
+        return
     if config.backend == "fake":
         with open_fake_hardware(config, lut=lut) as fake:
             if config.camera.kind == "fake":

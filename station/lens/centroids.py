@@ -43,7 +43,7 @@ STATUS_TRUNCATED = 2  # the region reaches the window border: LTC folded or cut 
 NOISE_SIGMAS = 3.0  # region threshold on the 3x3-smoothed weights, in their noise stds
 PEAK_FRACTION = 0.02  # ...and at least this fraction of the smoothed peak
 REGION_MARGIN_PX = 1  # the region (moments, aperture) is the core grown by this, LCD px
-READ_BUDGET_BYTES = 1 << 27  # LTC windows read at once (float64), bytes
+READ_BUDGET_BYTES = 1 << 30  # LTC windows of every depth read at once (store dtype), bytes
 WINDOWS_PER_BATCH = 4096  # windows analysed at once (temporaries ~ 10 x this x P^2 x 8 B)
 
 
@@ -184,42 +184,64 @@ class Centroids:
 
 
 def rows_per_read(volume: LtcVolume) -> int:
-    """Camera rows whose LTC windows (all depths, float64) fit in ``READ_BUDGET_BYTES``."""
+    """Camera rows read at once: as many as fit ``READ_BUDGET_BYTES`` with the windows of
+    every depth in the store's dtype, rounded down to a divisor of the store's chunk rows
+    (or a multiple of them), so each stored chunk is decoded as few times as possible."""
     d, p = len(volume.depths_mm), volume.ltc.shape[-1]
-    per_row = d * volume.camera_size[0] * p * p * 8
-    return max(1, READ_BUDGET_BYTES // per_row)
+    item = np.dtype(getattr(volume.ltc, "dtype", np.float64)).itemsize
+    rows = max(1, READ_BUDGET_BYTES // (d * volume.camera_size[0] * p * p * item))
+    c = volume.chunk_rows
+    if rows >= c:
+        return rows - rows % c
+    while c % rows:
+        rows -= 1
+    return rows
 
 
 def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
                       progress: bool = False) -> Centroids:
-    """Centroids of all pixels at all depths, reading ``rows_per_tile`` camera rows at a time
-    (default: as many as fit the read budget) and processing ``WINDOWS_PER_BATCH`` windows
-    at once, so memory does not grow with the sensor. ``progress``: a bar over camera rows."""
+    """Centroids of all pixels at all depths, reading one depth of a chunk-aligned block of
+    camera rows at a time in the store's dtype (default: the store's chunk rows) and
+    processing ``WINDOWS_PER_BATCH`` windows at once, so memory does not grow with the
+    sensor and each stored chunk is decoded once. ``progress``: a bar over row blocks."""
     d = len(volume.depths_mm)
     w, h = volume.camera_size
-    rows = rows_per_tile or rows_per_read(volume)
+    rows = rows_per_tile or volume.chunk_rows
     out = {"xy": np.full((d, h, w, 2), np.nan), "std": np.full((d, h, w, 2), np.nan),
            "mom": np.full((d, h, w, 3), np.nan), "tstd": np.full((d, h, w), np.nan),
            "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
     for r0 in tqdm(range(0, h, rows), desc="lens: centroids", unit="block",
                    disable=None if progress else True):
         r1 = min(h, r0 + rows)
-        ltc, origin, _, noise = volume.rows(r0, r1)
-        p = ltc.shape[-1]
-        where = np.stack(np.meshgrid(np.arange(d), np.arange(r0, r1), np.arange(w),
-                                     indexing="ij"), axis=-1).reshape(-1, 3)
-        flat_ltc, flat_noise = ltc.reshape(-1, p, p), noise.ravel()
-        parts = [window_stats(flat_ltc[k : k + WINDOWS_PER_BATCH],
-                              flat_noise[k : k + WINDOWS_PER_BATCH],
-                              where=where[k : k + WINDOWS_PER_BATCH], name=volume.name)
-                 for k in range(0, len(flat_ltc), WINDOWS_PER_BATCH)]
-        shp = (d, r1 - r0, w)
-        out["xy"][:, r0:r1] = np.concatenate([q.centroid for q in parts]).reshape(
-            shp + (2,)) + origin
-        out["std"][:, r0:r1] = np.concatenate([q.centroid_std for q in parts]).reshape(
-            shp + (2,))
-        out["mom"][:, r0:r1] = np.concatenate([q.moments for q in parts]).reshape(shp + (3,))
-        out["tstd"][:, r0:r1] = np.concatenate([q.trace_std for q in parts]).reshape(shp)
-        out["status"][:, r0:r1] = np.concatenate([q.status for q in parts]).reshape(shp)
+        for i in range(d):
+            part = centroid_rows(volume, i, r0, r1)
+            for key, value in part.items():
+                out[key][i, r0:r1] = value
     return Centroids(out["xy"], out["std"], out["mom"], out["tstd"], out["status"],
                      volume.depths_mm.copy(), float(volume.pitch_mm))
+
+
+def centroid_rows(volume: LtcVolume, depth: int, r0: int, r1: int) -> dict[str, np.ndarray]:
+    """Centroid statistics of camera rows ``r0:r1`` at one depth: ``xy`` (rows, W, 2) LCD
+    px, ``std`` (rows, W, 2), ``mom`` (rows, W, 3), ``tstd`` (rows, W), ``status``
+    (rows, W) int8. A pure function of the store: every engine computes blocks with it."""
+    w = volume.camera_size[0]
+    ltc = np.asarray(volume.ltc[depth, r0:r1])
+    origin = np.asarray(volume.origin[depth, r0:r1], dtype=np.int64)
+    noise = np.asarray(volume.noise[depth, r0:r1], dtype=np.float64).ravel()
+    p = ltc.shape[-1]
+    flat = ltc.reshape(-1, p, p)
+    parts = []
+    for k in range(0, len(flat), WINDOWS_PER_BATCH):
+        j = np.arange(k, min(k + WINDOWS_PER_BATCH, len(flat)))
+        where = np.stack([np.full(len(j), depth), r0 + j // w, j % w], axis=1)
+        parts.append(window_stats(flat[j].astype(np.float64), noise[j], where=where,
+                                  name=volume.name))
+    shp = (r1 - r0, w)
+    return {
+        "xy": np.concatenate([q.centroid for q in parts]).reshape(shp + (2,)) + origin,
+        "std": np.concatenate([q.centroid_std for q in parts]).reshape(shp + (2,)),
+        "mom": np.concatenate([q.moments for q in parts]).reshape(shp + (3,)),
+        "tstd": np.concatenate([q.trace_std for q in parts]).reshape(shp),
+        "status": np.concatenate([q.status for q in parts]).reshape(shp),
+    }

@@ -13,7 +13,7 @@ nearest node that has one; the file's metadata lists how many were filled.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -93,9 +93,18 @@ def _row_blocks(pixels: np.ndarray, width: int,
 
 def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
                  pixels: np.ndarray, cfg: LensFitConfig | None = None,
-                 keep_depths: bool = False, progress: bool = False) -> ApertureSet:
+                 keep_depths: bool = False, progress: bool = False,
+                 keep_fused: bool = True,
+                 on_chunk: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                     np.ndarray], None] | None = None) -> ApertureSet:
     """Scale, resample and fuse the LTC of the given flat pixels onto the aperture plane
-    (``progress``: a bar over the row blocks read)."""
+    (``progress``: a bar over the row blocks read).
+
+    Streams: camera rows are read in chunk-aligned blocks and nodes fused
+    ``cfg.nodes_per_chunk`` at a time; ``on_chunk(idx, fused, ok, mean, cov)`` is called per
+    chunk with the positions ``idx`` in ``pixels``, their fused distributions (m, G, G) and
+    their ``ok``, ``mean``, ``cov``. ``keep_fused=False`` keeps no (n, G, G) array (``fused``
+    is then None), so memory grows only by (n, 2, 2)-sized arrays with the nodes."""
     cfg = cfg or LensFitConfig()
     pixels = np.asarray(pixels, dtype=np.int64).ravel()
     c, rays = geom.centroids, geom.rays
@@ -110,13 +119,16 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
     per_depth = np.zeros((n, d, g, g)) if keep_depths else None
     weight = np.zeros((n, d))
     coverage = np.zeros((n, d))
-    fused = np.zeros((n, g, g))
+    fused = np.zeros((n, g, g)) if keep_fused else None
+    mean, cov = np.zeros((n, 2)), np.zeros((n, 2, 2))
     at_centre = rays.xy_at(zc) - geom.centre.position[:2]
     mom = c.moments_px2.reshape(d, -1, 3)
     blocks = list(_row_blocks(pixels, w_cam, rows_per_read(volume)))
     for r0, r1, sel in tqdm(blocks, desc="lens: aperture", unit="block",
                             disable=None if progress else True):
-        ltc, origin, _, noise = volume.rows(r0, r1)
+        ltc = np.asarray(volume.ltc[:, r0:r1])  # store dtype: converted per node chunk
+        origin = np.asarray(volume.origin[:, r0:r1], dtype=np.int64)
+        noise = np.asarray(volume.noise[:, r0:r1], dtype=np.float64)
         ltc = ltc.reshape(d, -1, *ltc.shape[-2:])
         origin = origin.reshape(d, -1, 2)
         noise = noise.reshape(d, -1)
@@ -129,7 +141,7 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
                 used = rays.used[i, pix] & rays.usable[pix]
                 if not used.any():
                     continue
-                h = ltc[i, loc]
+                h = ltc[i, loc].astype(np.float64)
                 st = window_stats(np.where(used[:, None, None], h, np.nan), noise[i, loc])
                 hh = np.where(st.region, h, 0.0)
                 at_depth = rays.xy_ref[pix] + rays.slope[pix] * (c.depths_mm[i]
@@ -149,20 +161,36 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
             weight[idx] = wd
             acc = np.einsum("nd,ndij->nij", wd, m_all)
             tot = wd.sum(axis=1)
-            fused[idx] = acc / np.where(tot > 0, tot, 1.0)[:, None, None]
+            fz = acc / np.where(tot > 0, tot, 1.0)[:, None, None]
+            if fused is not None:
+                fused[idx] = fz
             if per_depth is not None:
                 per_depth[idx] = m_all
+            ok_c = wd.sum(axis=1) > 0
+            mean_c, cov_c = _moments(fz, wd, ok_c, grid, c.pitch_mm * s, fp * s, cfg.deblur)
+            mean[idx], cov[idx] = mean_c, cov_c
+            if on_chunk is not None:
+                on_chunk(idx, fz, ok_c, mean_c, cov_c)
     ok = weight.sum(axis=1) > 0
+    return ApertureSet(pixels, per_depth, weight, coverage, fused, ok, mean, cov)
+
+
+def _moments(fused: np.ndarray, weight: np.ndarray, ok: np.ndarray, grid: ap.ApertureGrid,
+             pitch_scaled: np.ndarray, footprint_scaled: np.ndarray,
+             deblur: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Target mean (m, 2) and covariance (m, 2, 2) mm of fused distributions (m, G, G):
+    the grid moments plus the cell's own variance, less (``deblur``) the LCD-pixel and
+    camera-pixel blurs of the depths by their fusion weights (m, D)."""
     mean, cov = ap.grid_moments(fused, grid)
     cov = cov + np.eye(2) * grid.cell_mm**2 / 12.0
-    if cfg.deblur:
+    if deblur:
         wn = weight / np.where(ok, weight.sum(axis=1), 1.0)[:, None]
-        blur = ((c.pitch_mm * s) ** 2 + (fp * s) ** 2) / 12.0
+        blur = (pitch_scaled ** 2 + footprint_scaled ** 2) / 12.0
         cov = cov - np.eye(2) * (wn @ blur)[:, None, None]
         val, vec = np.linalg.eigh(cov)
         val = np.maximum(val, 1e-6 * np.maximum(val.max(axis=1, keepdims=True), 1e-12))
         cov = np.einsum("nij,nj,nkj->nik", vec, val, vec)
-    return ApertureSet(pixels, per_depth, weight, coverage, fused, ok, mean, cov)
+    return mean, cov
 
 
 def node_positions(size: int, step: int) -> np.ndarray:
@@ -237,18 +265,35 @@ def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,
     w, h = volume.camera_size
     nu, nv = node_positions(w, cfg.grid_step), node_positions(h, cfg.grid_step)
     pix = (nv[:, None] * w + nu[None, :]).ravel()
-    aps = aperture_set(volume, geom, grid, pix, cfg, progress=progress)
-    good = aps.ok & geom.rays.usable[pix]
-    if not good.any():
-        raise LensFitError(f"{volume.name}: no node pixel has a usable LTC at any depth")
     x = np.zeros((len(pix), cfg.samples, 2))
     wk = np.zeros((len(pix), cfg.samples))
-    gi = np.flatnonzero(good)
-    for k0 in range(0, len(gi), cfg.nodes_per_chunk):
-        sl = gi[k0 : k0 + cfg.nodes_per_chunk]
-        xs, ws = ap.kmeans_samples(aps.fused[sl], grid, cfg.samples, cfg.kmeans_iterations)
-        x[sl], wk[sl] = ap.canonical_order(ap.match_moments(xs, ws, aps.mean[sl], aps.cov[sl]),
-                                           ws)
+    usable = geom.rays.usable[pix]
+    buf: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def sample(flush: bool = False) -> None:
+        """K samples of the buffered good nodes, ``nodes_per_chunk`` at a time in node order."""
+        while buf and (flush or sum(len(b[0]) for b in buf) >= cfg.nodes_per_chunk):
+            sl, fz, mu, cv = (np.concatenate(a) for a in zip(*buf))
+            buf.clear()
+            take = cfg.nodes_per_chunk
+            if len(sl) > take:
+                buf.append((sl[take:], fz[take:], mu[take:], cv[take:]))
+            sl, fz, mu, cv = sl[:take], fz[:take], mu[:take], cv[:take]
+            xs, ws = ap.kmeans_samples(fz, grid, cfg.samples, cfg.kmeans_iterations)
+            x[sl], wk[sl] = ap.canonical_order(ap.match_moments(xs, ws, mu, cv), ws)
+
+    def on_chunk(idx, fz, ok, mu, cv) -> None:
+        keep = ok & usable[idx]
+        if keep.any():
+            buf.append((idx[keep], fz[keep], mu[keep], cv[keep]))
+            sample()
+
+    aps = aperture_set(volume, geom, grid, pix, cfg, progress=progress, keep_fused=False,
+                       on_chunk=on_chunk)
+    sample(flush=True)
+    good = aps.ok & usable
+    if not good.any():
+        raise LensFitError(f"{volume.name}: no node pixel has a usable LTC at any depth")
     shape = (len(nv), len(nu))
     bad = ~good.reshape(shape)
     if bad.any():

@@ -30,7 +30,18 @@ import numpy as np
 from tqdm import tqdm
 
 from station.ltc.localise import lcd_coordinates
-from station.ltc.store import centred_origins, create_ltc_store, write_ltc_tile
+from station.ltc.parallel import Engine, run_ordered
+from station.ltc.store import (
+    TILE_STATS,
+    LtcStoreError,
+    centred_origins,
+    create_ltc_store,
+    incomplete_depths,
+    mark_depth_complete,
+    mark_tile_done,
+    open_ltc_store,
+    write_ltc_tile,
+)
 from station.acquisition.patterns import (
     FourierPatternSet,
     StationPatternPlan,
@@ -241,15 +252,71 @@ def reconstruct_frames(
                     lcd_xy=lmap.xy, valid=valid, edge_mass=ring)
 
 
+def reconstruct_tile(
+    frames: np.ndarray, plan: StationPatternPlan, lut: np.ndarray | None, min_snr: float,
+    code_mask: np.ndarray,
+) -> tuple[LtcBlock, np.ndarray]:
+    """One camera tile: frames (patterns, th, tw) -> its :class:`LtcBlock` (th * tw pixels,
+    row-major; pixels in ``code_mask`` (th, tw) excluded) and its statistics
+    (``station.ltc.store.TILE_STATS``). Pure: every engine computes tiles with it."""
+    _, th, tw = frames.shape
+    flat = frames.reshape(len(plan), th * tw)
+    parts = [reconstruct_frames(flat[:, i : i + PIXELS_PER_BLOCK], plan, lut=lut,
+                                min_snr=min_snr)
+             for i in range(0, th * tw, PIXELS_PER_BLOCK)]
+    blk = LtcBlock(*(np.concatenate([getattr(q, fld.name) for q in parts])
+                     for fld in fields(LtcBlock)))
+    blk = _exclude(blk, np.asarray(code_mask, dtype=bool).ravel())
+    v = blk.valid
+    stats = np.full(len(TILE_STATS), np.nan)
+    stats[0] = int(v.sum())
+    if v.any():
+        stats[1] = float(np.median(blk.gain[v]))
+        stats[2] = float(np.median(blk.noise[v]))
+        stats[3] = float(np.percentile(np.abs(blk.edge_mass[v]), 95))
+    return blk, stats
+
+
+_OPEN_STORES: dict[str, object] = {}  # per worker process: LTC stores opened for writing
+
+
+def _tile_job(frames: np.ndarray, plan: StationPatternPlan, lut: np.ndarray | None,
+              min_snr: float, code_mask: np.ndarray, out_path: str, depth: int, row0: int,
+              col0: int) -> np.ndarray:
+    """Reconstruct one tile and write it into the LTC store at ``out_path`` (run by a worker,
+    or in process); returns the tile's statistics. The caller marks the tile done."""
+    import zarr
+
+    out = _OPEN_STORES.get(out_path)
+    if out is None:
+        out = _OPEN_STORES[out_path] = zarr.open_group(out_path, mode="r+")
+    _, th, tw = frames.shape
+    p = plan.fourier.period
+    blk, stats = reconstruct_tile(frames, plan, lut, min_snr, code_mask)
+    write_ltc_tile(out, depth, row0, col0, ltc=blk.ltc.reshape(th, tw, p, p),
+                   origin=blk.origin.reshape(th, tw, 2), gain=blk.gain.reshape(th, tw),
+                   noise=blk.noise.reshape(th, tw), lcd_xy=blk.lcd_xy.reshape(th, tw, 2))
+    return stats
+
+
 def reconstruct(
     run_path: str | Path, out_path: str | Path, tile_px: int | None = None,
-    progress: bool = True, *, min_snr: float = 10.0,
+    progress: bool = True, *, min_snr: float = 10.0, resume: bool = False,
+    workers: int | None = None, dask: bool = False, scheduler: str | None = None,
 ) -> dict:
-    """Reconstruct every depth of a complete run store into a new LTC store, tile by tile.
+    """Reconstruct every depth of a complete run store into an LTC store, tile by tile.
 
-    tile_px : camera tile edge (default: the run store's inner chunk); memory depends on it
-    and on the pattern count, not on the sensor size. Returns a JSON-able summary; per-depth
-    statistics are medians / maxima over tiles of per-tile values (bounded memory).
+    tile_px : camera tile edge (default: the run store's inner chunk); memory depends on it,
+        on the pattern count and on the workers, not on the sensor size.
+    resume : finish the LTC store ``out_path`` a killed reconstruction of this run left
+        (tiles recorded done are kept; the result equals an uninterrupted run bit for bit).
+    workers, dask, scheduler : where tiles are computed (``station.ltc.parallel.Engine``):
+        default every core in local processes; 1 in this process; ``dask`` a Dask
+        LocalCluster of ``workers`` processes; ``scheduler`` an existing Dask cluster.
+        Every engine gives bit-identical stores.
+    Tiles are read in order here (at the disk's pace) while the workers compute and write.
+    Returns a JSON-able summary; per-depth statistics come from the store's per-tile
+    records (``tile_stats``), so a resumed run reports what an uninterrupted one does.
     """
     t_start = time.perf_counter()
     store = RunStore.open(run_path)
@@ -262,60 +329,87 @@ def reconstruct(
     if t < 1:
         raise RunStoreError(f"{store.path}: tile_px must be >= 1, got {tile_px}")
     w, h = store.camera_size
-    out = create_ltc_store(
-        out_path, depths_mm=store.depths_mm, camera_size=store.camera_size, period=p,
-        pitch_mm=store.lcd_pitch_mm, lcd_size=store.lcd_size, tile_px=t,
-        attrs={"run_store": str(store.path), "pattern_set": plan.model_dump(mode="json"),
-               "camera_matrix": store.config.get("camera", {}).get("matrix"),
-               "config": store.config,
-               "software": software_versions(),
-               "created": _dt.datetime.now(_dt.timezone.utc).isoformat()},
-    )
-    n_tiles = -(-h // t) * -(-w // t)
-    per_depth = []
-    with tqdm(total=store.n_depths * n_tiles, desc="reconstruct", unit="tile",
-              disable=None if progress else True) as bar:
+    out_path = Path(out_path)
+    if resume and out_path.exists():
+        out = _open_for_resume(out_path, store, t)
+    else:
+        out = create_ltc_store(
+            out_path, depths_mm=store.depths_mm, camera_size=store.camera_size, period=p,
+            pitch_mm=store.lcd_pitch_mm, lcd_size=store.lcd_size, tile_px=t,
+            attrs={"run_store": str(store.path), "pattern_set": plan.model_dump(mode="json"),
+                   "camera_matrix": store.config.get("camera", {}).get("matrix"),
+                   "config": store.config,
+                   "software": software_versions(),
+                   "created": _dt.datetime.now(_dt.timezone.utc).isoformat()},
+        )
+    done = np.asarray(out["tile_done"][...])
+    n_left = int((~done).sum())
+    px_done = [0]
+    with Engine(workers, dask=dask, scheduler=scheduler) as engine, \
+            tqdm(total=done.size, initial=done.size - n_left, desc="reconstruct", unit="tile",
+                 disable=None if progress else True) as bar:
+        bar.set_postfix_str(engine.describe(), refresh=False)
         for di in range(store.n_depths):
-            stats: dict[str, list] = {"valid": [], "gain": [], "noise": [], "edge": []}
+            if done[di].all():
+                if di in incomplete_depths(out):
+                    mark_depth_complete(out, di)
+                continue
             code_mask = store.code_mask(di)
-            for tile in store.iter_tiles(di, t):
-                _, th, tw = tile.frames.shape
-                flat = tile.frames.reshape(len(plan), th * tw)
-                parts = [reconstruct_frames(flat[:, i : i + PIXELS_PER_BLOCK], plan,
-                                            lut=lut, min_snr=min_snr)
-                         for i in range(0, th * tw, PIXELS_PER_BLOCK)]
-                blk = LtcBlock(*(np.concatenate([getattr(q, fld.name) for q in parts])
-                                 for fld in fields(LtcBlock)))
-                seen_code = code_mask[tile.row0 : tile.row0 + th, tile.col0 : tile.col0 + tw]
-                blk = _exclude(blk, seen_code.ravel())
-                write_ltc_tile(
-                    out, di, tile.row0, tile.col0,
-                    ltc=blk.ltc.reshape(th, tw, p, p), origin=blk.origin.reshape(th, tw, 2),
-                    gain=blk.gain.reshape(th, tw), noise=blk.noise.reshape(th, tw),
-                    lcd_xy=blk.lcd_xy.reshape(th, tw, 2),
-                )
-                v = blk.valid
-                stats["valid"].append(int(v.sum()))
-                if v.any():
-                    stats["gain"].append(float(np.median(blk.gain[v])))
-                    stats["noise"].append(float(np.median(blk.noise[v])))
-                    stats["edge"].append(float(np.percentile(np.abs(blk.edge_mass[v]), 95)))
+
+            def tasks(di=di, code_mask=code_mask):
+                for tile in store.iter_tiles(di, t):
+                    tr, tc = tile.row0 // t, tile.col0 // t
+                    if done[di, tr, tc]:
+                        continue
+                    _, th, tw = tile.frames.shape
+                    px_done[0] += th * tw
+                    cm = code_mask[tile.row0 : tile.row0 + th, tile.col0 : tile.col0 + tw]
+                    yield ((di, tr, tc), _tile_job,
+                           (tile.frames, plan, lut, float(min_snr), cm, str(out_path), di,
+                            tile.row0, tile.col0))
+
+            def finished(key, stats) -> None:
+                mark_tile_done(out, *key, stats)
                 bar.update(1)
-            per_depth.append({
-                "depth_mm": store.depths_mm[di],
-                "valid_fraction": sum(stats["valid"]) / (w * h),
-                "gain_median_adu": _median(stats["gain"]),
-                "noise_median": _median(stats["noise"]),
-                "edge_mass_p95": max(stats["edge"], default=None),
-            })
+
+            run_ordered(engine, tasks(), finished)
+            mark_depth_complete(out, di)
+        used = engine.describe()
+    stats_all = np.asarray(out["tile_stats"][...])
+    per_depth = []
+    for di in range(store.n_depths):
+        st = stats_all[di].reshape(-1, len(TILE_STATS))
+        per_depth.append({
+            "depth_mm": store.depths_mm[di],
+            "valid_fraction": float(np.nansum(st[:, 0])) / (w * h),
+            "gain_median_adu": _median(st[:, 1]),
+            "noise_median": _median(st[:, 2]),
+            "edge_mass_p95": _max(st[:, 3]),
+        })
     out.attrs["noise_median"] = [q["noise_median"] for q in per_depth]
     seconds = time.perf_counter() - t_start
     return {
         "run": str(store.path), "out": str(out_path), "camera_size": list(store.camera_size),
         "lcd_size": list(store.lcd_size), "period": p, "steps": plan.fourier.steps,
         "patterns_per_depth": len(plan), "tile_px": t, "depths": per_depth,
-        "seconds": seconds, "pixels_per_second": store.n_depths * w * h / max(seconds, 1e-9),
+        "engine": used, "tiles_computed": n_left, "resumed": bool(resume and n_left < done.size),
+        "seconds": seconds, "pixels_per_second": px_done[0] / max(seconds, 1e-9),
     }
+
+
+def _open_for_resume(out_path: Path, store: RunStore, tile_px: int):
+    """The LTC store a killed reconstruction of ``store`` left, checked to be that one."""
+    out = open_ltc_store(out_path, mode="r+")
+    a = out.attrs
+    if a.get("run_store") != str(store.path):
+        raise LtcStoreError(f"{out_path}: was reconstructed from {a.get('run_store')!r}, not "
+                            f"{str(store.path)!r}; cannot resume it from this run")
+    if int(a.get("tile_px", -1)) != tile_px:
+        raise LtcStoreError(f"{out_path}: was written with tile_px {a.get('tile_px')}, not "
+                            f"{tile_px}; resume with --tile {a.get('tile_px')}")
+    if a.get("pattern_set") != store.plan.model_dump(mode="json"):
+        raise LtcStoreError(f"{out_path}: pattern set differs from the run store's")
+    return out
 
 
 def _exclude(blk: LtcBlock, mask: np.ndarray) -> LtcBlock:
@@ -328,5 +422,13 @@ def _exclude(blk: LtcBlock, mask: np.ndarray) -> LtcBlock:
     return replace(blk, ltc=ltc, origin=origin, valid=valid)
 
 
-def _median(values: list[float]) -> float | None:
-    return float(np.median(values)) if values else None
+def _median(values: np.ndarray) -> float | None:
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size else None
+
+
+def _max(values: np.ndarray) -> float | None:
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return float(v.max()) if v.size else None

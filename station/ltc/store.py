@@ -12,13 +12,24 @@ Layout (ARCHITECTURE.md, issue 3):
   localisation patterns (NaN where unknown).
 * attributes: ``depths_mm``, ``pitch_mm``, ``period``, ``lcd_size`` (w, h),
   ``camera_size`` (w, h), ``format`` and ``format_version``, plus anything the writer adds.
+* completion records (format version 2): ``tile_done[depth, tile_row, tile_col]`` bool,
+  True once that ``tile_px`` x ``tile_px`` tile of every array above is written (set after the
+  tile's data, so a killed writer loses at most the tiles in flight);
+  ``tile_stats[depth, tile_row, tile_col, 4]`` float64, the tile's valid-pixel count and the
+  medians of gain and noise and the 95th percentile of |edge mass| over its valid pixels
+  (NaN when none); attribute ``tile_px``; attribute ``depths_complete`` (list of bool per
+  depth), set True once every tile of the depth is done. Readers of a whole store
+  (``open_ltc_volume``) refuse one with an incomplete depth, naming it.
 
-Writing: ``create_ltc_store`` and ``write_ltc_tile``. Reading for the lens derivation:
-``open_ltc_volume`` gives an ``LtcVolume`` that reads camera rows on demand.
+Writing: ``create_ltc_store``, ``write_ltc_tile``, ``mark_tile_done`` and
+``mark_depth_complete``. Reading for the lens derivation: ``open_ltc_volume`` gives an
+``LtcVolume`` that reads camera rows on demand.
 """
 
 from __future__ import annotations
 
+import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,7 +39,8 @@ import scipy.sparse as sp
 import zarr
 
 FORMAT = "ltc-store"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+TILE_STATS = ("valid_px", "gain_median_adu", "noise_median", "edge_mass_p95")
 ARRAYS = ("ltc", "origin", "gain", "noise")
 OPTIONAL_ARRAYS = ("lcd_xy",)
 
@@ -54,7 +66,11 @@ def create_ltc_store(
         raise LtcStoreError(f"{path}: already exists; refusing to overwrite an LTC store")
     w, h = camera_size
     d = len(depths_mm)
-    g = zarr.open_group(str(path), mode="w-", zarr_format=3)
+    # built under a temporary name and renamed: a writer killed here leaves no store at path
+    tmp = path.with_name(f".{path.name}.creating-{os.getpid()}")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    g = zarr.open_group(str(tmp), mode="w-", zarr_format=3)
     t = (1, min(tile_px, h), min(tile_px, w))
     g.create_array("ltc", shape=(d, h, w, period, period), chunks=t + (period, period),
                    dtype="float32", fill_value=np.nan)
@@ -63,6 +79,13 @@ def create_ltc_store(
     g.create_array("noise", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan)
     g.create_array("lcd_xy", shape=(d, h, w, 2), chunks=t + (2,), dtype="float32",
                    fill_value=np.nan)
+    tiles = (-(-h // t[1]), -(-w // t[2]))
+    # completion records: small, one chunk per depth, rewritten whole (atomically) per tile
+    g.create_array("tile_done", shape=(d,) + tiles, chunks=(1,) + tiles, dtype="bool",
+                   fill_value=False, compressors=None)
+    g.create_array("tile_stats", shape=(d,) + tiles + (len(TILE_STATS),),
+                   chunks=(1,) + tiles + (len(TILE_STATS),), dtype="float64",
+                   fill_value=np.nan, compressors=None)
     g.attrs.update(
         {
             "format": FORMAT,
@@ -72,10 +95,13 @@ def create_ltc_store(
             "period": int(period),
             "pitch_mm": float(pitch_mm),
             "lcd_size": [int(v) for v in lcd_size],
+            "tile_px": int(tile_px),
+            "depths_complete": [False] * d,
             **(attrs or {}),
         }
     )
-    return g
+    os.rename(tmp, path)
+    return zarr.open_group(str(path), mode="r+")
 
 
 def open_ltc_store(path: str | Path, mode: str = "r") -> zarr.Group:
@@ -90,10 +116,56 @@ def open_ltc_store(path: str | Path, mode: str = "r") -> zarr.Group:
     if g.attrs.get("format") != FORMAT:
         raise LtcStoreError(f"{path}: attribute 'format' is {g.attrs.get('format')!r}, "
                             f"expected {FORMAT!r}")
-    missing = [a for a in ARRAYS if a not in g]
+    if g.attrs.get("format_version") != FORMAT_VERSION:
+        raise LtcStoreError(f"{path}: attribute 'format_version' is "
+                            f"{g.attrs.get('format_version')!r}, expected {FORMAT_VERSION}; "
+                            "reconstruct it again with this version (`ltc reconstruct`)")
+    missing = [a for a in ARRAYS + ("tile_done", "tile_stats") if a not in g]
     if missing:
         raise LtcStoreError(f"{path}: missing array(s) {missing}")
     return g
+
+
+def mark_tile_done(group: zarr.Group, depth: int, tile_row: int, tile_col: int,
+                   stats: np.ndarray) -> None:
+    """Record a written tile: its statistics (``TILE_STATS``), then its done flag."""
+    group["tile_stats"][depth, tile_row, tile_col] = np.asarray(stats, dtype=np.float64)
+    group["tile_done"][depth, tile_row, tile_col] = True
+
+
+def mark_depth_complete(group: zarr.Group, depth: int, all_tiles: bool = False) -> None:
+    """Mark a depth complete; refused unless every one of its tiles is done.
+    all_tiles : first mark every tile done (a writer that filled the whole depth at once)."""
+    done = np.asarray(group["tile_done"][depth])
+    if all_tiles:
+        group["tile_done"][depth] = np.ones_like(done)
+    elif not done.all():
+        raise LtcStoreError(f"{group.store}: depth {depth} has {int((~done).sum())} tile(s) "
+                            "not written; it cannot be marked complete")
+    flags = list(group.attrs["depths_complete"])
+    flags[depth] = True
+    group.attrs["depths_complete"] = flags
+
+
+def incomplete_depths(group: zarr.Group) -> list[int]:
+    """Depth indices of an LTC store not recorded complete (attribute and tile flags)."""
+    flags = list(group.attrs.get("depths_complete", []))
+    d = group["ltc"].shape[0]
+    done = np.asarray(group["tile_done"][...])
+    return [i for i in range(d) if not (i < len(flags) and flags[i] and done[i].all())]
+
+
+def require_complete(group: zarr.Group, path: str | Path) -> None:
+    """Raise ``LtcStoreError`` naming the first incomplete depth, if any."""
+    todo = incomplete_depths(group)
+    if todo:
+        z = group.attrs.get("depths_mm", [])
+        i = todo[0]
+        at = f" (z = {z[i]:g} mm)" if i < len(z) else ""
+        n = int((~np.asarray(group["tile_done"][i])).sum())
+        raise LtcStoreError(f"{path}: depth {i}{at} is incomplete ({n} tile(s) not written; "
+                            f"{len(todo)} incomplete depth(s)); finish it with "
+                            "`ltc reconstruct --resume`")
 
 
 def write_ltc_tile(
@@ -204,6 +276,12 @@ class LtcVolume:
         """(width, height) in pixels."""
         return int(self.ltc.shape[2]), int(self.ltc.shape[1])
 
+    @property
+    def chunk_rows(self) -> int:
+        """Camera rows per stored chunk of ``ltc`` (64 for in-memory arrays)."""
+        chunks = getattr(self.ltc, "chunks", None)
+        return int(chunks[1]) if chunks else 64
+
     def rows(self, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``ltc, origin, gain, noise`` of camera rows ``r0:r1`` as float64/int64 arrays."""
         return (
@@ -220,6 +298,7 @@ def open_ltc_volume(path: str | Path) -> LtcVolume:
     Optional attributes ``camera_matrix`` (3x3) and ``dist_coeffs`` (5) give the camera's K.
     """
     g = open_ltc_store(path)
+    require_complete(g, path)
     a = g.attrs
     for key in ("depths_mm", "pitch_mm"):
         if key not in a:

@@ -11,7 +11,12 @@ from fakes.bench import BenchConfig, FakeBench
 from sim.optics.measured_lens import load_lens
 from sim.optics.rig import Rig, small_rig
 from station.cli import main
-from station.ltc.store import centred_origins, create_ltc_store, windows_from_sparse
+from station.ltc.store import (
+    centred_origins,
+    create_ltc_store,
+    mark_depth_complete,
+    windows_from_sparse,
+)
 
 P = 24
 DEPTHS = [0.0, 30.0, 60.0, 250.0, 290.0]
@@ -40,6 +45,7 @@ def write_store(path, bench: FakeBench, with_k: bool = True):
         g["origin"][i] = org.reshape(h, w, 2)
         g["gain"][i] = np.full((h, w), 3000.0)
         g["noise"][i] = np.full((h, w), 6e-4)
+        mark_depth_complete(g, i, all_tiles=True)
     return path
 
 

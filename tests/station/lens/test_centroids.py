@@ -21,6 +21,7 @@ from station.ltc.store import (
     LtcVolumeError,
     centred_origins,
     create_ltc_store,
+    mark_depth_complete,
     open_ltc_volume,
     windows_from_sparse,
 )
@@ -166,6 +167,8 @@ def test_open_store_reads_camera_matrix_and_checks_attributes(tmp_path, bench, v
                          attrs={"camera_matrix": bench.K.tolist()})
     for name in ("ltc", "origin", "gain", "noise"):
         g[name][:] = np.asarray(getattr(volume, name))
+    for i in range(len(DEPTHS)):
+        mark_depth_complete(g, i, all_tiles=True)
     v = open_ltc_volume(tmp_path / "a.zarr")
     np.testing.assert_array_equal(v.camera_matrix, bench.K)
     got = compute_centroids(v)

@@ -1,0 +1,226 @@
+"""The paper's configuration on the synthetic full-size bench (issue 13): 4096 x 2168 camera,
+3840 x 2160 LCD, P = 24, 4-step (1,177 frames per depth).
+
+    python benchmarks/full_size.py --out /tmp/full            # full size (hours on 2 cores)
+    python benchmarks/full_size.py --out /tmp/crop --rows 32  # full width, 32 rows: minutes
+
+Stages, each in its own process so its peak memory (ru_maxrss, workers included) is its own:
+capture without storage (show + capture of every pattern of one depth), ``acquire`` of one
+depth into a run store, one read of that depth's frames (``RunStore.iter_tiles``),
+``reconstruct`` (every core), centroid error against the bench's true moments, and the lens
+derivation with default settings on an LTC store of two depths written from the bench's
+true LTC plus noise. Projections scale the measured per-pixel times to the full sensor and
+six depths; N Dask workers divide the compute, never below one read of the frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+FULL_H = 2168
+CONFIG = """
+backend = "fake"
+depths_mm = {depths}
+[stage]
+travel_mm = [0.0, 400.0]
+[display]
+latency_frames = 0
+[camera]
+exposure_ms = 20.0
+[patterns]
+period = 24
+steps = 4
+[frame_check]
+enabled = false
+[fake]
+model = "synthetic"
+seed = 1
+rows = [{r0}, {r1}]
+"""
+
+
+def peak_mb() -> float:
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(own, kids) / 1024.0
+
+
+def stage(name: str, out: Path, rows: int, workers: int | None) -> dict:
+    from station.api import acquire, load_config, open_bench
+    from station.acquisition.acquire import pattern_plan
+
+    cfg_path = out / "bench.toml"
+    cfg = load_config(cfg_path)
+    res: dict = {}
+    if name == "capture":
+        with open_bench(cfg) as b:
+            plan = pattern_plan(cfg, b.display.size)
+            b.stage.move_to(cfg.depths_mm[0])
+            t = time.perf_counter()
+            for i in range(len(plan)):
+                b.display.show(plan.image(i, b.display.size))
+                b.camera.capture()
+            res["capture_fps_no_storage"] = len(plan) / (time.perf_counter() - t)
+    elif name == "acquire":
+        t = time.perf_counter()
+        s = acquire(cfg, out / "run.zarr", progress=False)
+        res["acquire_seconds"] = time.perf_counter() - t
+        res["capture_fps_with_storage"] = s["frames_written"] / res["acquire_seconds"]
+    elif name == "read":
+        from station.acquisition.run_store import RunStore
+
+        st = RunStore.open(out / "run.zarr")
+        t = time.perf_counter()
+        nbytes = sum(tile.frames.nbytes for tile in st.iter_tiles(0))
+        res["read_seconds"] = time.perf_counter() - t
+        res["read_mb_s"] = nbytes / 1e6 / res["read_seconds"]
+    elif name == "reconstruct":
+        from station.ltc.spi import reconstruct
+
+        s = reconstruct(out / "run.zarr", out / "ltc.zarr", progress=False, workers=workers)
+        res.update(reconstruct_seconds=s["seconds"], pixels_per_second=s["pixels_per_second"],
+                   engine=s["engine"])
+    elif name == "truth":
+        res.update(centroid_error(cfg, out / "ltc.zarr", rows))
+    elif name == "lens":
+        from station.api import derive_lens
+
+        write_true_store(cfg, out / "lens_ltc.zarr")
+        t = time.perf_counter()
+        r = derive_lens(out / "lens_ltc.zarr", progress=False)
+        res["lens_seconds"] = time.perf_counter() - t
+        res["lens_pixels_usable"] = r.summary()["pixels_usable"]
+    res[f"{name}_peak_mb"] = peak_mb()
+    return res
+
+
+def _bench(cfg):
+    from fakes.synthetic import SyntheticBench, parse_synthetic_settings
+
+    s = parse_synthetic_settings(cfg.fake)
+    return SyntheticBench(s.synthetic, s.rows)
+
+
+def centroid_error(cfg, ltc_path: Path, rows: int) -> dict:
+    from station.lens.centroids import window_stats
+    from station.ltc.store import open_ltc_store
+
+    g = open_ltc_store(ltc_path)
+    truth, _ = _bench(cfg).true_moments(cfg.depths_mm[0])
+    p = g["ltc"].shape[-1]
+    errs = []
+    for r0 in range(0, rows, 64):
+        ltc = np.asarray(g["ltc"][0, r0 : r0 + 64], dtype=np.float64).reshape(-1, p, p)
+        noise = np.asarray(g["noise"][0, r0 : r0 + 64], dtype=np.float64).ravel()
+        st = window_stats(ltc, noise)
+        got = st.centroid + np.asarray(g["origin"][0, r0 : r0 + 64]).reshape(-1, 2)
+        errs.append(np.hypot(*(got - truth[r0 : r0 + 64].reshape(-1, 2)).T))
+    e = np.concatenate(errs)
+    ok = np.isfinite(e)
+    return {"centroid_error_p50_px": float(np.percentile(e[ok], 50)),
+            "centroid_error_p95_px": float(np.percentile(e[ok], 95)),
+            "centroid_valid_fraction": float(ok.mean())}
+
+
+def write_true_store(cfg, path: Path, depths=(60.0, 260.0), p: int = 24,
+                     noise: float = 1e-3) -> None:
+    """An LTC store of two depths: the bench's true LTC (Gaussian integrated over LCD pixels)
+    in P x P windows, plus Gaussian noise of std ``noise`` per weight."""
+    from scipy.special import ndtr
+
+    from station.ltc.store import centred_origins, create_ltc_store, mark_depth_complete
+
+    b = _bench(cfg)
+    c = b.config
+    w = c.camera_size[0]
+    h = b.rows[1] - b.rows[0]
+    k = b.K.copy()
+    k[1, 2] -= b.rows[0]
+    g = create_ltc_store(path, depths_mm=list(depths), camera_size=(w, h), period=p,
+                         pitch_mm=c.lcd_pitch_mm, lcd_size=c.lcd_size,
+                         attrs={"camera_matrix": k.tolist()})
+    rng = np.random.default_rng(0)
+    for i, z in enumerate(depths):
+        mu, mom = b.true_moments(z)
+        for r0 in range(0, h, 16):
+            m = mu[r0 : r0 + 16].reshape(-1, 2)
+            o = centred_origins(m, p)
+            f = b.field(z)
+            sx = np.sqrt(f["sxx"][r0 : r0 + 16].ravel())
+            sy = np.sqrt(f["syy"][r0 : r0 + 16].ravel())
+            x = o[:, 0, None] + np.arange(p + 1) - 0.5
+            y = o[:, 1, None] + np.arange(p + 1) - 0.5
+            wx = np.diff(ndtr((x - m[:, :1]) / sx[:, None]), axis=1)
+            wy = np.diff(ndtr((y - m[:, 1:]) / sy[:, None]), axis=1)
+            win = wy[:, :, None] * wx[:, None, :]  # axis-aligned: the test store's LTC
+            win = win / win.sum(axis=(1, 2), keepdims=True)
+            win += rng.normal(0.0, noise, win.shape)
+            n = len(m) // w
+            g["ltc"][i, r0 : r0 + n] = win.reshape(n, w, p, p)
+            g["origin"][i, r0 : r0 + n] = o.reshape(n, w, 2)
+            g["gain"][i, r0 : r0 + n] = 3000.0
+            g["noise"][i, r0 : r0 + n] = noise
+        mark_depth_complete(g, i, all_tiles=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, required=True, help="work folder (replaced)")
+    ap.add_argument("--rows", type=int, default=FULL_H, help="camera rows (crop, full width)")
+    ap.add_argument("--workers", type=int, default=None, help="reconstruction workers")
+    ap.add_argument("--dask-workers", type=int, default=8, help="N for the projection")
+    ap.add_argument("--stage", help=argparse.SUPPRESS)
+    ap.add_argument("--skip-lens", action="store_true")
+    a = ap.parse_args()
+    if a.stage:
+        print(json.dumps(stage(a.stage, a.out, a.rows, a.workers)))
+        return
+    if a.out.exists():
+        shutil.rmtree(a.out)
+    a.out.mkdir(parents=True)
+    r0 = (FULL_H - a.rows) // 2
+    (a.out / "bench.toml").write_text(CONFIG.format(depths=[140.0], r0=r0, r1=r0 + a.rows))
+    res: dict = {"rows": a.rows, "width": 4096, "cores": os.cpu_count(),
+                 "date": time.strftime("%Y-%m-%d")}
+    stages = ["capture", "acquire", "read", "reconstruct", "truth"] + ([] if a.skip_lens
+                                                                      else ["lens"])
+    for name in stages:
+        cmd = [sys.executable, __file__, "--out", str(a.out), "--rows", str(a.rows),
+               "--stage", name] + (["--workers", str(a.workers)] if a.workers else [])
+        t = time.perf_counter()
+        out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+        if out.returncode:
+            sys.exit(f"stage {name} failed:\n{out.stderr[-3000:]}")
+        res.update(json.loads(out.stdout.strip().splitlines()[-1]))
+        print(f"{name}: {time.perf_counter() - t:.1f} s", file=sys.stderr)
+    scale = FULL_H / a.rows
+    res["storage_cost_fraction"] = 1 - res["capture_fps_with_storage"] / res[
+        "capture_fps_no_storage"]
+    res["reconstruct_over_read"] = res["reconstruct_seconds"] / res["read_seconds"]
+    recon_full = res["reconstruct_seconds"] * scale
+    read_full = res["read_seconds"] * scale
+    acq_full = res["acquire_seconds"] * scale  # frame cost scales with the pixels rendered
+    res["projected_six_depths_this_machine_h"] = 6 * (acq_full + recon_full) / 3600
+    n = a.dask_workers
+    here = res["engine"]
+    res["projected_six_depths_reconstruct_dask_h"] = {
+        "workers": n, "hours": 6 * max(read_full, recon_full * (os.cpu_count() or 1) / n)
+        / 3600, "measured_engine": here}
+    print(json.dumps(res, indent=2))
+
+
+if __name__ == "__main__":
+    main()
