@@ -28,7 +28,15 @@ def run(args: argparse.Namespace) -> dict:
 
     if check_output(args.out, args.force).exists():
         shutil.rmtree(args.out) if args.out.is_dir() else args.out.unlink()
-    return reconstruct_ltc(args.run, args.out, tile_px=args.tile, progress=not args.quiet)
+    try:
+        return reconstruct_ltc(args.run, args.out, tile_px=args.tile, progress=not args.quiet)
+    except BaseException as exc:
+        # an LTC store is rebuilt from the run store in one go: an incomplete one (disk full,
+        # interrupted) is removed so that it neither passes for a result nor blocks a re-run
+        if args.out.exists():
+            shutil.rmtree(args.out, ignore_errors=True)
+            exc.add_note(f"removed the incomplete LTC store {args.out}")
+        raise
 
 
 def text(s: dict) -> str:
