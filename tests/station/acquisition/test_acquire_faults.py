@@ -19,9 +19,36 @@ from station.acquisition.acquire import acquire
 from station.acquisition.backend import Hardware, open_fake_hardware
 from station.cli import main
 from station.errors import StationError
-from test_acquire import read_store, small_config, small_text
+from station.acquisition.config import example_text, parse_config
 
 pytestmark = pytest.mark.timeout(240)
+
+SMALL = {  # the fake example cut down as in test_acquire.py: two depths, P = 4, coarse truth
+    "depths_mm = [40.0, 70.0, 130.0, 160.0]": "depths_mm = [40.0, 160.0]",
+    "period = 12": "period = 4",
+    "timeout_s = 2.0": "timeout_s = 0.05",
+    "pupil_samples = 200 ": "pupil_samples = 48 ",
+    "subpixels = 2": "subpixels = 1",
+}
+
+
+def small_text() -> str:
+    text = example_text("fake")
+    for old, new in SMALL.items():
+        assert old in text, old
+        text = text.replace(old, new, 1)
+    return text
+
+
+def small_config():
+    return parse_config(small_text(), "<small>")
+
+
+def read_store(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+    """The run store's arrays (read straight from zarr) and attributes."""
+    g = zarr.open_group(str(path), mode="r")
+    return {name: np.asarray(g[name][...]) for name in ("frames", "done", "retries", "code_mask",
+                                                        "camera_timestamp_s")}, dict(g.attrs)
 
 
 @pytest.fixture(scope="module")
