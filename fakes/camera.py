@@ -72,6 +72,7 @@ class CameraFaults:
     timeout: int = 0  # the next n captures raise CameraTimeout after the timeout
     drop: int = 0  # the next n frames are lost: the frame counter skips them
     stale: int = 0  # the next n captures return the previous frame again
+    garbage: int = 0  # the next n frames are one flat grey (a broken transfer): no check code
 
 
 class FakeCamera(Camera):
@@ -169,8 +170,12 @@ class FakeCamera(Camera):
         self._frame_id += 1
         if self.seed_per_scene and self.seed is not None:
             self.rng = np.random.default_rng([self.seed, *self.scene_key(z)])
+        image = self._digitise(self.expected_electrons(z))
+        if f.garbage > 0:
+            f.garbage -= 1
+            image = np.full_like(image, 2 ** (self.noise.bit_depth - 1))
         frame = Frame(
-            image=self._digitise(self.expected_electrons(z)),
+            image=image,
             timestamp=time.monotonic(),
             exposure_ms=self._exposure_ms,
             frame_id=self._frame_id,

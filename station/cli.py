@@ -88,8 +88,10 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(command, str(exc), 2)
     except KeyboardInterrupt:
         return _fail(command, "interrupted" + getattr(args, "resume_hint", ""), 130)
-    except OSError as exc:
-        return _fail(command, describe_os_error(exc), 1)
+    except OSError as exc:  # a full disk, a missing path: say what to do, and how to finish
+        message = describe_os_error(exc)
+        hint = getattr(args, "resume_hint", "")
+        return _fail(command, message if "--resume" in message else message + hint, 1)
     except (ValueError, StationError) as exc:
         return _fail(command, _one_line(exc), 1)
     except Exception as exc:

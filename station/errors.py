@@ -45,9 +45,11 @@ def describe_os_error(exc: OSError) -> str:
     where = f"{path}: " if path is not None else ""
     if exc.filename2 is not None:
         where = f"{exc.filename} -> {exc.filename2}: "
+    notes = "".join(f"; {n}" for n in getattr(exc, "__notes__", []))
     if exc.strerror is None and path is None:
-        return str(exc) + (f"; {hint}" if hint else "")
-    return f"{where}{reason[0].lower() + reason[1:] if reason else reason}" + (f"; {hint}" if hint else "")
+        return str(exc) + (f"; {hint}" if hint else "") + notes
+    return (f"{where}{reason[0].lower() + reason[1:] if reason else reason}"
+            + (f"; {hint}" if hint else "") + notes)
 
 
 def check_output(path: str | os.PathLike, force: bool, option: str = "--out") -> Path:

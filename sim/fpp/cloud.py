@@ -21,6 +21,7 @@ PLY_TYPES = {
     "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
+MAX_HEADER_LINES = 10_000  # a header longer than this is not a PLY header
 FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 
 
@@ -60,7 +61,7 @@ def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
     if f.readline().strip() != b"ply":
         raise ValueError(f"{path}: not a PLY file (no 'ply' magic line)")
     fmt, count, props, element = None, None, [], None
-    while True:
+    for number in range(2, MAX_HEADER_LINES):
         line = f.readline()
         if not line:
             raise ValueError(f"{path}: PLY header has no end_header")
@@ -69,25 +70,59 @@ def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
             continue
         if words[0] == "end_header":
             break
+        where = f"{path}: PLY header line {number} {' '.join(words)!r}"
         if words[0] == "format":
             fmt = words[1] if len(words) > 1 else ""
             if fmt not in FORMATS:
                 raise ValueError(f"{path}: unknown PLY format '{fmt}'")
         elif words[0] == "element":
+            if len(words) != 3:
+                raise ValueError(f"{where}: expected 'element NAME COUNT'")
             if element is None and words[1] != "vertex":
                 raise ValueError(f"{path}: the first PLY element must be 'vertex', got '{words[1]}'")
             element = words[1]
             if element == "vertex":
+                if not words[2].isdigit():
+                    raise ValueError(f"{where}: the vertex count must be an integer >= 0")
                 count = int(words[2])
         elif words[0] == "property" and element == "vertex":
-            if words[1] == "list":
+            if len(words) >= 2 and words[1] == "list":
                 raise ValueError(f"{path}: list property '{words[-1]}' in the vertex element")
+            if len(words) != 3:
+                raise ValueError(f"{where}: expected 'property TYPE NAME'")
             if words[1] not in PLY_TYPES:
                 raise ValueError(f"{path}: unknown PLY type '{words[1]}' of property '{words[2]}'")
+            if words[2] in [n for n, _ in props]:
+                raise ValueError(f"{path}: vertex property '{words[2]}' appears twice")
             props.append((words[2], PLY_TYPES[words[1]]))
+    else:
+        raise ValueError(f"{path}: PLY header has no end_header in {MAX_HEADER_LINES} lines")
     if fmt is None or count is None:
         raise ValueError(f"{path}: PLY header lacks a format line or a vertex element")
+    if count == 0:
+        raise ValueError(f"{path}: the PLY file has 0 vertices; a point cloud needs at least one "
+                         "point")
     return fmt, count, props
+
+
+def _ascii_rows(f, path: Path, count: int, n: int) -> np.ndarray:
+    """``count`` ASCII vertex rows of ``n`` values, read until the count or the end of the
+    file (a count larger than the file never loops past its end)."""
+    rows = []
+    for line in f:
+        if len(rows) == count:
+            break
+        values = line.split()
+        if len(values) != n:
+            raise ValueError(f"{path}: vertex row {len(rows)} has {len(values)} values, the "
+                             f"header declares {n} properties")
+        rows.append(values)
+    if len(rows) < count:
+        raise ValueError(f"{path}: file ends after {len(rows)} of {count} vertex rows")
+    try:
+        return np.array(rows, dtype=np.float64).reshape(count, n)
+    except ValueError as exc:
+        raise ValueError(f"{path}: malformed ASCII vertex rows: {exc}") from exc
 
 
 def read_ply(path: str | Path) -> PointCloud:
@@ -101,13 +136,7 @@ def read_ply(path: str | Path) -> PointCloud:
         if not {"x", "y", "z"} <= set(names):
             raise ValueError(f"{path}: the vertex element needs properties x, y and z, has {names}")
         if FORMATS[fmt] is None:
-            rows = [f.readline().split() for _ in range(count)]
-            try:
-                data = np.array(rows, dtype=np.float64)
-            except ValueError as exc:
-                raise ValueError(f"{path}: malformed ASCII vertex rows: {exc}") from exc
-            if data.shape != (count, len(props)):
-                raise ValueError(f"{path}: expected {count} vertex rows of {len(props)} values")
+            data = _ascii_rows(f, path, count, len(props))
             col = {n: data[:, i] for i, n in enumerate(names)}
         else:
             dt = np.dtype([(n, FORMATS[fmt] + t) for n, t in props])

@@ -72,6 +72,18 @@ def _from_zarr(path: Path) -> tuple[list[np.ndarray], dict | None]:
     return stacks, dict(root.attrs).get("summary", {}).get("pattern_set")
 
 
+def load_pattern_set(path: Path) -> object:
+    """A pattern set from a JSON file (``sim.render.fringe_patterns``); errors name the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ScanInputError(f"{path}: not found")
+    try:
+        raw = json.loads(path.read_bytes())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ScanInputError(f"{path}: not valid JSON: {exc}") from exc
+    return _pattern_set(raw, str(path))
+
+
 def load_scan_input(images: Path, patterns: Path | None = None) -> tuple[list[np.ndarray], object]:
     """The two cameras' image stacks (n, H, W) and the pattern set of a scan input."""
     if not images.exists():
@@ -82,7 +94,14 @@ def load_scan_input(images: Path, patterns: Path | None = None) -> tuple[list[np
     elif (images / "camera_0").is_dir() and any((images / "camera_0").iterdir()):
         stacks = [_read_stack(images / f"camera_{i}") for i in range(2)]
         if (images / "summary.json").is_file():
-            raw = json.loads((images / "summary.json").read_text()).get("pattern_set")
+            summary = images / "summary.json"
+            try:
+                raw = json.loads(summary.read_bytes())
+            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+                raise ScanInputError(f"{summary}: not valid JSON: {exc}") from exc
+            if not isinstance(raw, dict):
+                raise ScanInputError(f"{summary}: expected a JSON object (the render summary)")
+            raw = raw.get("pattern_set")
     elif (images / "render.zarr").is_dir():
         stacks, raw = _from_zarr(images / "render.zarr")
     else:
@@ -91,13 +110,7 @@ def load_scan_input(images: Path, patterns: Path | None = None) -> tuple[list[np
             "image folders"
         )
     if patterns is not None:
-        if not patterns.is_file():
-            raise ScanInputError(f"{patterns}: not found")
-        try:
-            raw = json.loads(patterns.read_text())
-        except json.JSONDecodeError as exc:
-            raise ScanInputError(f"{patterns}: not valid JSON: {exc}") from exc
-        return stacks, _pattern_set(raw, str(patterns))
+        return stacks, load_pattern_set(patterns)
     if raw is None:
         raise ScanInputError(f"{images}: no pattern set recorded; give it with --patterns FILE.json")
     return stacks, _pattern_set(raw, f"{images}: pattern_set")

@@ -36,6 +36,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -267,7 +268,8 @@ def load_lens(path: str | Path) -> MeasuredLens:
     try:
         with np.load(path, allow_pickle=False) as npz:
             data = {k: npz[k] for k in npz.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+    except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, KeyError,
+            NotImplementedError) as exc:  # NotImplementedError: an unknown zip compression
         raise LensFileError(f"{path}: not a readable measured-lens .npz file ({exc})") from exc
     try:
         missing = [k for k in REQUIRED if k not in data]
@@ -289,9 +291,17 @@ def load_lens(path: str | Path) -> MeasuredLens:
             except json.JSONDecodeError as exc:
                 raise LensFileError(f"field 'metadata_json' is not JSON ({exc})") from exc
         for name in ("node_u", "node_v", "aperture_x_mm", "aperture_y_mm", "weights",
-                     "transmittance", "optical_centre_mm", "camera_size"):
-            if not np.issubdtype(data[name].dtype, np.number):
-                raise LensFileError(f"field '{name}' must be numeric, got dtype {data[name].dtype}")
+                     "transmittance", "optical_centre_mm", "camera_matrix", "dist_coeffs"):
+            dtype = data[name].dtype if name in data else np.dtype(float)
+            if not (np.issubdtype(dtype, np.floating) or np.issubdtype(dtype, np.integer)):
+                raise LensFileError(f"field '{name}' must be real numbers, got dtype {dtype}")
+        size = data["camera_size"]
+        if not np.issubdtype(size.dtype, np.integer) or size.shape != (2,):
+            raise LensFileError(f"field 'camera_size' must be 2 integers (width, height), got "
+                                f"dtype {size.dtype}, shape {size.shape}")
+        if not isinstance(meta, dict):
+            raise LensFileError(f"field 'metadata_json' must hold a JSON object, got "
+                                f"{type(meta).__name__}")
         return MeasuredLens(
             focus_distance_mm=_scalar(data, "focus_distance_mm", float),
             optical_centre_mm=data["optical_centre_mm"],

@@ -47,10 +47,14 @@ from sim.validation import format_validation_error
 
 YAML_SUFFIXES = (".yaml", ".yml", ".xml")
 DEVICE_NODES = ("camera_0", "camera_1", "projector")
+OPENCV_DTYPES = ("u", "c", "w", "s", "i", "f", "d")  # opencv-matrix element types, one channel
 
 
 def _matrix(value, shape: tuple[int, ...], what: str) -> list:
-    a = np.asarray(value, dtype=np.float64)
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{what} must be {math.prod(shape)} numbers {shape}, got {value!r}") from None
     if a.size != math.prod(shape):
         raise ValueError(f"{what} must have {math.prod(shape)} values {shape}, got shape {a.shape}")
     a = a.reshape(shape)
@@ -180,7 +184,7 @@ class Rig(BaseModel):
         suffix = path.suffix.lower()
         if suffix == ".json":
             try:
-                return cls.model_validate_json(path.read_text())
+                return cls.model_validate_json(path.read_bytes())
             except ValidationError as exc:
                 raise ValueError(format_validation_error(str(path), exc)) from exc
         if suffix in YAML_SUFFIXES:
@@ -229,16 +233,21 @@ def _node_matrix(parent: cv2.FileNode, key: str, path: Path, where: str, n: int)
     """An opencv-matrix node, or a flat sequence of numbers, with ``n`` values."""
     node = _node(parent, key, path, where)
     if node.isSeq():
-        items = [node.at(i) for i in range(node.size())]
-        if not all(it.isReal() or it.isInt() for it in items):
-            raise ValueError(f"rig file {path}: node '{where}/{key}' must hold numbers only")
-        m = np.array([it.real() for it in items])
+        m = _numbers(node, path, f"{where}/{key}")
     elif node.isMap():
-        try:
-            m = node.mat()
-        except cv2.error as exc:
-            raise ValueError(f"rig file {path}: node '{where}/{key}' is not a valid "
-                             "opencv-matrix") from exc
+        # read rows, cols, dt and data here: OpenCV's FileNode.mat() aborts the process on
+        # some malformed matrices (found by tests/sim/test_sim_opener_fuzz.py)
+        at = f"{where}/{key}"
+        rows, cols = _node_int(node, "rows", path, at), _node_int(node, "cols", path, at)
+        dt = node.getNode("dt")
+        if not dt.isString() or dt.string() not in OPENCV_DTYPES:
+            raise ValueError(f"rig file {path}: node '{at}/dt' must be one of "
+                             f"{', '.join(OPENCV_DTYPES)} (one channel)")
+        m = _numbers(_node(node, "data", path, at), path, f"{at}/data")
+        if rows < 0 or cols < 0 or rows * cols != m.size:
+            raise ValueError(f"rig file {path}: node '{at}' is not a valid opencv-matrix: rows "
+                             f"{rows} x cols {cols} but "
+                             f"{m.size} data values")
     else:
         raise ValueError(f"rig file {path}: node '{where}/{key}' must be an opencv-matrix or a sequence")
     if m is None or m.size != n:
@@ -246,6 +255,15 @@ def _node_matrix(parent: cv2.FileNode, key: str, path: Path, where: str, n: int)
         raise ValueError(f"rig file {path}: node '{where}/{key}' must have {n} values, "
                          f"got shape {shape}")
     return m.astype(np.float64).ravel()
+
+
+def _numbers(node: cv2.FileNode, path: Path, where: str) -> np.ndarray:
+    if not node.isSeq():
+        raise ValueError(f"rig file {path}: node '{where}' must be a sequence of numbers")
+    items = [node.at(i) for i in range(node.size())]
+    if not all(it.isReal() or it.isInt() for it in items):
+        raise ValueError(f"rig file {path}: node '{where}' must hold numbers only")
+    return np.array([it.real() for it in items], dtype=np.float64)
 
 
 def _node_int(parent: cv2.FileNode, key: str, path: Path, where: str) -> int:
@@ -261,6 +279,19 @@ def _read_filestorage(path: Path) -> Rig:
     except (cv2.error, SystemError) as exc:  # the binding wraps parse errors in SystemError
         cause = str(exc.__cause__ or exc).strip().splitlines()[-1]
         raise ValueError(f"rig file {path}: not a readable OpenCV FileStorage file: {cause}") from exc
+    try:
+        return _rig_from_filestorage(fs, path)
+    except (cv2.error, UnicodeDecodeError) as exc:  # a string node that is not UTF-8
+        cause = " ".join(str(exc).split())
+        raise ValueError(f"rig file {path}: not a readable OpenCV FileStorage rig: {cause}") from exc
+    finally:
+        fs.release()
+
+
+def _rig_from_filestorage(fs: cv2.FileStorage, path: Path) -> Rig:
+    if not fs.root().isMap():
+        raise ValueError(f"rig file {path}: the top level must be a map of the nodes "
+                         f"{', '.join(DEVICE_NODES)}")
     devices = []
     for where in DEVICE_NODES:
         dev = _node(fs.root(), where, path, "")
@@ -282,7 +313,6 @@ def _read_filestorage(path: Path) -> Rig:
             devices.append(DeviceCalibration(**fields))
         except ValidationError as exc:
             raise ValueError(format_validation_error(f"rig file {path}: node '{where}'", exc)) from exc
-    fs.release()
     try:
         return Rig(cameras=devices[:2], projector=devices[2])
     except ValidationError as exc:

@@ -33,7 +33,13 @@ from typing import Annotated, Any, Literal
 import numpy as np
 import tomllib
 import trimesh
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+)
 
 from sim.render.fringe_patterns import PatternSet
 from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens
@@ -75,7 +81,7 @@ class Pose(BaseModel):
 
 
 class _Object(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     name: str = Field("", description="label for reports")
     albedo: float = Field(0.8, ge=0, le=1, description="diffuse reflectance")
     pose: Pose = Field(default_factory=Pose, description="object to world")
@@ -153,17 +159,33 @@ class MeshObject(_Object):
             raise ValueError(f"field 'path': mesh file {self.path} must be PLY, STL or OBJ")
         if not self.path.is_file():
             raise FileNotFoundError(f"field 'path': mesh file {self.path} not found")
-        mesh = trimesh.load(self.path, force="mesh", process=False)
-        v = np.asarray(mesh.vertices)
-        if len(mesh.faces) == 0:
-            raise ValueError(f"field 'path': mesh file {self.path} has no triangles")
-        if not np.all(np.isfinite(v)):
-            bad = int(np.sum(~np.all(np.isfinite(v), axis=1)))
-            raise ValueError(f"field 'path': mesh file {self.path} has {bad} non-finite vertices")
+        mesh = load_mesh(self.path, where="field 'path': ")
         mesh.apply_scale(self.scale)
         mesh.merge_vertices()
         angle = np.radians(self.smooth_angle_deg)
         return [trimesh.graph.smooth_shade(mesh, angle=angle, facet_minarea=None)]
+
+
+def load_mesh(path: Path, where: str = "") -> trimesh.Trimesh:
+    """The triangle mesh of a PLY, STL (ASCII or binary) or OBJ file, unprocessed, in file
+    units; errors (ValueError) start with ``where`` and name the file and the problem."""
+    what = f"{where}mesh file {path}"
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # noqa: BLE001 - the parsers raise anything on a bad file
+        detail = " ".join(str(exc).split())[:200] or type(exc).__name__
+        raise ValueError(f"{what} cannot be read as {path.suffix[1:].upper()}: {detail}") from exc
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise ValueError(f"{what} holds no triangle mesh")
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if v.ndim != 2 or v.shape[1] != 3 or not np.all(np.isfinite(v)):
+        bad = int(np.sum(~np.all(np.isfinite(v.reshape(len(v), -1)), axis=1)))
+        raise ValueError(f"{what} has {bad} non-finite vertices (NaN or infinite coordinates)")
+    if len(f) == 0:
+        raise ValueError(f"{what} has no triangles ({len(v)} vertices in use)")
+    if f.ndim != 2 or f.shape[1] != 3 or f.min() < 0 or f.max() >= len(v):
+        raise ValueError(f"{what} has faces that are not triangles of its {len(v)} vertices")
+    return mesh
 
 
 SceneObject = Annotated[SphereObject | BallBarObject | PlaneObject | MeshObject,
@@ -199,6 +221,13 @@ class Scene(BaseModel):
                 is_sphere = o.kind in ("sphere", "ball_bar")
                 face_sph.append(np.full(nf, len(spheres) + j if is_sphere else -1, np.int64))
             spheres.extend(o.spheres())
+        try:
+            return self._geometry(verts, faces, normals, albedo, obj, face_sph, spheres)
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from exc
+
+    @staticmethod
+    def _geometry(verts, faces, normals, albedo, obj, face_sph, spheres) -> TraceGeometry:
         return TraceGeometry(np.concatenate(verts), np.concatenate(faces), np.concatenate(normals),
                              np.concatenate(albedo), np.concatenate(obj),
                              np.asarray(spheres, dtype=np.float64).reshape(-1, 4),
@@ -248,7 +277,7 @@ class SceneFile(BaseModel):
         out = []
         for i, spec in enumerate(v if isinstance(v, list) else []):
             kind = spec.get("kind") if isinstance(spec, dict) else None
-            if kind not in LENS_KINDS:
+            if not isinstance(kind, str) or kind not in LENS_KINDS:
                 raise ValueError(f"lenses[{i}]: unknown lens kind {kind!r}, "
                                  f"expected one of {', '.join(LENS_KINDS)}")
             try:
@@ -351,8 +380,8 @@ def load_scene_file(path: str | Path) -> LoadedScene:
     if not path.is_file():
         raise FileNotFoundError(f"scene file {path} not found")
     try:
-        raw = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path}: not valid TOML: {exc}") from exc
     try:
         cfg = SceneFile.model_validate(raw)

@@ -57,6 +57,7 @@ from zarr.codecs import BytesCodec, Crc32cCodec
 from zarr.core.sync import sync as zarr_sync
 
 from station.acquisition.patterns import StationPatternPlan, apply_lut
+from station.acquisition.store_attrs import RunStoreAttrs, check_attrs, open_zarr_group
 
 CODE_MASK = "code_mask"  # array [depth, row, col] bool: camera pixels that see the check code
 
@@ -359,10 +360,7 @@ class RunStore:
             raise RunStoreError(f"{path}: mode must be 'r' or 'r+', got {mode!r}")
         if not path.exists():
             raise RunStoreError(f"{path}: no such run store")
-        try:
-            g = zarr.open_group(str(path), mode=mode)
-        except (FileNotFoundError, ValueError, KeyError) as exc:
-            raise RunStoreError(f"{path}: not a zarr group ({exc})") from exc
+        g = open_zarr_group(path, mode, RunStoreError, "run store")
         a = g.attrs
         if a.get("format") != FORMAT:
             raise RunStoreError(f"{path}: attribute 'format' is {a.get('format')!r}, "
@@ -382,6 +380,7 @@ class RunStore:
         missing = [k for k in keys if k not in a]
         if missing:
             raise RunStoreError(f"{path}: missing attribute(s) {missing}")
+        check_attrs(path, a, RunStoreAttrs, RunStoreError)
         try:
             plan = StationPatternPlan.model_validate(a["pattern_set"])
         except pydantic.ValidationError as exc:

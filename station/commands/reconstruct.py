@@ -37,6 +37,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> dict:
     from station.api import reconstruct_ltc
 
+    args.resume_hint = f"; finish with: ltc reconstruct {args.run} --out {args.out} --resume"
     if args.resume and args.force:
         raise UsageError("--resume and --force exclude each other (--force starts afresh)")
     if not args.resume and check_output(args.out, args.force).exists():

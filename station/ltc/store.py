@@ -38,6 +38,8 @@ import numpy as np
 import scipy.sparse as sp
 import zarr
 
+from station.acquisition.store_attrs import LtcStoreAttrs, check_attrs, open_zarr_group
+
 FORMAT = "ltc-store"
 FORMAT_VERSION = 2
 TILE_STATS = ("valid_px", "gain_median_adu", "noise_median", "edge_mass_p95")
@@ -109,10 +111,7 @@ def open_ltc_store(path: str | Path, mode: str = "r") -> zarr.Group:
     path = Path(path)
     if not path.exists():
         raise LtcStoreError(f"{path}: no such LTC store")
-    try:
-        g = zarr.open_group(str(path), mode=mode)
-    except (FileNotFoundError, ValueError, KeyError) as exc:
-        raise LtcStoreError(f"{path}: not a zarr group ({exc})") from exc
+    g = open_zarr_group(path, mode, LtcStoreError, "LTC store")
     if g.attrs.get("format") != FORMAT:
         raise LtcStoreError(f"{path}: attribute 'format' is {g.attrs.get('format')!r}, "
                             f"expected {FORMAT!r}")
@@ -120,6 +119,7 @@ def open_ltc_store(path: str | Path, mode: str = "r") -> zarr.Group:
         raise LtcStoreError(f"{path}: attribute 'format_version' is "
                             f"{g.attrs.get('format_version')!r}, expected {FORMAT_VERSION}; "
                             "reconstruct it again with this version (`ltc reconstruct`)")
+    check_attrs(path, g.attrs, LtcStoreAttrs, LtcStoreError)
     missing = [a for a in ARRAYS + ("tile_done", "tile_stats") if a not in g]
     if missing:
         raise LtcStoreError(f"{path}: missing array(s) {missing}")

@@ -280,9 +280,9 @@ def test_ply_round_trip(tmp_path):
         (b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
          b"property float z\nend_header\n" + bytes(12), "ends after 1 of 2 vertices"),
         ((b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
-          b"end_header\n1 2 3\n4 5\n"), "malformed ASCII vertex rows"),
+          b"end_header\n1 2 3\n4 5\n"), "vertex row 1 has 2 values, the header declares 3"),
         ((b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
-          b"end_header\n1 2\n4 5\n"), "expected 2 vertex rows of 3 values"),
+          b"end_header\n1 2\n4 5\n"), "vertex row 0 has 2 values, the header declares 3"),
     ],
 )
 def test_read_ply_errors(tmp_path, content, message):
