@@ -33,6 +33,8 @@ COMMAND_MODULES = (
     "render",
     "scan",
     "measure",
+    "experiment",
+    "demo",
 )
 
 
