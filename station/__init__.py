@@ -12,6 +12,8 @@ The Python API for lab scripts (``station.api``, ``station.sequence``; names loa
     station.reconstruct_ltc("run.zarr", "ltc.zarr")
     station.derive_lens("ltc.zarr").lens.save("lens.npz")
     station.run_sequence(config, "night/")
+    station.run_experiment(station.ExperimentConfig(), "exp/")   # the paper's experiment
+    station.run_demo()                                          # ltc demo
 
 Stages, earliest first: ``station.acquisition`` -> ``station.ltc`` -> ``station.lens``.
 """
@@ -30,6 +32,10 @@ _EXPORTS = {
     "reconstruct_ltc": "api",
     "derive_lens": "api",
     "run_sequence": "sequence",
+    "ExperimentConfig": "experiment.run",
+    "load_experiment_config": "experiment.run",
+    "run_experiment": "experiment.run",
+    "run_demo": "experiment.demo",
     "StationConfig": "acquisition.config",
     "ConfigError": "acquisition.config",
     "LensResult": "lens.derive",
@@ -43,6 +49,8 @@ if TYPE_CHECKING:
     from station.api import Bench, acquire, derive_lens, load_config, open_bench, reconstruct_ltc
     from station.errors import StationError, UsageError
     from station.lens.derive import LensResult
+    from station.experiment.demo import run_demo
+    from station.experiment.run import ExperimentConfig, load_experiment_config, run_experiment
     from station.sequence import run_sequence
 
 
