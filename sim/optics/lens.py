@@ -164,19 +164,25 @@ class AberratedLens(BaseModel):
         r_clip = self.vignetting_radius_ratio * self.pupil_radius_mm
         shape = (len(xy_n),) + pupil.shape[-2:-1]
         if self.vignetting_shift_mm == 0 and pupil.ndim == 2:  # the same for every pixel
-            inside = self._inside(np.sum(pupil**2, axis=-1), r_clip, pupil.shape[-2])
+            inside = self._inside(np.sum(pupil**2, axis=-1), r_clip, pupil)
             return np.broadcast_to(inside, shape).copy()
         cx = self.vignetting_shift_mm * xy_n[:, 0, None]
         cy = self.vignetting_shift_mm * xy_n[:, 1, None]
         ex, ey = pupil[..., 0] - cx, pupil[..., 1] - cy
-        return self._inside(ex * ex + ey * ey, r_clip, pupil.shape[-2])
+        return self._inside(ex * ex + ey * ey, r_clip, pupil)
 
-    def _inside(self, r2: np.ndarray, r_clip: float, k: int) -> np.ndarray:
-        """Transmission (float64) of points at squared distance ``r2`` from the clip centre."""
+    def _inside(self, r2: np.ndarray, r_clip: float, pupil: np.ndarray) -> np.ndarray:
+        """Transmission (float64) of pupil points (..., K, 2) at squared distance ``r2`` from
+        the clip centre. Soft: the fraction of a sample's cell (one spacing wide) inside the
+        clip circle, over the fraction inside the pupil (the samples already tile the pupil,
+        so a rim sample is cut only where the clip circle runs inside the pupil's rim)."""
         if self.edge == "hard":
             return (r2 <= r_clip**2).astype(np.float64)
-        spacing = self.pupil_radius_mm * np.sqrt(np.pi / k)
-        return np.clip(0.5 + (r_clip - np.sqrt(r2)) / spacing, 0.0, 1.0)
+        spacing = self.pupil_radius_mm * np.sqrt(np.pi / pupil.shape[-2])
+        clip = np.clip(0.5 + (r_clip - np.sqrt(r2)) / spacing, 0.0, 1.0)
+        rim = np.clip(0.5 + (self.pupil_radius_mm - np.hypot(pupil[..., 0], pupil[..., 1]))
+                      / spacing, 0.5, 1.0)
+        return np.minimum(clip / rim, 1.0)
 
     def bundle_from_pupil(
         self, xy_n: np.ndarray, unit_disk: np.ndarray

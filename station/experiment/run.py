@@ -74,7 +74,7 @@ class ExperimentConfig(BaseModel):
     focus_distance_mm: float = Field(760.0, gt=0, description="paraxial focus distance of "
                                      "both true lenses, mm")
     lenses: tuple[LensSpec, LensSpec] = Field(
-        (LensSpec(), LensSpec(vignetting_shift_mm=-20.0, vignetting_radius_ratio=0.9,
+        (LensSpec(), LensSpec(vignetting_shift_mm=20.0, vignetting_radius_ratio=0.9,
                               spherical_mm=8.0)),
         description="the ground-truth lenses of camera 0 and camera 1")
     # the station

