@@ -9,13 +9,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from validation import write_readme  # noqa: E402
+from station.experiment.report import tables
 
-from station.experiment.report import tables  # noqa: E402
+README = Path(__file__).resolve().with_name("README.md")
 
 SECTION = "## Experiment: measured LTC vs Gaussian (ltc experiment)"
 
@@ -57,6 +55,22 @@ def section(res: dict, command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def write_readme(text: str, path: Path = README) -> None:
+    """Replace the section starting at ``SECTION`` (up to the next ``## `` heading) with
+    ``text``, or insert it before "## Tracing throughput"; nothing else changes."""
+    lines = path.read_text().splitlines()
+    new = text.strip().splitlines() + [""]
+    if SECTION in lines:
+        start = lines.index(SECTION)
+        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")),
+                   len(lines))
+        lines[start:end] = new
+    else:
+        at = next((i for i, ln in enumerate(lines) if ln.startswith("## Tracing")), len(lines))
+        lines[at:at] = new
+    path.write_text("\n".join(lines) + "\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("results", type=Path, help="results.json of the run")
@@ -64,13 +78,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="the command that made it (shown in the section)")
     args = ap.parse_args(argv)
     res = json.loads(args.results.read_text())
-    global SECTION
-    import validation
-    validation.SECTION, old = SECTION, validation.SECTION
-    try:
-        write_readme(section(res, args.command))
-    finally:
-        validation.SECTION = old
+    write_readme(section(res, args.command))
     print(f"README section '{SECTION}' written")
     return 0
 
