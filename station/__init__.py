@@ -12,6 +12,8 @@ The Python API for lab scripts (``station.api``, ``station.sequence``; names loa
     station.reconstruct_ltc("run.zarr", "ltc.zarr")
     station.derive_lens("ltc.zarr").lens.save("lens.npz")
     station.run_sequence(config, "night/")
+    station.run_experiment(station.ExperimentConfig(), "exp/")   # the paper's experiment
+    station.run_demo()                                          # ltc demo
 
 Stages, earliest first: ``station.acquisition`` -> ``station.ltc`` -> ``station.lens``.
 """
@@ -23,6 +25,8 @@ from sim._lazy import lazy_exports
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "api": "Bench open_bench load_config acquire reconstruct_ltc derive_lens",
     "sequence": "run_sequence",
+    "experiment.run": "ExperimentConfig load_experiment_config run_experiment",
+    "experiment.demo": "run_demo",
     "acquisition.config": "StationConfig ConfigError",
     "lens.derive": "LensResult",
     "errors": "StationError UsageError",

@@ -36,6 +36,8 @@ COMMAND_MODULES = (
     "render",
     "scan",
     "measure",
+    "experiment",
+    "demo",
 )
 
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -144,26 +144,45 @@ class AberratedLens(BaseModel):
         "laterally by coma_mm * (rho / rho_max)^2 per unit tan(field angle), mm",
     )
     samples: int = Field(64, ge=1, description="aperture samples per pixel (Vogel spiral)")
+    edge: Literal["hard", "soft"] = Field(
+        "hard", description="how a sample meets the clipping circle: 'hard' (weight 1 inside, "
+        "0 outside) or 'soft' (weight ramps from 1 to 0 over one sample spacing across the "
+        "circle: the fraction of the sample's cell inside, to first order); 'soft' moves the "
+        "weights continuously with the field and converges far faster, to the same limit")
 
     @property
     def pupil_radius_mm(self) -> float:
         return 0.5 * self.pupil_diameter_mm
 
     def transmission(self, xy_n: np.ndarray, pupil_xy_mm: np.ndarray) -> np.ndarray:
-        """1 where a pupil point (n, K, 2) mm passes the field-shifted clipping circle, else 0.
-        ``pupil_xy_mm`` may also be (K, 2), the same points for every pixel."""
+        """1 where a pupil point (n, K, 2) mm passes the field-shifted clipping circle, else 0
+        (``edge = "soft"``: a linear ramp of width ``pupil radius sqrt(pi / K)``, one sample
+        spacing, across the circle). ``pupil_xy_mm`` may also be (K, 2), the same points for
+        every pixel."""
         xy_n = np.asarray(xy_n, dtype=np.float64).reshape(-1, 2)
         pupil = np.asarray(pupil_xy_mm, dtype=np.float64)
         r_clip = self.vignetting_radius_ratio * self.pupil_radius_mm
         shape = (len(xy_n),) + pupil.shape[-2:-1]
         if self.vignetting_shift_mm == 0 and pupil.ndim == 2:  # the same for every pixel
-            inside = np.sum(pupil**2, axis=-1) <= r_clip**2
-            return np.broadcast_to(inside.astype(np.float64), shape).copy()
+            inside = self._inside(np.sum(pupil**2, axis=-1), r_clip, pupil)
+            return np.broadcast_to(inside, shape).copy()
         cx = self.vignetting_shift_mm * xy_n[:, 0, None]
         cy = self.vignetting_shift_mm * xy_n[:, 1, None]
         ex, ey = pupil[..., 0] - cx, pupil[..., 1] - cy
-        inside = ex * ex + ey * ey <= r_clip**2
-        return inside.astype(np.float64)
+        return self._inside(ex * ex + ey * ey, r_clip, pupil)
+
+    def _inside(self, r2: np.ndarray, r_clip: float, pupil: np.ndarray) -> np.ndarray:
+        """Transmission (float64) of pupil points (..., K, 2) at squared distance ``r2`` from
+        the clip centre. Soft: the fraction of a sample's cell (one spacing wide) inside the
+        clip circle, over the fraction inside the pupil (the samples already tile the pupil,
+        so a rim sample is cut only where the clip circle runs inside the pupil's rim)."""
+        if self.edge == "hard":
+            return (r2 <= r_clip**2).astype(np.float64)
+        spacing = self.pupil_radius_mm * np.sqrt(np.pi / pupil.shape[-2])
+        clip = np.clip(0.5 + (r_clip - np.sqrt(r2)) / spacing, 0.0, 1.0)
+        rim = np.clip(0.5 + (self.pupil_radius_mm - np.hypot(pupil[..., 0], pupil[..., 1]))
+                      / spacing, 0.5, 1.0)
+        return np.minimum(clip / rim, 1.0)
 
     def bundle_from_pupil(
         self, xy_n: np.ndarray, unit_disk: np.ndarray

@@ -6,11 +6,11 @@ import sys
 
 import pytest
 
-PACKAGES = ("station.acquisition", "station.ltc", "station.lens")
+PACKAGES = ("station.acquisition", "station.ltc", "station.lens", "station.experiment")
 
 
 def test_importing_the_packages_loads_no_heavy_module():
-    code = ("import sys, station.acquisition, station.ltc, station.lens; "
+    code = ("import sys, station.acquisition, station.ltc, station.lens, station.experiment; "
             "print(','.join(m for m in ('zarr', 'matplotlib', 'numba', 'scipy') "
             "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

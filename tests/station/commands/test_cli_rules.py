@@ -39,6 +39,8 @@ MISSING = {
     "render": ["render", "{d}/none.toml", "--out", "{d}/render"],
     "scan": ["scan", "{d}/none", "--rig", "{d}/none.yaml", "--out", "{d}/c.ply"],
     "measure": ["measure", "{d}/none.ply", "--sphere"],
+    "experiment": ["experiment", "{d}/none.toml", "--out", "{d}/exp"],
+    "demo": ["demo", "--config", "{d}/none.toml", "--out", "{d}/demo"],
 }
 
 
@@ -69,6 +71,8 @@ OUTPUTS = {
     "measure": (["measure", "{d}/c.ply", "--against", "{d}/c2.ply", "--png", "{o}"], "--force"),
     "check": (["check", "--fake", "--out", "{od}"], "--force"),
     "run": (["run", "{cfg}", "--out", "{od}"], "--out"),
+    "experiment": (["experiment", "--out", "{od}"], "--out"),
+    "demo": (["demo", "--out", "{od}"], "--out"),
 }
 
 

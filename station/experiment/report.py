@@ -1,0 +1,277 @@
+"""The experiment's report: ``report.md`` with PNG figures in ``figures/`` (the paper's
+Tables 4, 5 and 6; real and virtual fringe images with intensity- and phase-difference maps;
+distance maps per position; the CAD error map; the station's lens figures)."""
+
+from __future__ import annotations
+
+import os
+import textwrap
+from pathlib import Path
+
+import numpy as np
+
+from station.experiment.run import (BALLBAR_LENGTH_MM, MODELS, SPHERE_DIAMETER_MM, VIRTUAL,
+                                    ExperimentConfig)
+
+LABELS = {"real": "real", "ltc": "measured LTC", "gaussian": "Gaussian", "pinhole": "pinhole"}
+
+
+def _figure(size: tuple[float, float]):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=size, dpi=100)
+
+
+def wrapped_phase(images: np.ndarray, steps: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Wrapped phase (H, W) rad and modulation of the last ``steps`` images (the finest
+    period): ``atan2(sum I_i sin(2 pi i / N), sum I_i cos(2 pi i / N))``."""
+    stack = np.asarray(images[-steps:], dtype=np.float64)
+    a = 2 * np.pi * np.arange(steps) / steps
+    s = np.tensordot(np.sin(a), stack, axes=1)
+    c = np.tensordot(np.cos(a), stack, axes=1)
+    return np.arctan2(s, c), 2 * np.hypot(s, c) / steps
+
+
+def fringe_figure(images: dict, path: Path) -> Path:
+    """Camera 0's finest fringe image, real and virtual side by side, with the per-pixel
+    intensity difference and the wrapped-phase difference of each virtual scanner."""
+    fig = _figure((15, 9))
+    axes = fig.subplots(3, 4)
+    real = np.asarray(images["real"][-4], dtype=np.float64)
+    phase_real, mod = wrapped_phase(images["real"])
+    mask = mod > 0.05 * mod.max()
+    for j, n in enumerate(MODELS):
+        img = np.asarray(images[n][-4], dtype=np.float64)
+        axes[0, j].imshow(img, cmap="gray")
+        axes[0, j].set_title(f"{LABELS[n]}: finest fringe, camera 0")
+        if n == "real":
+            axes[1, j].axis("off")
+            axes[2, j].axis("off")
+            continue
+        d = img - real
+        lim = max(1.0, np.percentile(np.abs(d[mask]), 99)) if mask.any() else 1.0
+        im = axes[1, j].imshow(np.where(mask, d, np.nan), cmap="coolwarm", vmin=-lim, vmax=lim)
+        fig.colorbar(im, ax=axes[1, j], shrink=0.8, label="DN")
+        axes[1, j].set_title(f"intensity: {LABELS[n]} - real")
+        ph, _ = wrapped_phase(images[n])
+        dp = np.angle(np.exp(1j * (ph - phase_real)))
+        plim = max(1e-3, np.percentile(np.abs(dp[mask]), 99)) if mask.any() else 0.1
+        im = axes[2, j].imshow(np.where(mask, dp, np.nan), cmap="coolwarm", vmin=-plim,
+                               vmax=plim)
+        fig.colorbar(im, ax=axes[2, j], shrink=0.8, label="rad")
+        axes[2, j].set_title(f"phase: {LABELS[n]} - real")
+    for ax in axes.ravel():
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.suptitle(f"position {images['name']} ({images['defocus']} defocus)")
+    fig.tight_layout()
+    fig.savefig(path)
+    return path
+
+
+def distance_map_figure(name: str, maps: dict, path: Path) -> Path:
+    """Each virtual cloud's signed distance to the real cloud (unaligned), world x-y."""
+    fig = _figure((15, 4.2))
+    axes = fig.subplots(1, 3)
+    lim = max(np.percentile(np.abs(maps["ltc"][1]), 98) * 1e3, 1.0)
+    for ax, n in zip(axes, VIRTUAL):
+        pts, d = maps[n]
+        sc = ax.scatter(pts[:, 0], pts[:, 1], c=d * 1e3, s=2, cmap="coolwarm", vmin=-lim,
+                        vmax=lim)
+        ax.set_aspect("equal")
+        ax.invert_yaxis()
+        ax.set_title(f"{name}: {LABELS[n]} - real, mean {d.mean() * 1e3:+.1f} um, "
+                     f"RMSE {np.sqrt(np.mean(d * d)) * 1e3:.1f} um", fontsize=9)
+        ax.set_xlabel("world x, mm")
+        ax.set_ylabel("world y, mm")
+        fig.colorbar(sc, ax=ax, shrink=0.8, label="um (same scale: ltc's 98th percentile)")
+    fig.tight_layout()
+    fig.savefig(path)
+    return path
+
+
+def cad_figure(maps: dict, path: Path) -> Path:
+    """Every scanner's cloud of the CAD part against the CAD mesh (Fig. 17)."""
+    fig = _figure((16, 4.2))
+    axes = fig.subplots(1, 4)
+    d_real = maps["cad_real"][1]
+    lim = max(np.percentile(np.abs(d_real), 95) * 1e3, 1.0)
+    for ax, n in zip(axes, MODELS):
+        pts, d = maps[f"cad_{n}"]
+        sc = ax.scatter(pts[:, 0], pts[:, 1], c=d * 1e3, s=1, cmap="coolwarm", vmin=-lim,
+                        vmax=lim)
+        ax.set_aspect("equal")
+        ax.invert_yaxis()
+        ax.set_title(f"{LABELS[n]} - CAD: mean {d.mean() * 1e3:+.0f} um, RMSE "
+                     f"{np.sqrt(np.mean(d * d)) * 1e3:.0f} um", fontsize=9)
+        fig.colorbar(sc, ax=ax, shrink=0.8, label="um")
+    fig.tight_layout()
+    fig.savefig(path)
+    return path
+
+
+def summary_figure(rows: list[dict], path: Path) -> Path:
+    """Mean and RMSE against the real cloud, and the size error against real's, versus
+    defocus, per virtual scanner (spheres and ball bars)."""
+    fig = _figure((16, 4.5))
+    axes = fig.subplots(1, 3)
+    sel = [r for r in rows if r["kind"] != "cad"]
+    x = np.array([r["defocus_mm"] for r in sel])
+    o = np.argsort(x)
+    marks = {"ltc": "o-", "gaussian": "s-", "pinhole": "^--"}
+    for n in VIRTUAL:
+        m = [sel[i]["models"] for i in o]
+        axes[0].plot(x[o], [v[n]["mean_mm"] * 1e3 for v in m], marks[n], label=LABELS[n])
+        axes[1].plot(x[o], [v[n]["rmse_mm"] * 1e3 for v in m], marks[n], label=LABELS[n])
+        axes[2].plot(x[o], [abs(v[n]["size_mm"] - v["real"]["size_mm"]) * 1e3 for v in m],
+                     marks[n], label=LABELS[n])
+    for ax, t in zip(axes, ("mean distance to real, um", "RMSE to real, um",
+                            "|size - real's size|, um")):
+        ax.set_yscale("symlog", linthresh=10.0)
+        ax.set_xlabel("defocus (depth - focus distance), mm")
+        ax.set_title(t)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    return path
+
+
+def _um(x: float, sign: bool = True) -> str:
+    return f"{x * 1e3:+.1f}" if sign else f"{x * 1e3:.1f}"
+
+
+def tables(rows: list[dict]) -> list[str]:
+    """Markdown: Table 4 (distances), Table 5 (sphere fits), Table 6 (ball-bar lengths)."""
+    out = ["### Table 4: virtual against real, point distances (um)", "",
+           "Mean / RMSE of the signed distances of each virtual cloud to the real one, "
+           "unaligned, then after ICP.", "",
+           "| position | defocus, mm | " + " | ".join(
+               f"{LABELS[n]} | {LABELS[n]} (ICP)" for n in VIRTUAL) + " |",
+           "|" + "---|" * (2 + 2 * len(VIRTUAL))]
+    for r in rows:
+        m = r["models"]
+        out.append(f"| {r['name']} ({r['kind']}, {r['defocus']}) | {r['defocus_mm']:+.0f} | "
+                   + " | ".join(f"{_um(m[n]['mean_mm'])} / {_um(m[n]['rmse_mm'], False)} | "
+                                f"{_um(m[n]['mean_icp_mm'])} / {_um(m[n]['rmse_icp_mm'], False)}"
+                                for n in VIRTUAL) + " |")
+    out += ["", f"### Table 5: sphere fits, diameter - {SPHERE_DIAMETER_MM} mm (um)", "",
+            "| position | defocus, mm | " + " | ".join(LABELS[n] for n in MODELS)
+            + " | ltc - real | Gaussian - real |", "|" + "---|" * (4 + len(MODELS))]
+    for r in (r for r in rows if r["kind"] == "sphere"):
+        m = r["models"]
+        out.append(f"| {r['name']} ({r['defocus']}) | {r['defocus_mm']:+.0f} | "
+                   + " | ".join(_um(m[n]["size_mm"]) for n in MODELS)
+                   + f" | {_um(m['ltc']['size_mm'] - m['real']['size_mm'])}"
+                   f" | {_um(m['gaussian']['size_mm'] - m['real']['size_mm'])} |")
+    out += ["", f"### Table 6: ball-bar lengths (nominal {BALLBAR_LENGTH_MM} mm), mm", "",
+            "| position | defocus, mm | " + " | ".join(LABELS[n] for n in MODELS)
+            + " | ltc - real, um | Gaussian - real, um |", "|" + "---|" * (4 + len(MODELS))]
+    for r in (r for r in rows if r["kind"] == "ballbar"):
+        m = r["models"]
+        out.append(f"| {r['name']} ({r['defocus']}) | {r['defocus_mm']:+.0f} | "
+                   + " | ".join(f"{BALLBAR_LENGTH_MM + m[n]['size_mm']:.4f}" for n in MODELS)
+                   + f" | {_um(m['ltc']['size_mm'] - m['real']['size_mm'])}"
+                   f" | {_um(m['gaussian']['size_mm'] - m['real']['size_mm'])} |")
+    cad = [r for r in rows if r["kind"] == "cad"]
+    if cad:
+        out += ["", "### CAD part against the CAD model (um)", "",
+                "| scanner | mean | RMSE | std | points | against real: mean / RMSE |",
+                "|---|---|---|---|---|---|"]
+        for n in MODELS:
+            m = cad[0]["models"][n]
+            vs = (f"{_um(m['mean_mm'])} / {_um(m['rmse_mm'], False)}" if n != "real" else "")
+            out.append(f"| {LABELS[n]} | {_um(m['cad']['mean_mm'])} | "
+                       f"{_um(m['cad']['rmse_mm'], False)} | {_um(m['cad']['std_mm'], False)} | "
+                       f"{m['points']} | {vs} |")
+    return out
+
+
+def write_report(results: dict, cfg: ExperimentConfig, rig, measured, models: dict,
+                 maps: dict, images: dict, out: Path) -> list[str]:
+    """Write ``figures/*.png`` and ``report.md``; returns the figure paths."""
+    figs = out / "figures"
+    figs.mkdir(exist_ok=True)
+    rows = results["rows"]
+    paths = [summary_figure(rows, figs / "summary.png")]
+    if images:
+        paths.append(fringe_figure(images, figs / "fringes.png"))
+    for r in rows:
+        if r["kind"] != "cad":
+            paths.append(distance_map_figure(r["name"], maps[r["name"]],
+                                             figs / f"distances_{r['name']}.png"))
+        else:
+            paths.append(cad_figure(maps[r["name"]], figs / "cad_error_map.png"))
+    acc = results["acceptance"]
+    rel = lambda p: os.path.relpath(p, out)  # noqa: E731
+    lines = ["# The reference paper's experiment: measured LTC against a Gaussian defocus model",
+             "", f"Run of {results['date']} on {results['machine']}; "
+             f"{results['seconds']['total']:.0f} s in all.", ""]
+    setup = [
+        f"Rig: `small_rig({cfg.scale:g})` without distortion, cameras cropped to "
+        f"{cfg.camera_size[0]} x {cfg.camera_size[1]} px (f = {rig.cameras[0].K_array[0, 0]:.1f}"
+        f" px), projector {rig.projector.size[0]} x {rig.projector.size[1]}; 4-step fringes at "
+        f"periods {', '.join(f'{p:g}' for p in cfg.periods_px)} projector px, no noise, 12 bits.",
+        "Ground-truth lenses (16 mm, focus " f"{cfg.focus_distance_mm:g} mm): " + "; ".join(
+            f"camera {i}: f/{s.f_number:g}, vignetting shift {s.vignetting_shift_mm:g} mm, "
+            f"clip radius x{s.vignetting_radius_ratio:g}, spherical {s.spherical_mm:g} mm"
+            for i, s in enumerate(cfg.lenses)) + ".",
+        f"Scanners: real = the ground-truth lenses with {cfg.real_samples} pupil samples; "
+        f"ltc = the measured lenses (K = {measured[0].samples} per node every "
+        f"{cfg.lens_grid_step} px, bilinear); Gaussian = OPTICS.md section 7, sigma " + ", ".join(
+            f"{g.sigma_mm:.3f}" for g in models["gaussian"]) + " mm, "
+        f"{models['gaussian'][0].samples} samples; pinhole.",
+    ]
+    if results["station"]:
+        setup.append(
+            f"Station: fake bench per camera, LCD pitch {cfg.lcd_pitch_mm:g} mm, P = "
+            f"{cfg.period} ({cfg.steps}-step), {len(cfg.depths_mm)} depths (LCD at " + ", ".join(
+                f"{cfg.lcd_distance_at_zero_mm + z:g}" for z in cfg.depths_mm) + " mm). " + " ".join(
+                f"Camera {i}: {s['total_s']:.0f} s, optical centre error "
+                f"{s['optical_centre_error_mm'] * 1e3:.1f} um, focus distance "
+                f"{s['focus_distance_mm']:.1f} mm." for i, s in enumerate(results["station"])))
+    lines += [textwrap.fill(t, 100, initial_indent="- ", subsequent_indent="  ") for t in setup]
+    w = acc["ltc_worst"]
+    near = acc["near_focus_average"]
+    verdict = [
+        f"ltc against real at every sphere and ball-bar position (mean within +-"
+        f"{acc['limits']['mean_um']:g} um, RMSE <= {acc['limits']['rmse_um']:g} um, size within "
+        f"{acc['limits']['size_um']:g} um of real's): "
+        + ("**met**" if acc["ltc_within_limits"] else
+           f"**not met** at {', '.join(acc['ltc_failing'])}")
+        + f"; worst |mean| {w['mean_um']:.1f} um, RMSE {w['rmse_um']:.1f} um, size "
+        f"{w['size_um']:.1f} um.",
+        "Gaussian worse than ltc at every large-defocus position in |mean| and size error: "
+        + ("**yes**" if acc["gaussian_worse_at_large"] else
+           f"**no** at {', '.join(acc['gaussian_not_worse'])}") + ".",
+    ]
+    if near:
+        verdict.append(
+            f"Near focus (average over slight-defocus positions): ltc |mean| "
+            f"{near['ltc']['abs_mean_um']:.1f} um, RMSE {near['ltc']['rmse_um']:.1f} um; Gaussian "
+            f"{near['gaussian']['abs_mean_um']:.1f} um and {near['gaussian']['rmse_um']:.1f} um.")
+    rt = results["render_s"]
+    verdict.append("Render time (all positions, both cameras): " + ", ".join(
+        f"{LABELS[n]} {rt[n]:.1f} s ({results['render_vs_pinhole'][n]:.1f} x pinhole)"
+        for n in MODELS) + ".")
+    lines += ["", "## Result", ""] + [textwrap.fill(t, 100, initial_indent="- ",
+                                                    subsequent_indent="  ") for t in verdict]
+    lines += ["", *tables(rows), "", "## Figures", "",
+              f"![summary]({rel(paths[0])})", ""]
+    if images:
+        lines += ["Real and virtual fringe images (camera 0), intensity and phase differences:",
+                  "", f"![fringes]({rel(figs / 'fringes.png')})", ""]
+    lines += ["Distance maps per position (virtual cloud - real cloud, unaligned):", ""]
+    lines += [f"![{r['name']}]({rel(figs / ('distances_' + r['name'] + '.png'))})"
+              for r in rows if r["kind"] != "cad"]
+    if any(r["kind"] == "cad" for r in rows):
+        lines += ["", "CAD error map (each scanner's cloud against the CAD mesh, Fig. 17):", "",
+                  f"![cad]({rel(figs / 'cad_error_map.png')})"]
+    if results["station"]:
+        lines += ["", "Lens figures from the station step:", ""]
+        for i, s in enumerate(results["station"]):
+            lines += [f"- camera {i}: " + ", ".join(
+                f"[{Path(p).stem}]({rel(p)})" for p in s["figures"])]
+    lines += ["", "Every number: `results.json`.", ""]
+    (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
+    return [str(p) for p in paths]

@@ -1,0 +1,625 @@
+"""The reference paper's experiment (``ltc experiment``, ``ltc demo``): from a measured lens to
+a faithful virtual scanner.
+
+1. **Station**: for each of the rig's two cameras, a fake bench whose camera *is* that rig
+   camera (same K and sensor) carrying that camera's own ground-truth lens (the two lenses
+   differ); the station sequence (``station.sequence.run_sequence``: check, alignment report,
+   acquisition at six depths, LTC reconstruction, lens derivation with figures) measures it.
+2. **Scanners** on the same rig and calibration: ``real`` (the ground-truth lenses, sampled
+   densely enough that their own sampling noise is negligible), ``ltc`` (the measured lenses),
+   ``gaussian`` (OPTICS.md section 7: the measured lens's focus distance, Gaussian aperture
+   weights with the second moment of the measured LTC at the optical centre, the same for
+   every pixel) and ``pinhole``.
+3. **Objects**: the 50.8007 mm sphere at 4 slight and 4 large defocus positions, the
+   209.8219 mm ball bar at 2 + 2, and one CAD part (steps, holes, a freeform face).
+4. **Comparison**: each virtual cloud against the real one (mean and RMSE of the signed
+   distances, unaligned and after ICP), the sphere diameter or ball-bar length against
+   nominal for every scanner, and every scanner's cloud of the CAD part against the CAD mesh.
+5. **Report**: ``report.md`` with PNG figures and ``results.json`` with every number.
+
+Everything is written under one folder ``out``: ``experiment.json`` (the config),
+``station/cam0``, ``station/cam1`` (sequence folders), ``cad_part.ply``, ``figures/``,
+``results.json``, ``report.md``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import platform
+import time
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from station.errors import StationError, UsageError
+
+SPHERE_DIAMETER_MM = 50.8007
+BALLBAR_LENGTH_MM = 209.8219
+BALLBAR_BALL_MM = 38.1
+FOCAL_MM = 16.0  # the reference system's lens (OPTICS.md section 1)
+REFERENCE_PITCH_UM = 3.45  # the reference cameras' pixel pitch (sim.optics.rig)
+SHELL_MM = 2.0  # points this close to a true sphere go to its fit
+MODELS = ("real", "ltc", "gaussian", "pinhole")
+VIRTUAL = ("ltc", "gaussian", "pinhole")
+Log = Callable[[str], None]
+
+
+class LensSpec(BaseModel):
+    """The ground-truth lens of one camera (``sim.optics.lens.AberratedLens``, 16 mm)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    f_number: float = Field(1.0, gt=0, description="f-number (pupil 16 / N mm)")
+    vignetting_shift_mm: float = Field(30.0, description="clipping-circle shift per unit "
+                                       "tan(field angle), mm")
+    vignetting_radius_ratio: float = Field(1.0, gt=0, description="clip radius / pupil radius")
+    spherical_mm: float = Field(15.0, description="focus shift at the pupil rim, mm")
+
+
+class ExperimentConfig(BaseModel):
+    """Everything the experiment depends on (TOML or JSON file; every field optional)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    # the rig
+    scale: float = Field(0.1, gt=0, le=1, description="rig scale (sim.optics.rig.small_rig): "
+                         "focal lengths in pixels and the projector size times this")
+    camera_size: tuple[int, int] = Field((256, 128), description="cropped camera sensor "
+                                         "(width, height), px; principal point at its centre")
+    focus_distance_mm: float = Field(760.0, gt=0, description="paraxial focus distance of "
+                                     "both true lenses, mm")
+    lenses: tuple[LensSpec, LensSpec] = Field(
+        (LensSpec(), LensSpec(vignetting_shift_mm=20.0, vignetting_radius_ratio=0.9,
+                              spherical_mm=8.0)),
+        description="the ground-truth lenses of camera 0 and camera 1")
+    # the station
+    lcd_pitch_mm: float = Field(0.75, gt=0, description="fake LCD pixel pitch, mm")
+    lcd_distance_at_zero_mm: float = Field(550.0, gt=0, description="pupil to LCD at stage 0")
+    depths_mm: tuple[float, ...] = Field((50.0, 90.0, 130.0, 290.0, 330.0, 370.0),
+                                         min_length=3, description="stage readings of the LTC "
+                                         "depths, mm (six in the paper)")
+    period: int = Field(12, ge=4, description="Fourier pattern period P, LCD px")
+    steps: int = Field(3, ge=3, le=4, description="Fourier phase steps")
+    lens_samples: int = Field(128, ge=1, description="aperture samples K of the measured lens")
+    lens_grid_step: int = Field(4, ge=1, description="measured-lens node spacing, px")
+    seed: int = Field(0, description="fake camera noise seed")
+    # the scanners
+    real_samples: int = Field(512, ge=1, description="pupil samples of the real scanner's "
+                              "lenses (soft clipping edge: converged within ~2 um RMSE)")
+    gaussian_samples: int | None = Field(None, ge=1, description="aperture samples of the "
+                                         "Gaussian lens (default: the measured lens's K)")
+    periods_px: tuple[float, ...] = Field((256.0, 32.0, 8.0), description="fringe periods, "
+                                          "projector px (the first covers the projector)")
+    # the objects: (world z, world y) mm, x = 0; world z = 0 is 760 mm from the cameras
+    sphere_slight: tuple[tuple[float, float], ...] = Field(
+        ((-30.0, -10.0), (30.0, 10.0), (-15.0, 12.0), (15.0, -12.0)),
+        description="slight-defocus sphere centres (z, y), mm")
+    sphere_large: tuple[tuple[float, float], ...] = Field(
+        ((-150.0, 0.0), (160.0, 0.0), (-140.0, 8.0), (150.0, -10.0)),
+        description="large-defocus sphere centres (z, y), mm")
+    ballbar_slight: tuple[tuple[float, float], ...] = Field(
+        ((-20.0, 0.0), (25.0, 0.0)), description="slight-defocus ball-bar centres (z, y), mm")
+    ballbar_large: tuple[tuple[float, float], ...] = Field(
+        ((-120.0, 0.0), (150.0, 0.0)), description="large-defocus ball-bar centres (z, y), mm")
+    ballbar_roll_deg: float = Field(20.0, description="ball bar turned about the view axis, deg")
+    cad: bool = Field(True, description="scan the CAD part")
+    cad_z_mm: float = Field(0.0, description="CAD part's world z, mm")
+
+
+def paper_size_config(**overrides) -> ExperimentConfig:
+    """The reference camera's pixel pitch and focal length (scale 1: f = 4638 px), the
+    camera cropped to the region the objects occupy (LCD pitch and period of the paper)."""
+    base = dict(scale=1.0, camera_size=(1536, 768), lcd_pitch_mm=0.2715, period=24, steps=4,
+                lens_grid_step=8, periods_px=(1920.0, 240.0, 30.0))
+    base.update(overrides)
+    return ExperimentConfig(**base)
+
+
+def load_experiment_config(path: str | Path | None, **overrides) -> ExperimentConfig:
+    """The config of a TOML or JSON file (None: the defaults), with ``overrides``; errors
+    name the file and the field."""
+    from sim.validation import format_validation_error
+
+    data: dict = {}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise StationError(f"{path}: no such experiment config")
+        text = path.read_text(encoding="utf-8")
+        try:
+            data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+        except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+            raise StationError(f"{path}: not valid {path.suffix[1:].upper() or 'TOML'}: {exc}")
+    data.update(overrides)
+    try:
+        return ExperimentConfig(**data)
+    except ValidationError as exc:
+        raise StationError(format_validation_error(str(path or "experiment config"), exc)) from exc
+
+
+# --- the rig and the benches ------------------------------------------------------------------
+
+def build_rig(cfg: ExperimentConfig):
+    """``small_rig(scale)`` without distortion, both cameras cropped to ``camera_size``
+    about the image centre (same focal length and pose)."""
+    from sim.optics.rig import DeviceCalibration, Rig, small_rig
+
+    full = small_rig(cfg.scale, distortion=False)
+    w, h = cfg.camera_size
+    cams = []
+    for c in full.cameras:
+        K = c.K_array.copy()
+        K[0, 2], K[1, 2] = (w - 1) / 2, (h - 1) / 2
+        cams.append(DeviceCalibration(name=c.name, K=K, dist=c.dist, R=c.R, T=c.T, size=(w, h)))
+    return Rig(cameras=cams, projector=full.projector)
+
+
+def truth_lens(cfg: ExperimentConfig, index: int, samples: int):
+    """Camera ``index``'s ground-truth lens with ``samples`` pupil samples."""
+    from sim.optics.lens import AberratedLens
+
+    s = cfg.lenses[index]
+    return AberratedLens(pupil_diameter_mm=FOCAL_MM / s.f_number,
+                         focus_distance_mm=cfg.focus_distance_mm,
+                         vignetting_shift_mm=s.vignetting_shift_mm,
+                         vignetting_radius_ratio=s.vignetting_radius_ratio,
+                         spherical_mm=s.spherical_mm, samples=samples, edge="soft")
+
+
+def lcd_size(cfg: ExperimentConfig, camera) -> tuple[int, int]:
+    """LCD pixels covering the camera's view at the farthest depth, with a blur margin."""
+    far = cfg.lcd_distance_at_zero_mm + max(cfg.depths_mm)
+    f = camera.K_array[0, 0]
+    margin = 2 * cfg.period
+    return (int(np.ceil(camera.width / f * far / cfg.lcd_pitch_mm)) + margin,
+            int(np.ceil(camera.height / f * far / cfg.lcd_pitch_mm)) + margin)
+
+
+def station_config(cfg: ExperimentConfig, rig, index: int):
+    """The fake-bench station config of camera ``index``: the rig camera's K and sensor, its
+    own ground-truth lens; ``camera.matrix`` = K places the optical centre."""
+    from station.acquisition.config import StationConfig
+
+    camera = rig.cameras[index]
+    K = camera.K_array
+    lens = truth_lens(cfg, index, 1)
+    size = lcd_size(cfg, camera)
+    return StationConfig.model_validate({
+        "backend": "fake",
+        "depths_mm": list(cfg.depths_mm),
+        "stage": {"port": "pty", "microstep_um": 0.1, "travel_mm": [0.0, max(cfg.depths_mm) + 20],
+                  "tolerance_um": 1.0, "timeout_s": 0.5, "settle_s": 0.0},
+        "display": {"monitor": 0, "latency_frames": 0, "frame_code": False,
+                    "pitch_mm": cfg.lcd_pitch_mm},
+        "camera": {"exposure_ms": 20.0, "timeout_s": 2.0, "matrix": K.tolist()},
+        "patterns": {"period": cfg.period, "steps": cfg.steps, "offset": 0.5, "amplitude": 0.5},
+        # the check code proves the frame order on real hardware; here it would only mask pixels
+        "frame_check": {"enabled": False},
+        "sequence": {"align": False, "lens_samples": cfg.lens_samples,
+                     "lens_grid_step": cfg.lens_grid_step},
+        "fake": {
+            "seed": cfg.seed + index, "stage_maxspeed_mm_s": 1000.0,
+            "stage_accel_mm_s2": 10000.0,
+            "bench": {
+                "lcd_size": list(size), "lcd_pitch_mm": cfg.lcd_pitch_mm,
+                "camera_size": list(camera.size), "pixel_pitch_um": FOCAL_MM / K[0, 0] * 1e3,
+                "focal_length_mm": FOCAL_MM, "f_number": cfg.lenses[index].f_number,
+                "focus_distance_mm": lens.focus_distance_mm,
+                "vignetting_shift_mm": lens.vignetting_shift_mm,
+                "vignetting_radius_ratio": lens.vignetting_radius_ratio,
+                "spherical_mm": lens.spherical_mm, "coma_mm": 0.0,
+                "lcd_distance_at_zero_mm": cfg.lcd_distance_at_zero_mm,
+                "tilt_deg": [0.0, 0.0], "pupil_samples": 200, "subpixels": 2,
+            },
+            "noise": {"enabled": True, "bit_depth": 12, "full_well_e": 10000.0,
+                      "read_noise_e": 5.0},
+            "panel": {"gamma": 1.0},
+        },
+    })
+
+
+def measure_cameras(cfg: ExperimentConfig, rig, out: Path, progress: bool, log: Log) -> list[dict]:
+    """The station sequence (``ltc run``) for each camera into ``out/station/camI``; returns
+    per camera the lens file, its figures and a summary (steps' seconds, optical centre and
+    its error against the fake bench's true one)."""
+    from station.sequence import run_sequence
+
+    results = []
+    for i, cam in enumerate(rig.cameras):
+        folder = out / "station" / f"cam{i}"
+        config = station_config(cfg, rig, i)
+        log(f"station, camera {i} ({cam.name}): check, acquire {len(cfg.depths_mm)} depths, "
+            f"reconstruct, lens -> {folder}")
+        t0 = time.perf_counter()
+        summary = run_sequence(config, folder, progress=progress)
+        lens = summary["steps"]["lens"]["result"]
+        w, h = lcd_size(cfg, cam)
+        true_centre = np.array([(w - 1) / 2 * cfg.lcd_pitch_mm, (h - 1) / 2 * cfg.lcd_pitch_mm,
+                                -cfg.lcd_distance_at_zero_mm])
+        err = np.asarray(lens["optical_centre_mm"]) - true_centre
+        rec = {"camera": cam.name, "folder": str(folder), "lens": str(folder / "lens.npz"),
+               "figures": sorted(str(p) for p in (folder / "figures").glob("*.png")),
+               "seconds": {k: v.get("seconds") for k, v in summary["steps"].items()},
+               "total_s": time.perf_counter() - t0,
+               "optical_centre_mm": lens["optical_centre_mm"],
+               "optical_centre_true_mm": true_centre.tolist(),
+               "optical_centre_error_mm": float(np.linalg.norm(err)),
+               "focus_distance_mm": lens["focus_distance_mm"],
+               "pixels_usable": lens["pixels_usable"], "pixels": lens["pixels"]}
+        log(f"  camera {i}: {rec['total_s']:.0f} s; optical centre error "
+            f"{rec['optical_centre_error_mm'] * 1e3:.1f} um, focus distance "
+            f"{rec['focus_distance_mm']:.1f} mm")
+        results.append(rec)
+    return results
+
+
+# --- the scanners -----------------------------------------------------------------------------
+
+def centre_moments(lens) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (2,) mm and covariance (2, 2) mm^2 of the measured aperture samples at the optical
+    centre's pixel (the principal point of the lens's camera matrix, else the sensor centre)."""
+    if lens.camera_matrix is not None:
+        uv = lens.camera_matrix[:2, 2]
+    else:
+        uv = (np.asarray(lens.camera_size, dtype=np.float64) - 1) / 2
+    x, y, w = (a[0] for a in lens.samples_at(np.asarray(uv, dtype=np.float64)[None]))
+    w = w / w.sum()
+    xy = np.stack([x, y], axis=1)
+    mean = w @ xy
+    d = xy - mean
+    return mean, (w[:, None] * d).T @ d
+
+
+def gaussian_baseline(lens, samples: int | None = None):
+    """OPTICS.md section 7: the measured lens's focus distance with Gaussian aperture weights
+    whose per-axis variance is the mean of the two axes' second moments of the measured LTC at
+    the optical centre, the same for every pixel; ``samples`` default: the lens's K."""
+    from sim.optics.lens import GaussianLens
+
+    _, cov = centre_moments(lens)
+    return GaussianLens(sigma_mm=float(np.sqrt(0.5 * np.trace(cov))),
+                        focus_distance_mm=lens.focus_distance_mm,
+                        samples=samples or lens.samples)
+
+
+def scanner_lenses(cfg: ExperimentConfig, measured: list) -> dict[str, tuple]:
+    """Per scanner the lens of each camera."""
+    from sim.optics.lens import PinholeLens
+
+    return {"real": tuple(truth_lens(cfg, i, cfg.real_samples) for i in range(2)),
+            "ltc": tuple(measured),
+            "gaussian": tuple(gaussian_baseline(m, cfg.gaussian_samples) for m in measured),
+            "pinhole": (PinholeLens(), PinholeLens())}
+
+
+RENDER = dict(projector={"input_bits": 8},
+              camera={"exposure_e": 8000.0, "full_well_e": 10000.0, "bit_depth": 12,
+                      "shot_noise": False, "read_noise_e": 0.0})
+
+
+# --- the objects ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Position:
+    """One object pose: name (S1.., B1.., C1), kind ('sphere', 'ballbar', 'cad'), defocus
+    group ('slight' or 'large'), world centre (3,) mm and its depth along camera 0's axis."""
+
+    name: str
+    kind: str
+    defocus: str
+    centre_mm: tuple[float, float, float]
+    depth_mm: float
+
+
+def positions(cfg: ExperimentConfig, rig) -> list[Position]:
+    """Spheres (slight, then large), ball bars (slight, then large), the CAD part."""
+    out = []
+    groups = [("sphere", "S", "slight", cfg.sphere_slight), ("sphere", "S", "large", cfg.sphere_large),
+              ("ballbar", "B", "slight", cfg.ballbar_slight),
+              ("ballbar", "B", "large", cfg.ballbar_large)]
+    if cfg.cad:
+        groups.append(("cad", "C", "slight", ((cfg.cad_z_mm, 0.0),)))
+    count: dict[str, int] = {}
+    for kind, letter, group, items in groups:
+        for z, y in items:
+            count[letter] = count.get(letter, 0) + 1
+            c = (0.0, float(y), float(z))
+            depth = float(rig.cameras[0].to_device(np.array([c]))[0, 2])
+            out.append(Position(f"{letter}{count[letter]}", kind, group, c, depth))
+    return out
+
+
+def cad_part_mesh(step_mm: float = 0.5):
+    """The CAD part: a 120 x 80 mm plate (object frame, z towards the rig negative) with two
+    steps (8 and 16 mm), two holes (12 and 8 mm diameter, 10 mm deep) and a freeform face
+    (a smooth bump and saddle); a height field meshed every ``step_mm``, closed by no walls
+    (the rig sees only its front)."""
+    import trimesh
+
+    xs = np.arange(-60.0, 60.0 + step_mm / 2, step_mm)
+    ys = np.arange(-40.0, 40.0 + step_mm / 2, step_mm)
+    X, Y = np.meshgrid(xs, ys)
+    h = np.zeros_like(X)
+    h[X > 20] = 8.0
+    h[X > 42] = 16.0
+    for cx, cy, r in ((5.0, -18.0, 6.0), (5.0, 18.0, 4.0)):
+        h[(X - cx) ** 2 + (Y - cy) ** 2 < r * r] = -10.0
+    free = X < -12
+    u, v = (X + 36.0) / 24.0, Y / 40.0
+    h[free] = (7.0 * np.exp(-(u**2 + (v / 0.6) ** 2)) + 3.0 * u * v)[free]
+    verts = np.stack([X.ravel(), Y.ravel(), -h.ravel()], axis=1)
+    ny, nx = X.shape
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    # x right, y down: (a, c, b) winds so that the normals point towards -z (the rig)
+    faces = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3),
+                            np.stack([b, c, d], -1).reshape(-1, 3)])
+    return trimesh.Trimesh(verts, faces, process=False)
+
+
+def scene_of(pos: Position, cfg: ExperimentConfig, cad_path: Path | None):
+    """The ``sim`` scene of one position."""
+    from sim.render.scene import BallBarObject, MeshObject, Scene, SphereObject
+
+    if pos.kind == "sphere":
+        obj = SphereObject(name=pos.name, pose={"t": list(pos.centre_mm)})
+    elif pos.kind == "ballbar":
+        a = np.radians(cfg.ballbar_roll_deg)
+        R = [[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]]
+        obj = BallBarObject(name=pos.name, diameter_mm=BALLBAR_BALL_MM,
+                            centre_distance_mm=BALLBAR_LENGTH_MM,
+                            pose={"t": list(pos.centre_mm), "R": R})
+    else:
+        obj = MeshObject(name=pos.name, path=cad_path, smooth_angle_deg=30.0,
+                         pose={"t": list(pos.centre_mm)})
+    return Scene(objects=[obj])
+
+
+# --- measuring and comparing ------------------------------------------------------------------
+
+def size_error_mm(points: np.ndarray, pos: Position, scene) -> dict:
+    """Sphere: fitted diameter minus nominal; ball bar: fitted centre distance minus nominal
+    (each ball fitted to the points within ``SHELL_MM`` of the true ball; the fit trims
+    3-sigma outliers). Returns ``size_mm`` and the fits' RMS, mm."""
+    from sim.metrology.spheres import fit_sphere
+
+    fits = []
+    for cx, cy, cz, r in scene.objects[0].spheres():
+        near = np.abs(np.linalg.norm(points - [cx, cy, cz], axis=1) - r) < SHELL_MM
+        if near.sum() < 20:
+            raise StationError(f"position {pos.name}: only {int(near.sum())} points on a "
+                               f"{2 * r:g} mm ball; move it into both cameras' view")
+        fits.append(fit_sphere(points[near]))
+    if pos.kind == "sphere":
+        size = fits[0].diameter - SPHERE_DIAMETER_MM
+    else:
+        size = float(np.linalg.norm(fits[0].centre - fits[1].centre)) - BALLBAR_LENGTH_MM
+    return {"size_mm": float(size), "fit_rms_mm": float(max(f.rms for f in fits))}
+
+
+def world_cad_mesh(mesh, pos: Position):
+    """The CAD mesh at the position's pose (world frame)."""
+    m = mesh.copy()
+    m.apply_translation(pos.centre_mm)
+    return m
+
+
+@dataclass
+class Scan:
+    """One scanner's result at one position: cloud (n, 3) mm, camera 0's images, seconds."""
+
+    points: np.ndarray
+    images: np.ndarray
+    render_s: float
+
+
+def scan_position(pos: Position, cfg: ExperimentConfig, rig, lenses: dict[str, tuple],
+                  cad_path: Path | None) -> dict[str, Scan]:
+    """Render and reconstruct the position with every scanner (one traced geometry)."""
+    from sim.render.fringe_patterns import PhaseShiftSet
+    from sim.render.images import RenderSettings
+    from sim.scanner import Scanner
+
+    patterns = PhaseShiftSet(periods_px=list(cfg.periods_px), steps=4, direction="u")
+    base = Scanner(rig, lenses["real"], patterns, scene_of(pos, cfg, cad_path),
+                   RenderSettings.model_validate(RENDER), where=f"position {pos.name}")
+    out = {}
+    for name in MODELS:
+        s = base.with_lenses(lenses[name])
+        t0 = time.perf_counter()
+        images = s.render()
+        dt = time.perf_counter() - t0
+        out[name] = Scan(s.scan(images).points, images.cameras[0].images, dt)
+    return out
+
+
+def compare_position(pos: Position, cfg: ExperimentConfig, scans: dict[str, Scan],
+                     cad_path: Path | None, cad_mesh) -> dict:
+    """The numbers of one position: per model the size error (sphere, ball bar) or the
+    distances to the CAD mesh, and each virtual cloud against the real one, unaligned and
+    after ICP (mm)."""
+    from sim.metrology.compare import compare_clouds, mesh_signed_distance
+    from sim.metrology.measure import distance_stats
+
+    scene = scene_of(pos, cfg, cad_path)
+    real = scans["real"].points
+    row = {"name": pos.name, "kind": pos.kind, "defocus": pos.defocus,
+           "defocus_mm": round(pos.depth_mm - cfg.focus_distance_mm, 3),
+           "centre_mm": list(pos.centre_mm), "models": {}}
+    maps = {}
+    world_mesh = world_cad_mesh(cad_mesh, pos) if pos.kind == "cad" else None
+    for name in MODELS:
+        pts = scans[name].points
+        m: dict = {"points": int(len(pts)), "render_s": scans[name].render_s}
+        if pos.kind == "cad":
+            d = mesh_signed_distance(pts, world_mesh)
+            m["cad"] = distance_stats(d)
+            maps[f"cad_{name}"] = (pts, d)
+        else:
+            m.update(size_error_mm(pts, pos, scene))
+        if name != "real":
+            c = compare_clouds(pts, real, align=False)
+            a = compare_clouds(pts, real, align=True)
+            m.update(mean_mm=c.mean, rmse_mm=c.rmse, mean_icp_mm=a.mean, rmse_icp_mm=a.rmse)
+            maps[name] = (pts, c.distances)
+        row["models"][name] = m
+    return row, maps
+
+
+def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = True,
+                   log: Log = print, lenses: list[str | Path] | None = None) -> dict:
+    """The whole experiment into the new folder ``out`` (see the module docstring); returns
+    the results (also ``out/results.json``). ``lenses``: two measured-lens files made with
+    this config, used instead of running the station."""
+    from sim.optics.measured_lens import load_lens
+
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise UsageError(f"--out {out} exists and is not empty; choose a new --out folder")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "experiment.json").write_text(cfg.model_dump_json(indent=2))
+    t_start = time.perf_counter()
+    rig = build_rig(cfg)
+    if lenses is None:
+        station = measure_cameras(cfg, rig, out, progress, log)
+        lens_paths = [s["lens"] for s in station]
+    else:
+        station, lens_paths = [], [str(p) for p in lenses]
+    measured = [load_lens(p) for p in lens_paths]
+    for i, m in enumerate(measured):
+        if tuple(m.camera_size) != tuple(cfg.camera_size):
+            raise StationError(f"{lens_paths[i]}: the lens is for a {m.camera_size} camera, "
+                               f"this experiment's cameras are {cfg.camera_size}")
+    models = scanner_lenses(cfg, measured)
+    cad_path, cad_mesh = None, None
+    if cfg.cad:
+        cad_mesh = cad_part_mesh()
+        cad_path = out / "cad_part.ply"
+        cad_mesh.export(cad_path)
+    rows, maps, images = [], {}, {}
+    poss = positions(cfg, rig)
+    t_scan = time.perf_counter()
+    for k, pos in enumerate(poss):
+        t0 = time.perf_counter()
+        scans = scan_position(pos, cfg, rig, models, cad_path)
+        row, mp = compare_position(pos, cfg, scans, cad_path, cad_mesh)
+        rows.append(row)
+        maps[pos.name] = mp
+        if pos.kind != "cad" and (not images or (pos.defocus == "large"
+                                                  and images["defocus"] != "large")):
+            images = {"name": pos.name, "defocus": pos.defocus,
+                      **{n: scans[n].images for n in MODELS}}
+        log(f"[{k + 1}/{len(poss)}] {position_line(row)} [{time.perf_counter() - t0:.0f} s]")
+    scan_s = time.perf_counter() - t_scan
+    render_s = {n: float(sum(r["models"][n]["render_s"] for r in rows)) for n in MODELS}
+    results = {
+        "report": str(out / "report.md"),
+        "positions": [public_row(r) for r in rows],
+        "rows": rows,
+        "station": station,
+        "lenses": [{"file": p, "samples": m.samples, "focus_distance_mm": m.focus_distance_mm,
+                    "gaussian_sigma_mm": models["gaussian"][i].sigma_mm}
+                   for i, (p, m) in enumerate(zip(lens_paths, measured))],
+        "render_s": render_s,
+        "render_vs_pinhole": {n: render_s[n] / render_s["pinhole"] for n in MODELS},
+        "acceptance": acceptance(rows),
+        "seconds": {"total": time.perf_counter() - t_start, "scan": scan_s},
+        "config": cfg.model_dump(mode="json"),
+        "date": _dt.date.today().isoformat(),
+        "machine": machine(),
+    }
+    from station.experiment.report import write_report
+
+    results["figures"] = write_report(results, cfg, rig, measured, models, maps, images, out)
+    _write_json(out / "results.json", results)
+    return results
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(data, f, indent=1)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def public_row(row: dict) -> dict:
+    """One position in the ``ltc demo --json`` shape (micrometres)."""
+    models = {}
+    for n, m in row["models"].items():
+        d = {}
+        if "size_mm" in m:
+            d["size_um"] = round(m["size_mm"] * 1e3, 2)
+        if "cad" in m:
+            d["cad_mean_um"] = round(m["cad"]["mean_mm"] * 1e3, 2)
+            d["cad_rmse_um"] = round(m["cad"]["rmse_mm"] * 1e3, 2)
+        for k in ("mean", "rmse", "mean_icp", "rmse_icp"):
+            if f"{k}_mm" in m:
+                d[f"{k}_um"] = round(m[f"{k}_mm"] * 1e3, 2)
+        models[n] = d
+    return {"name": row["name"], "kind": row["kind"], "defocus": row["defocus"],
+            "defocus_mm": row["defocus_mm"], "models": models}
+
+
+def position_line(row: dict) -> str:
+    """One line per position: ltc and Gaussian against real, sizes."""
+    m = row["models"]
+    head = f"{row['name']} ({row['kind']}, {row['defocus']}, {row['defocus_mm']:+.0f} mm):"
+    parts = [f"{n} {m[n]['mean_mm'] * 1e3:+.1f}/{m[n]['rmse_mm'] * 1e3:.1f} um" for n in VIRTUAL]
+    if "size_mm" in m["real"]:
+        parts.append("size " + " ".join(f"{n} {m[n]['size_mm'] * 1e3:+.0f}" for n in MODELS)
+                     + " um")
+    return head + " " + ", ".join(parts)
+
+
+def acceptance(rows: list[dict], mean_um: float = 5.0, rmse_um: float = 10.0,
+               size_um: float = 20.0) -> dict:
+    """The issue's acceptance on the sphere and ball-bar positions: ltc against real (mean
+    within +-mean_um, RMSE <= rmse_um, size within size_um of real's at every position);
+    Gaussian worse than ltc at every large-defocus position in |mean| and size error; and
+    how similar the two are near focus."""
+    sel = [r for r in rows if r["kind"] in ("sphere", "ballbar")]
+    ltc_ok, gauss_worse, worst = [], [], {"mean_um": 0.0, "rmse_um": 0.0, "size_um": 0.0}
+    for r in sel:
+        m = r["models"]
+        l, g, real = m["ltc"], m["gaussian"], m["real"]
+        dl = abs(l["size_mm"] - real["size_mm"]) * 1e3
+        worst["mean_um"] = max(worst["mean_um"], abs(l["mean_mm"]) * 1e3)
+        worst["rmse_um"] = max(worst["rmse_um"], l["rmse_mm"] * 1e3)
+        worst["size_um"] = max(worst["size_um"], dl)
+        ok = abs(l["mean_mm"]) * 1e3 <= mean_um and l["rmse_mm"] * 1e3 <= rmse_um \
+            and dl <= size_um
+        if not ok:
+            ltc_ok.append(r["name"])
+        if r["defocus"] == "large":
+            dg = abs(g["size_mm"] - real["size_mm"]) * 1e3
+            if not (abs(g["mean_mm"]) > abs(l["mean_mm"]) and dg > dl):
+                gauss_worse.append(r["name"])
+    slight = [r for r in sel if r["defocus"] == "slight"]
+    near = {n: {"abs_mean_um": float(np.mean([abs(r["models"][n]["mean_mm"]) for r in slight]) * 1e3),
+                "rmse_um": float(np.mean([r["models"][n]["rmse_mm"] for r in slight]) * 1e3)}
+            for n in ("ltc", "gaussian")} if slight else {}
+    return {"ltc_within_limits": not ltc_ok, "ltc_failing": ltc_ok,
+            "gaussian_worse_at_large": not gauss_worse, "gaussian_not_worse": gauss_worse,
+            "ltc_worst": worst, "near_focus_average": near,
+            "limits": {"mean_um": mean_um, "rmse_um": rmse_um, "size_um": size_um}}
+
+
+def machine() -> str:
+    """CPU, cores, memory, OS and Python in one line."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")),
+                       cpu)
+    except OSError:
+        pass
+    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    return (f"{cpu}, {os.cpu_count()} cores, {mem:.0f} GiB, {platform.system()} "
+            f"{platform.release()}, Python {platform.python_version()}")

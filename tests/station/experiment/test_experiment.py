@@ -1,0 +1,86 @@
+"""The experiment end to end on a reduced size: station per camera on the fake benches, the
+four scanners, a sphere and a ball bar near focus and at large defocus, the comparisons and
+the report; and ``ltc experiment`` / ``ltc demo`` on the command line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from station.cli import main
+from station.experiment.run import ExperimentConfig, cad_part_mesh, run_experiment
+
+REDUCED = dict(
+    scale=0.05, camera_size=(128, 64), lcd_pitch_mm=1.0, depths_mm=(50.0, 130.0, 290.0, 370.0),
+    period=12, lens_samples=64, lens_grid_step=4, real_samples=512, periods_px=(96.0, 16.0, 6.0),
+    sphere_slight=((-30.0, -10.0),), sphere_large=((-150.0, 0.0),),
+    ballbar_slight=(), ballbar_large=((-110.0, 0.0),), ballbar_roll_deg=12.0, cad_z_mm=-40.0)
+
+
+@pytest.fixture(scope="module")
+def reduced(tmp_path_factory):
+    out = tmp_path_factory.mktemp("experiment") / "run"
+    return out, run_experiment(ExperimentConfig(**REDUCED), out, progress=False,
+                               log=lambda s: None)
+
+
+def test_the_reduced_experiment_orders_the_models_as_the_paper(reduced):
+    _, res = reduced
+    rows = {r["name"]: r["models"] for r in res["rows"]}
+    assert set(rows) == {"S1", "S2", "B1", "C1"}
+    table = json.dumps(res["positions"])
+    # large defocus, sphere: the Gaussian's cloud is shifted, the measured lens's is not
+    s2 = rows["S2"]
+    assert abs(s2["gaussian"]["mean_mm"]) > 5 * abs(s2["ltc"]["mean_mm"]), table
+    assert s2["ltc"]["rmse_mm"] < min(s2["gaussian"]["rmse_mm"], s2["pinhole"]["rmse_mm"]), table
+    # large defocus, ball bar: the measured lens reproduces the real scanner's length error
+    b1 = rows["B1"]
+    err = {n: abs(b1[n]["size_mm"] - b1["real"]["size_mm"]) for n in ("ltc", "gaussian")}
+    assert err["gaussian"] > 3 * err["ltc"], table
+    assert b1["ltc"]["rmse_mm"] < b1["gaussian"]["rmse_mm"], table
+    # the CAD part: every scanner's cloud lies on the CAD model within a pixel's footprint
+    for n in ("real", "ltc"):
+        assert abs(rows["C1"][n]["cad"]["mean_mm"]) < 0.2
+
+
+def test_the_report_holds_every_table_and_figure(reduced):
+    out, res = reduced
+    text = (out / "report.md").read_text()
+    for heading in ("Table 4", "Table 5", "Table 6", "CAD part against the CAD model"):
+        assert heading in text
+    for png in ("summary.png", "fringes.png", "distances_S1.png", "cad_error_map.png"):
+        assert (out / "figures" / png).stat().st_size > 1000
+    data = json.loads((out / "results.json").read_text())
+    assert data["positions"] == res["positions"]
+    s1 = data["positions"][0]
+    assert s1["kind"] == "sphere" and s1["defocus"] == "slight"
+    assert set(s1["models"]["ltc"]) == {"mean_um", "rmse_um", "mean_icp_um", "rmse_icp_um",
+                                        "size_um"}
+    assert set(s1["models"]["real"]) == {"size_um"}
+    for cam in data["station"]:
+        assert cam["optical_centre_error_mm"] < 1.0 and len(cam["figures"]) == 4
+
+
+def test_the_cad_part_has_steps_holes_and_a_freeform_face():
+    mesh = cad_part_mesh(step_mm=1.0)
+    z = -mesh.vertices[:, 2]
+    levels = set(np.round(z[np.isclose(z, np.round(z))]).astype(int))
+    assert {0, 8, 16, -10} <= levels  # base, two steps, hole floors
+    assert np.ptp(z[mesh.vertices[:, 0] < -15]) > 5  # the freeform face
+    assert np.all(mesh.face_normals[:, 2] <= 1e-9)  # every face looks towards the rig (-z)
+
+
+def test_ltc_experiment_refuses_an_existing_output_and_a_bad_config(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("precious")
+    assert main(["experiment", "--out", str(out)]) == 2
+    assert "--out" in capsys.readouterr().err
+    bad = tmp_path / "bad.toml"
+    bad.write_text("scale = -1\n")
+    assert main(["experiment", str(bad), "--out", str(tmp_path / "o2")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("ltc experiment: error: ") and "scale" in err
+    assert (out / "keep.txt").read_text() == "precious" and not (tmp_path / "o2").exists()
