@@ -1,22 +1,19 @@
 """Grey-scale centroids and second moments of every pixel's LTC at every depth (OPTICS.md 6.1).
 
-A pixel's LTC window is searched for its peak (after a 3 x 3 box smoothing). Its core is the
-connected set of smoothed weights above a noise threshold that holds the peak (the smoothing
-already reaches one pixel beyond the raw weights above it); its region is the core grown by
-REGION_MARGIN_PX. The centroid is taken over the core, where a first moment gathers the least
-noise,
+A pixel's LTC window is searched for its peak (after a 3 x 3 box smoothing); the region is
+the connected set of smoothed weights above a noise threshold that holds the peak, grown by
+REGION_MARGIN_PX. Over that region
 
-    x_g = sum x h / sum h,   var(x_g) = sigma_h^2 sum (x - x_g)^2 / (sum h)^2,
+    x_g = sum x h / sum h,   var(x_g) = sigma_h^2 sum (x - x_g)^2 / (sum h)^2
 
-and the central second moments ``m_xx, m_yy, m_xy`` and the weights the aperture samples are
-drawn from (``station.lens.derive``) over the region, since tails carry them. Measured (default
-fake noise, P = 16: centroid p95 at 40 / 100 / 150 mm; benchmarks/validation.py --quick:
-measured-LTC scanner mean / RMSE against the real one at slight and large defocus):
-everything over the region grown by 2 px: 0.118 / 0.047 / 0.095 px, -4.9 / 24.9 and -25.4 /
-62.8 um; by 1 px: 0.092 / 0.031 / 0.070 px, +5.2 / 20.6 and -19.5 / 46.9 um; by 0 px: tails
-lost, -4.4 / 23.8 and -21.6 / 77.8 um; centroid over the core, the rest over the region grown
-by 1 px (this module): 0.059 / 0.014 / 0.041 px, +4.3 / 23.7 and -27.4 / 48.4 um.
-``sigma_h`` is the store's per-weight noise estimate. Not the whole P x P window: the noise of
+and the central second moments ``m_xx, m_yy, m_xy``; the aperture samples are drawn from the
+same weights (``station.lens.derive``). The region must hold the LTC's tails: a centroid over
+a tighter region (the smoothed core alone) has half the noise on the fake bench (p95 0.059 vs
+0.118 px at 40 mm, P = 16, default noise) but is biased towards the peak of an asymmetric LTC:
+the reduced experiment's measured-LTC scanner then had a mean distance of -190 um to the real
+one at large defocus and failed its ordering test (tests/station/experiment). With the margin
+the errors are the noise ``var(x_g)`` predicts and nothing more (tests/station/ltc/test_spi.py;
+``sigma_h`` is the store's per-weight noise estimate). Not the whole P x P window: the noise of
 a centroid grows with the area summed over (OPTICS.md section 5). Station-frame points are
 ``(x_g * pitch, y_g * pitch, z)`` mm with ``z`` the stage reading of the depth
 (``fakes/bench.py`` documents the frame: the LCD plane lies at ``z = stage reading``).
@@ -42,7 +39,7 @@ STATUS_NO_SIGNAL = 1  # NaN window, or no weight above the noise threshold
 STATUS_TRUNCATED = 2  # the region reaches the window border: LTC folded or cut off
 NOISE_SIGMAS = 3.0  # region threshold on the 3x3-smoothed weights, in their noise stds
 PEAK_FRACTION = 0.02  # ...and at least this fraction of the smoothed peak
-REGION_MARGIN_PX = 1  # the region (moments, aperture) is the core grown by this, LCD px
+REGION_MARGIN_PX = 2  # the region (moments, aperture) is the core grown by this, LCD px
 READ_BUDGET_BYTES = 1 << 30  # LTC windows of every depth read at once (store dtype), bytes
 WINDOWS_PER_BATCH = 4096  # windows analysed at once (temporaries ~ 10 x this x P^2 x 8 B)
 
@@ -118,23 +115,16 @@ def window_stats(
     ok = signal & (lab_pk > 0) & (s > NOISE_SIGMAS * sigma * np.sqrt(np.maximum(npx, 1)))
     safe = np.where(ok, s, 1.0)
     y, x = np.mgrid[0:p, 0:p].astype(np.float64)
-    # the centroid over the core: a first moment only gathers noise from the margin
-    hc = np.where(core, hz, 0.0)
-    sc = np.where(ok, hc.sum(axis=(1, 2)), 1.0)
-    cx = (hc * x).sum(axis=(1, 2)) / sc
-    cy = (hc * y).sum(axis=(1, 2)) / sc
-    ex = np.where(core, x - cx[:, None, None], 0.0)
-    ey = np.where(core, y - cy[:, None, None], 0.0)
-    sig_c = np.where(ok, sigma, 0.0) / sc
-    std = np.stack([sig_c * np.sqrt((ex * ex).sum(axis=(1, 2))),
-                    sig_c * np.sqrt((ey * ey).sum(axis=(1, 2)))], axis=1)
-    # second moments over the whole region: the tails carry them
+    cx = (hr * x).sum(axis=(1, 2)) / safe
+    cy = (hr * y).sum(axis=(1, 2)) / safe
     dx = np.where(region, x - cx[:, None, None], 0.0)
     dy = np.where(region, y - cy[:, None, None], 0.0)
     mxx = (hr * dx * dx).sum(axis=(1, 2)) / safe
     myy = (hr * dy * dy).sum(axis=(1, 2)) / safe
     mxy = (hr * dx * dy).sum(axis=(1, 2)) / safe
     sig = np.where(ok, sigma, 0.0) / safe
+    std = np.stack([sig * np.sqrt((dx * dx).sum(axis=(1, 2))),
+                    sig * np.sqrt((dy * dy).sum(axis=(1, 2)))], axis=1)
     r2 = dx * dx + dy * dy
     tr = mxx + myy
     tr_std = sig * np.sqrt((np.where(region, r2 - tr[:, None, None], 0.0) ** 2).sum(axis=(1, 2)))

@@ -524,11 +524,15 @@ def test_fake_example_acquire_and_reconstruct_recover_the_true_ltc(tmp_path, cap
                          1) / hu.sum(axis=(1, 2))[:, None] + ou
         full = np.percentile(np.linalg.norm(whole - true, axis=1), 95)
         stats = window_stats(hu, np.asarray(g["noise"][d])[use])
-        near = np.percentile(np.linalg.norm(stats.centroid + ou - true, axis=1), 95)
+        err = stats.centroid + ou - true
+        near = np.percentile(np.linalg.norm(err, axis=1), 95)
+        normalised = np.percentile(np.linalg.norm(err / stats.centroid_std, axis=1), 95)
         lines.append(f"z={z:g} mm: used {100 * use.mean():.1f} % of pixels (check code masks "
                      f"{100 * mask.mean():.1f} %), centroid p95 full window {full:.3f} px, "
-                     f"window_stats region {near:.3f} px")
-        assert near <= 0.1 and near < full
+                     f"window_stats {near:.3f} px (p95 |error / predicted std| {normalised:.2f})")
+        # the pipeline's centroid: its predicted noise and no more (2-D normal: 2.45), far
+        # better than the whole window
+        assert near < full and normalised <= 3.0
     # the whole station: the lens derived from this run against the fake bench's truth
     assert main(["lens", str(ltc), "--out", str(tmp_path / "lens.npz"), "--json"]) == 0
     lens = json.loads(capsys.readouterr().out)

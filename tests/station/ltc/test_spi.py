@@ -374,6 +374,10 @@ def test_level_correction_matters_in_focus(bench, plan, clean_frames):
 
 
 def test_default_noise_centroid_and_region_beat_full_window(bench, plan, capsys):
+    # The pipeline's centroid (window_stats) is graded on its own promise: unbiased, with the
+    # errors its std predicts (2-D normal: p95 of |error / std| is 2.45), and better than the
+    # whole window. Its region holds the LTC's tails, so it is noise-limited (p95 0.118 px at
+    # 40 mm here); the deleted spi.centroid met a fixed 0.1 px with a tighter, biased region.
     lines = []
     for z in DEPTHS:
         frames = synth_frames(bench, plan, z, NoiseModel(), seed=11).reshape(len(plan), -1)
@@ -381,14 +385,20 @@ def test_default_noise_centroid_and_region_beat_full_window(bench, plan, capsys)
         true_xy = bench.true_centroids_lcd_px(z).reshape(-1, 2)
         full = np.percentile(np.linalg.norm(whole_window_centroid(blk.ltc, blk.origin) - true_xy,
                                             axis=1), 95)
-        near = np.percentile(centroid_errors(bench, z, blk.ltc, blk.origin, blk.noise), 95)
+        st = window_stats(blk.ltc, blk.noise)
+        err = st.centroid + blk.origin - true_xy
+        near = np.percentile(np.linalg.norm(err, axis=1), 95)
+        normalised = np.percentile(np.linalg.norm(err / st.centroid_std, axis=1), 95)
         true = windows_from_sparse(bench.true_ltc(z, normalise=True), bench.config.lcd_size, P,
                                    blk.origin)
         empirical = np.sqrt(np.mean((blk.ltc - true) ** 2))
-        lines.append(f"z={z:g} mm: centroid p95 full window {full:.4f} px, window_stats region "
-                     f"{near:.4f} px; noise estimate {np.median(blk.noise):.2e} vs "
-                     f"measured {empirical:.2e}")
-        assert near <= 0.1 and near < full
+        lines.append(f"z={z:g} mm: centroid p95 full window {full:.4f} px, window_stats "
+                     f"{near:.4f} px, p95 |error / predicted std| {normalised:.2f}, bias "
+                     f"{np.abs(err.mean(axis=0)).max():.4f} px; noise estimate "
+                     f"{np.median(blk.noise):.2e} vs measured {empirical:.2e}")
+        assert near < full
+        assert 2.0 <= normalised <= 2.9  # the predicted noise, neither more nor less
+        assert np.abs(err.mean(axis=0)).max() <= 0.01  # no bias
         assert np.median(blk.noise) == pytest.approx(empirical, rel=0.2)
     with capsys.disabled():
         print("\ndefault noise model, P=16 4-step:\n  " + "\n  ".join(lines))
