@@ -75,7 +75,23 @@ class CameraFaults:
     garbage: int = 0  # the next n frames are one flat grey (a broken transfer): no check code
 
 
-class FakeCamera(Camera):
+class SettableExposure:
+    """``exposure_ms`` of a fake camera: any value > 0, ms (kept in ``_exposure_ms``)."""
+
+    _exposure_ms: float
+
+    @property
+    def exposure_ms(self) -> float:
+        return self._exposure_ms
+
+    @exposure_ms.setter
+    def exposure_ms(self, value: float) -> None:
+        if not value > 0:
+            raise ValueError(f"{type(self).__name__}: exposure_ms must be > 0, got {value}")
+        self._exposure_ms = float(value)
+
+
+class FakeCamera(SettableExposure, Camera):
     """Renders the fake LCD through the bench's true LTC at the stage's current position.
 
     seed : noise seed (None: a fresh one). seed_per_scene : draw each capture's noise from
@@ -121,16 +137,6 @@ class FakeCamera(Camera):
         h.update(np.ascontiguousarray(self.lcd.luminance()).tobytes())
         h.update(np.float64(z_mm).tobytes())
         return tuple(int(v) for v in np.frombuffer(h.digest(), dtype="<u4"))
-
-    @property
-    def exposure_ms(self) -> float:
-        return self._exposure_ms
-
-    @exposure_ms.setter
-    def exposure_ms(self, value: float) -> None:
-        if not value > 0:
-            raise ValueError(f"FakeCamera: exposure_ms must be > 0, got {value}")
-        self._exposure_ms = float(value)
 
     @property
     def size(self) -> tuple[int, int]:

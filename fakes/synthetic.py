@@ -42,6 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from scipy import ndimage
 
 from drivers.interfaces import Camera, Frame, PatternDisplay, ShownFrame, Stage
+from fakes.camera import SettableExposure
 from sim.validation import format_validation_error
 
 SIGMA_LEVELS = 24  # blur widths tabulated for stripe patterns
@@ -316,7 +317,7 @@ class SyntheticDisplay(PatternDisplay):
         pass
 
 
-class SyntheticCamera(Camera):
+class SyntheticCamera(SettableExposure, Camera):
     """Renders the shown pattern through the bench's LTC field at the stage's reading."""
 
     def __init__(self, bench: SyntheticBench, display: SyntheticDisplay, stage: Stage,
@@ -325,16 +326,6 @@ class SyntheticCamera(Camera):
         self.seed = seed
         self._exposure_ms = float(exposure_ms)
         self._frame_id = -1
-
-    @property
-    def exposure_ms(self) -> float:
-        return self._exposure_ms
-
-    @exposure_ms.setter
-    def exposure_ms(self, value: float) -> None:
-        if not value > 0:
-            raise ValueError(f"SyntheticCamera: exposure_ms must be > 0, got {value}")
-        self._exposure_ms = float(value)
 
     @property
     def size(self) -> tuple[int, int]:

@@ -38,7 +38,7 @@ def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
-def _write_json(path: Path, data: dict) -> None:
+def write_json(path: Path, data: dict) -> None:
     """Write JSON durably: temporary file, fsync, atomic rename."""
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "w", encoding="utf-8") as f:
@@ -100,7 +100,7 @@ class Sequence:
     def _record(self, step: str, **fields: object) -> None:
         self.summary["steps"].setdefault(step, {}).update(fields)
         self.summary["updated"] = _now()
-        _write_json(self.summary_path, self.summary)
+        write_json(self.summary_path, self.summary)
 
     def run(self) -> dict:
         """Run every step not yet done; returns the summary (``status`` "complete" or the
@@ -121,7 +121,7 @@ class Sequence:
                     continue
                 self._step(step)
             self.summary["status"] = "complete"
-            _write_json(self.summary_path, self.summary)
+            write_json(self.summary_path, self.summary)
             log.info("sequence %s: complete", self.out)
             return self.summary
         finally:
@@ -176,7 +176,7 @@ class Sequence:
         from station.acquisition.align import run_align
 
         report = run_align(self._run_config())
-        _write_json(self.out / "align.json", report)
+        write_json(self.out / "align.json", report)
         return {"report": str(self.out / "align.json"),
                 **{k: report[k] for k in ("tilt_deg",) if k in report}}
 

@@ -63,10 +63,20 @@ def _matrix(value, shape: tuple[int, ...], what: str) -> list:
     return a.tolist()
 
 
+class _Float64View:
+    """Read-only attribute ``<field>_array``: the list field ``<field>`` as a float64 array."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.field = name.removesuffix("_array")
+
+    def __get__(self, obj, owner=None):
+        return self if obj is None else np.asarray(getattr(obj, self.field), dtype=np.float64)
+
+
 class DeviceCalibration(BaseModel):
     """Intrinsics, distortion and pose of one camera or projector."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, ignored_types=(_Float64View,))
     name: str = Field(min_length=1, description="device name, unique in the rig")
     K: list[list[float]] = Field(description="3x3 intrinsic matrix, pixels")
     dist: list[float] = Field(description="OpenCV distortion k1 k2 p1 p2 k3 (5 values)")
@@ -102,21 +112,10 @@ class DeviceCalibration(BaseModel):
             raise ValueError(f"size must be (width, height) >= 1 pixel, got {self.size}")
         return self
 
-    @property
-    def K_array(self) -> np.ndarray:
-        return np.asarray(self.K, dtype=np.float64)
-
-    @property
-    def dist_array(self) -> np.ndarray:
-        return np.asarray(self.dist, dtype=np.float64)
-
-    @property
-    def R_array(self) -> np.ndarray:
-        return np.asarray(self.R, dtype=np.float64)
-
-    @property
-    def T_array(self) -> np.ndarray:
-        return np.asarray(self.T, dtype=np.float64)
+    K_array = _Float64View()  # K, dist, R, T as float64 arrays
+    dist_array = _Float64View()
+    R_array = _Float64View()
+    T_array = _Float64View()
 
     @property
     def width(self) -> int:

@@ -76,18 +76,25 @@ def distance_map_figure(name: str, maps: dict, path: Path) -> Path:
     lim = max(np.percentile(np.abs(maps["ltc"][1]), 98) * 1e3, 1.0)
     for ax, n in zip(axes, VIRTUAL):
         pts, d = maps[n]
-        sc = ax.scatter(pts[:, 0], pts[:, 1], c=d * 1e3, s=2, cmap="coolwarm", vmin=-lim,
-                        vmax=lim)
-        ax.set_aspect("equal")
-        ax.invert_yaxis()
-        ax.set_title(f"{name}: {LABELS[n]} - real, mean {d.mean() * 1e3:+.1f} um, "
-                     f"RMSE {np.sqrt(np.mean(d * d)) * 1e3:.1f} um", fontsize=9)
+        sc = _distance_map(ax, pts, d, lim, 2, f"{name}: {LABELS[n]} - real, mean "
+                           f"{d.mean() * 1e3:+.1f} um, RMSE {np.sqrt(np.mean(d * d)) * 1e3:.1f} um")
         ax.set_xlabel("world x, mm")
         ax.set_ylabel("world y, mm")
         fig.colorbar(sc, ax=ax, shrink=0.8, label="um (same scale: ltc's 98th percentile)")
     fig.tight_layout()
     fig.savefig(path)
     return path
+
+
+def _distance_map(ax, pts: np.ndarray, d_mm: np.ndarray, lim_um: float, size: float,
+                  title: str):
+    """Signed distances (mm) of points (n, 3) drawn in image orientation, um, +-lim_um."""
+    sc = ax.scatter(pts[:, 0], pts[:, 1], c=d_mm * 1e3, s=size, cmap="coolwarm", vmin=-lim_um,
+                    vmax=lim_um)
+    ax.set_aspect("equal")
+    ax.invert_yaxis()
+    ax.set_title(title, fontsize=9)
+    return sc
 
 
 def cad_figure(maps: dict, path: Path) -> Path:
@@ -98,12 +105,8 @@ def cad_figure(maps: dict, path: Path) -> Path:
     lim = max(np.percentile(np.abs(d_real), 95) * 1e3, 1.0)
     for ax, n in zip(axes, MODELS):
         pts, d = maps[f"cad_{n}"]
-        sc = ax.scatter(pts[:, 0], pts[:, 1], c=d * 1e3, s=1, cmap="coolwarm", vmin=-lim,
-                        vmax=lim)
-        ax.set_aspect("equal")
-        ax.invert_yaxis()
-        ax.set_title(f"{LABELS[n]} - CAD: mean {d.mean() * 1e3:+.0f} um, RMSE "
-                     f"{np.sqrt(np.mean(d * d)) * 1e3:.0f} um", fontsize=9)
+        sc = _distance_map(ax, pts, d, lim, 1, f"{LABELS[n]} - CAD: mean {d.mean() * 1e3:+.0f} "
+                           f"um, RMSE {np.sqrt(np.mean(d * d)) * 1e3:.0f} um")
         fig.colorbar(sc, ax=ax, shrink=0.8, label="um")
     fig.tight_layout()
     fig.savefig(path)

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import os
 import platform
 import time
 import tomllib
@@ -39,6 +38,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from station.errors import StationError, UsageError
+from station.sequence import run_sequence, write_json
 
 SPHERE_DIAMETER_MM = 50.8007
 BALLBAR_LENGTH_MM = 209.8219
@@ -227,7 +227,6 @@ def measure_cameras(cfg: ExperimentConfig, rig, out: Path, progress: bool, log: 
     """The station sequence (``ltc run``) for each camera into ``out/station/camI``; returns
     per camera the lens file, its figures and a summary (steps' seconds, optical centre and
     its error against the fake bench's true one)."""
-    from station.sequence import run_sequence
 
     results = []
     for i, cam in enumerate(rig.cameras):
@@ -536,17 +535,8 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
     from station.experiment.report import write_report
 
     results["figures"] = write_report(results, cfg, rig, measured, models, maps, images, out)
-    _write_json(out / "results.json", results)
+    write_json(out / "results.json", results)
     return results
-
-
-def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=1)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def public_row(row: dict) -> dict:
