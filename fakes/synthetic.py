@@ -42,7 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from scipy import ndimage
 
 from drivers.interfaces import Camera, Frame, PatternDisplay, ShownFrame, Stage
-from fakes.camera import SettableExposure
+from fakes.camera import NoiseModel, SettableExposure
 from sim.validation import format_validation_error
 
 SIGMA_LEVELS = 24  # blur widths tabulated for stripe patterns
@@ -67,12 +67,8 @@ class SyntheticConfig(BaseModel):
     tangential_stretch: float = Field(0.15, ge=0, description="tangential sigma growth at r = 1")
     shift_sigmas: float = Field(0.3, description="outward centroid shift at r = 1, in sigma")
     vignetting: float = Field(0.35, ge=0, lt=1, description="transmittance loss at r = 1")
-    bit_depth: int = Field(12, ge=8, le=16, description="ADC bits")
-    full_well_e: float = Field(10000.0, gt=0, description="full well, electrons")
-    white_fraction: float = Field(0.85, gt=0, description="full white, T = 1: fraction of well")
-    read_noise_e: float = Field(5.0, ge=0, description="read noise std, electrons")
-    black_level_adu: float = Field(16.0, ge=0, description="black level, ADU")
-    noise: bool = Field(True, description="False: noise-free (rounded) frames")
+    camera: NoiseModel = Field(default_factory=NoiseModel, description="sensor response and "
+                               "noise, as the exact fake camera's (enabled = false: noise-free)")
 
 
 class SyntheticSettings(BaseModel):
@@ -335,27 +331,23 @@ class SyntheticCamera(SettableExposure, Camera):
 
     @property
     def bit_depth(self) -> int:
-        return self.bench.config.bit_depth
+        return self.bench.config.camera.bit_depth
 
     def capture(self, timeout: float | None = None) -> Frame:
         c = self.bench.config
         z = self.stage.position_mm
         kind, data = self.display.shown
         rel = self.bench.response(kind, data, z)
-        electrons = rel * np.float32(c.white_fraction * c.full_well_e * self._exposure_ms / 20.0)
-        if c.noise:
+        n = c.camera
+        electrons = rel * np.float32(n.electrons_per_ms_white() * self._exposure_ms)
+        rng = None
+        if n.enabled:  # noise drawn per scene: a resumed or retried frame is the same frame
             seed = np.frombuffer(self.display.key + np.float64(z).tobytes(), dtype="<u4")
             rng = np.random.default_rng([self.seed or 0, *seed.tolist()])
-            noise = rng.standard_normal(electrons.shape, dtype=np.float32)
-            noise *= np.sqrt(np.maximum(electrons, 0) + np.float32(c.read_noise_e**2))
-            electrons += noise
-        gain = (2**c.bit_depth - 1 - c.black_level_adu) / c.full_well_e
-        adu = np.minimum(electrons, np.float32(c.full_well_e)) * np.float32(gain)
-        adu += np.float32(c.black_level_adu)
-        np.rint(adu, out=adu)
-        np.clip(adu, 0, 2**c.bit_depth - 1, out=adu)
+        sensor = n.sensor
+        image = sensor.digitise(sensor.expose_gaussian(electrons, rng))
         self._frame_id += 1
-        return Frame(image=adu.astype(np.uint8 if c.bit_depth <= 8 else np.uint16),
+        return Frame(image=image,
                      timestamp=time.monotonic(), exposure_ms=self._exposure_ms,
                      frame_id=self._frame_id, meta={"stage_mm": z})
 

@@ -51,6 +51,20 @@ class Sensor:
             e = e + dtype(self.read_noise_e) * rng.standard_normal(e.shape, dtype=dtype)
         return e
 
+    def expose_gaussian(self, electrons: np.ndarray, rng: np.random.Generator | None,
+                        dtype: type = np.float32) -> np.ndarray:
+        """:meth:`expose` with shot and read noise drawn as one normal deviate of the same
+        variance, ``e + sqrt(max(e, 0) + read_noise_e^2) N(0, 1)`` (close to Poisson above a
+        few tens of electrons; about 7x faster, for full-size synthetic frames), then clipped at
+        the full well."""
+        e = np.asarray(electrons, dtype=dtype)
+        if self.noisy:
+            if rng is None:
+                raise ValueError("Sensor.expose_gaussian: rng is required when noise is on")
+            var = (np.maximum(e, 0) if self.shot_noise else 0) + dtype(self.read_noise_e**2)
+            e = e + rng.standard_normal(e.shape, dtype=dtype) * np.sqrt(var).astype(dtype)
+        return np.minimum(e, dtype(self.full_well_e))
+
     def digitise(self, electrons: np.ndarray) -> np.ndarray:
         """Digital numbers of electrons read out: uint8 (8 bits or fewer) or uint16."""
         dn = np.rint(self.black_level_dn + self.dn_per_e * np.asarray(electrons))

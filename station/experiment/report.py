@@ -140,6 +140,20 @@ def summary_figure(rows: list[dict], path: Path) -> Path:
     return path
 
 
+def _size_table(rows: list[dict], kind: str, title: str, unit: str, cell) -> list[str]:
+    """Markdown table of every model's size (``cell(size_mm)``) at the positions of ``kind``,
+    with ltc and Gaussian against real (um)."""
+    out = ["", title, "", "| position | defocus, mm | " + " | ".join(LABELS[n] for n in MODELS)
+           + f" | ltc - real{unit} | Gaussian - real{unit} |", "|" + "---|" * (4 + len(MODELS))]
+    for r in (r for r in rows if r["kind"] == kind):
+        m = r["models"]
+        out.append(f"| {r['name']} ({r['defocus']}) | {r['defocus_mm']:+.0f} | "
+                   + " | ".join(cell(m[n]["size_mm"]) for n in MODELS)
+                   + f" | {_um(m['ltc']['size_mm'] - m['real']['size_mm'])}"
+                   f" | {_um(m['gaussian']['size_mm'] - m['real']['size_mm'])} |")
+    return out
+
+
 def _um(x: float, sign: bool = True) -> str:
     return f"{x * 1e3:+.1f}" if sign else f"{x * 1e3:.1f}"
 
@@ -158,24 +172,11 @@ def tables(rows: list[dict]) -> list[str]:
                    + " | ".join(f"{_um(m[n]['mean_mm'])} / {_um(m[n]['rmse_mm'], False)} | "
                                 f"{_um(m[n]['mean_icp_mm'])} / {_um(m[n]['rmse_icp_mm'], False)}"
                                 for n in VIRTUAL) + " |")
-    out += ["", f"### Table 5: sphere fits, diameter - {SPHERE_DIAMETER_MM} mm (um)", "",
-            "| position | defocus, mm | " + " | ".join(LABELS[n] for n in MODELS)
-            + " | ltc - real | Gaussian - real |", "|" + "---|" * (4 + len(MODELS))]
-    for r in (r for r in rows if r["kind"] == "sphere"):
-        m = r["models"]
-        out.append(f"| {r['name']} ({r['defocus']}) | {r['defocus_mm']:+.0f} | "
-                   + " | ".join(_um(m[n]["size_mm"]) for n in MODELS)
-                   + f" | {_um(m['ltc']['size_mm'] - m['real']['size_mm'])}"
-                   f" | {_um(m['gaussian']['size_mm'] - m['real']['size_mm'])} |")
-    out += ["", f"### Table 6: ball-bar lengths (nominal {BALLBAR_LENGTH_MM} mm), mm", "",
-            "| position | defocus, mm | " + " | ".join(LABELS[n] for n in MODELS)
-            + " | ltc - real, um | Gaussian - real, um |", "|" + "---|" * (4 + len(MODELS))]
-    for r in (r for r in rows if r["kind"] == "ballbar"):
-        m = r["models"]
-        out.append(f"| {r['name']} ({r['defocus']}) | {r['defocus_mm']:+.0f} | "
-                   + " | ".join(f"{BALLBAR_LENGTH_MM + m[n]['size_mm']:.4f}" for n in MODELS)
-                   + f" | {_um(m['ltc']['size_mm'] - m['real']['size_mm'])}"
-                   f" | {_um(m['gaussian']['size_mm'] - m['real']['size_mm'])} |")
+    out += _size_table(rows, "sphere", f"### Table 5: sphere fits, diameter - "
+                       f"{SPHERE_DIAMETER_MM} mm (um)", "", _um)
+    out += _size_table(rows, "ballbar", f"### Table 6: ball-bar lengths (nominal "
+                       f"{BALLBAR_LENGTH_MM} mm), mm", ", um",
+                       lambda mm: f"{BALLBAR_LENGTH_MM + mm:.4f}")
     cad = [r for r in rows if r["kind"] == "cad"]
     if cad:
         out += ["", "### CAD part against the CAD model (um)", "",

@@ -46,3 +46,16 @@ def test_renderer_and_fake_camera_share_it():
     want = b.digitise(b.expose(e, np.random.default_rng(9), np.float32))
     assert np.abs(got.astype(int) - want.astype(int)).max() <= 1  # float32 vs float64 DN
     assert np.mean(got != want) < 1e-3
+
+
+def test_gaussian_exposure_has_the_model_mean_and_variance():
+    s = Sensor(full_well_e=10000.0, dn_per_e=0.4, black_level_dn=16.0, bit_depth=12,
+               read_noise_e=5.0)
+    rng = np.random.default_rng(4)
+    for e in (300.0, 5000.0):
+        dn = s.digitise(s.expose_gaussian(np.full(200_000, e), rng)).astype(np.float64)
+        four_sigma = 4 * np.sqrt(float(s.variance_dn(e)) / dn.size)
+        assert dn.mean() == pytest.approx(float(s.mean_dn(e)), abs=four_sigma)
+        assert dn.var() == pytest.approx(float(s.variance_dn(e)), rel=0.02)
+    full = s.expose_gaussian(np.array([1e6], np.float32), rng)
+    assert full[0] == 10000.0  # clipped at the full well
