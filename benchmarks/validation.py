@@ -54,7 +54,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from sim.metrology.compare import compare_clouds
 from sim.render.fringe_patterns import PhaseShiftSet
 from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens, sunflower_disk
-from sim.optics.measured_lens import MeasuredLens, load_lens, save_lens
+from sim.optics.measured_lens import (MeasuredLens, centre_moments, gaussian_equivalent, load_lens,
+                                      save_lens)
 from sim.metrology.spheres import fit_sphere
 from sim.fpp.decode import scan as fpp_scan
 from sim.render.images import CameraResponse, ProjectorResponse, RenderSettings, render_views
@@ -234,30 +235,6 @@ def measure_lens(cfg: ValidationConfig, rig: Rig, out: Path,
                   "lens": result.summary()}
 
 
-def centre_moments(lens: MeasuredLens) -> tuple[np.ndarray, np.ndarray]:
-    """Mean (2,) mm and covariance (2, 2) mm^2 of the measured aperture samples at the optical
-    centre's pixel (the principal point of the lens's camera matrix, else the sensor centre)."""
-    if lens.camera_matrix is not None:
-        uv = lens.camera_matrix[:2, 2]
-    else:
-        uv = (np.asarray(lens.camera_size, dtype=np.float64) - 1) / 2
-    x, y, w = (a[0] for a in lens.samples_at(np.asarray(uv, dtype=np.float64)[None]))
-    w = w / w.sum()
-    xy = np.stack([x, y], axis=1)
-    mean = w @ xy
-    d = xy - mean
-    return mean, (w[:, None] * d).T @ d
-
-
-def gaussian_baseline(lens: MeasuredLens) -> GaussianLens:
-    """OPTICS.md section 7: the measured lens's ray geometry (focus distance, K samples) with
-    Gaussian aperture weights whose per-axis variance is the mean of the two axes' second
-    moments of the measured LTC at the optical centre, the same for every pixel."""
-    _, cov = centre_moments(lens)
-    return GaussianLens(sigma_mm=float(np.sqrt(0.5 * np.trace(cov))),
-                        focus_distance_mm=lens.focus_distance_mm, samples=lens.samples)
-
-
 def pattern_set(cfg: ValidationConfig) -> PhaseShiftSet:
     """4-step phase shifting along u at the configured periods (hierarchical unwrapping)."""
     return PhaseShiftSet(periods_px=list(cfg.periods_px), steps=4, direction="u")
@@ -327,7 +304,7 @@ def compare_position(cfg: ValidationConfig, rig: Rig, pos: Position,
 def scanner_lenses(cfg: ValidationConfig, measured: MeasuredLens) -> dict[str, LensModel]:
     """The real scanner's lens and the virtual scanners' lenses (keys 'real' and ``LENSES``)."""
     return {"real": truth_lens(cfg, cfg.truth_samples), "measured": measured,
-            "gaussian": gaussian_baseline(measured), "pinhole": PinholeLens(),
+            "gaussian": gaussian_equivalent(measured), "pinhole": PinholeLens(),
             "truth_k": truth_lens(cfg, measured.samples)}
 
 

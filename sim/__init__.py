@@ -20,7 +20,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "scanner": "Scanner",
     "optics.rig": "Rig DeviceCalibration",
     "optics.lens": "PinholeLens GaussianLens AberratedLens LensModel",
-    "optics.measured_lens": "MeasuredLens load_lens save_lens",
+    "optics.measured_lens": "MeasuredLens load_lens save_lens gaussian_equivalent",
     "render.scene": "Scene load_scene_file",
     "render.fringe_patterns": "PhaseShiftSet GrayCodeSet",
     "render.images": "RenderSettings RenderResult",

@@ -174,6 +174,10 @@ def compare_clouds(
     m = finite_points(measured, "measured cloud")
     ref = finite_points(reference, "reference cloud")
     nrm = estimate_normals(ref) if reference_normals is None else np.asarray(reference_normals, float)
+    bad = ~np.isfinite(nrm).all(axis=1)
+    if bad.any():  # a cloud's own normals can be missing at its edges: estimate those
+        nrm = nrm.copy()
+        nrm[bad] = estimate_normals(ref)[bad]
     if align:
         tf, n_it = icp(m, ref, nrm, max_distance_mm=max_distance_mm)
     else:

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.optics.lens import RayBundle
+from sim.optics.lens import GaussianLens, RayBundle
 from sim.optics.projection import normalized_to_pixel
 from sim.tolerances import WEIGHT_SUM_TOL
 
@@ -210,6 +210,32 @@ class MeasuredLens:
         d = aim - origins
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
         return RayBundle(origins, d, w)
+
+
+def centre_moments(lens: MeasuredLens) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (2,) mm and covariance (2, 2) mm^2 of a measured lens's aperture samples at the
+    optical centre's pixel (the principal point of its camera matrix, else the sensor centre)."""
+    if lens.camera_matrix is not None:
+        uv = lens.camera_matrix[:2, 2]
+    else:
+        uv = (np.asarray(lens.camera_size, dtype=np.float64) - 1) / 2
+    x, y, w = (a[0] for a in lens.samples_at(np.asarray(uv, dtype=np.float64)[None]))
+    w = w / w.sum()
+    xy = np.stack([x, y], axis=1)
+    mean = w @ xy
+    d = xy - mean
+    return mean, (w[:, None] * d).T @ d
+
+
+def gaussian_equivalent(lens: MeasuredLens, samples: int | None = None) -> GaussianLens:
+    """The Gaussian defocus model of a measured lens (OPTICS.md section 7): its focus distance,
+    with Gaussian aperture weights whose per-axis variance is the mean of the two axes' second
+    moments of the measured LTC at the optical centre, the same for every pixel. ``samples``:
+    aperture samples (default the measured lens's K)."""
+    _, cov = centre_moments(lens)
+    return GaussianLens(sigma_mm=float(np.sqrt(0.5 * np.trace(cov))),
+                        focus_distance_mm=lens.focus_distance_mm,
+                        samples=samples or lens.samples)
 
 
 def _bracket(nodes: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

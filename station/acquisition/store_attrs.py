@@ -13,7 +13,6 @@ from typing import Annotated, Any
 import zarr
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
 
-from sim.validation import format_validation_error
 
 
 def _finite(v: float) -> float:
@@ -78,4 +77,9 @@ def check_attrs(path: Path, attrs: dict, model: type[BaseModel], error: type[Val
     try:
         model.model_validate(dict(attrs))
     except ValidationError as exc:
-        raise error(format_validation_error(f"{path}: attributes", exc)) from exc
+        first = exc.errors()[0]
+        name = ".".join(str(p) for p in first["loc"])
+        if first["type"] == "missing":
+            raise error(f"{path}: attribute '{name}' is missing") from exc
+        raise error(f"{path}: attribute '{name}': {first['msg']} (got {first['input']!r:.80})"
+                    ) from exc

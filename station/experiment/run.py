@@ -259,40 +259,14 @@ def measure_cameras(cfg: ExperimentConfig, rig, out: Path, progress: bool, log: 
 
 # --- the scanners -----------------------------------------------------------------------------
 
-def centre_moments(lens) -> tuple[np.ndarray, np.ndarray]:
-    """Mean (2,) mm and covariance (2, 2) mm^2 of the measured aperture samples at the optical
-    centre's pixel (the principal point of the lens's camera matrix, else the sensor centre)."""
-    if lens.camera_matrix is not None:
-        uv = lens.camera_matrix[:2, 2]
-    else:
-        uv = (np.asarray(lens.camera_size, dtype=np.float64) - 1) / 2
-    x, y, w = (a[0] for a in lens.samples_at(np.asarray(uv, dtype=np.float64)[None]))
-    w = w / w.sum()
-    xy = np.stack([x, y], axis=1)
-    mean = w @ xy
-    d = xy - mean
-    return mean, (w[:, None] * d).T @ d
-
-
-def gaussian_baseline(lens, samples: int | None = None):
-    """OPTICS.md section 7: the measured lens's focus distance with Gaussian aperture weights
-    whose per-axis variance is the mean of the two axes' second moments of the measured LTC at
-    the optical centre, the same for every pixel; ``samples`` default: the lens's K."""
-    from sim.optics.lens import GaussianLens
-
-    _, cov = centre_moments(lens)
-    return GaussianLens(sigma_mm=float(np.sqrt(0.5 * np.trace(cov))),
-                        focus_distance_mm=lens.focus_distance_mm,
-                        samples=samples or lens.samples)
-
-
 def scanner_lenses(cfg: ExperimentConfig, measured: list) -> dict[str, tuple]:
     """Per scanner the lens of each camera."""
     from sim.optics.lens import PinholeLens
+    from sim.optics.measured_lens import gaussian_equivalent
 
     return {"real": tuple(truth_lens(cfg, i, cfg.real_samples) for i in range(2)),
             "ltc": tuple(measured),
-            "gaussian": tuple(gaussian_baseline(m, cfg.gaussian_samples) for m in measured),
+            "gaussian": tuple(gaussian_equivalent(m, cfg.gaussian_samples) for m in measured),
             "pinhole": (PinholeLens(), PinholeLens())}
 
 

@@ -14,7 +14,8 @@ import pytest
 
 from fakes.bench import FakeBench
 from fakes.hardware import parse_fake_settings
-from sim.optics.measured_lens import MeasuredLens, load_lens, save_lens
+from sim.optics.measured_lens import (MeasuredLens, centre_moments, gaussian_equivalent, load_lens,
+                                      save_lens)
 from sim.optics.rig import DeviceCalibration
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -131,10 +132,10 @@ def test_gaussian_baseline_takes_the_second_moment_at_the_optical_centre():
     a = 3.0
     lens = _lens([a, -a, 0, 0], [0, 0, a, -a], [1, 1, 1, 1],
                  K=np.array([[50.0, 0, 4.0], [0, 50.0, 3.0], [0, 0, 1]]))
-    mean, cov = V.centre_moments(lens)
+    mean, cov = centre_moments(lens)
     np.testing.assert_allclose(mean, 0, atol=1e-12)
     np.testing.assert_allclose(cov, np.diag([a * a / 2, a * a / 2]), atol=1e-12)
-    g = V.gaussian_baseline(lens)
+    g = gaussian_equivalent(lens)
     assert g.sigma_mm == pytest.approx(a / np.sqrt(2))
     assert (g.focus_distance_mm, g.samples) == (500.0, 4)
     b = g.bundle(np.zeros((1, 2)))

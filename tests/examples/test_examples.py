@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import cv2
+import pytest
 import numpy as np
 import zarr
 
@@ -53,10 +54,11 @@ def test_virtual_scan_measures_the_sphere_of_the_example_scene(tmp_path):
     assert abs(1e3 * json.loads(cli.stdout)["diameter_error_mm"] - err_um) < 0.06
 
 
-def test_unattended_sequence_resumes_after_a_kill_and_finds_the_true_optical_centre(tmp_path):
-    from fakes.truth import lens_truth
-
-    seq = tmp_path / "seq"
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory) -> dict:
+    """The unattended sequence example, SIGKILLed during its acquisition, refused while the
+    dead run's lock stands, then finished with --force."""
+    seq = tmp_path_factory.mktemp("sequence") / "seq"
     cmd = [sys.executable, str(EXAMPLES / "unattended_sequence.py"), str(seq)]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
@@ -76,15 +78,22 @@ def test_unattended_sequence_resumes_after_a_kill_and_finds_the_true_optical_cen
     finally:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
-    summary = json.loads((seq / "summary.json").read_text())
-    assert summary["steps"]["check"]["status"] == "done"
-    assert summary["steps"]["acquire"]["status"] == "running"
-    # the killed run's writer lock is still on the run store: named, and taken over only with
-    # --force
+    killed = json.loads((seq / "summary.json").read_text())
     refused = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert refused.returncode == 1 and "--force" in refused.stderr, refused.stderr[-2000:]
-    assert f"pid {proc.pid}" in refused.stderr or str(proc.pid) in refused.stderr
     out = run_example("unattended_sequence.py", str(seq), "--force")
+    return {"seq": seq, "killed_summary": killed, "refused": refused, "pid": proc.pid,
+            "out": out}
+
+
+def test_unattended_sequence_resumes_after_a_kill_and_finds_the_true_optical_centre(sequence):
+    from fakes.truth import lens_truth
+
+    seq, out, refused = sequence["seq"], sequence["out"], sequence["refused"]
+    assert sequence["killed_summary"]["steps"]["check"]["status"] == "done"
+    assert sequence["killed_summary"]["steps"]["acquire"]["status"] == "running"
+    # the killed run's writer lock was named, and taken over only with --force
+    assert refused.returncode == 1 and "--force" in refused.stderr, refused.stderr[-2000:]
+    assert str(sequence["pid"]) in refused.stderr
     summary = json.loads((seq / "summary.json").read_text())
     assert summary["status"] == "complete"
     assert summary["steps"]["acquire"]["result"]["resumed"] is True
@@ -99,3 +108,25 @@ def test_unattended_sequence_resumes_after_a_kill_and_finds_the_true_optical_cen
     assert np.linalg.norm(found - truth["optical_centre_mm"]) < 0.15
     log = (seq / "run.log").read_text()
     assert "check: done in an earlier run, skipped" in log and "sequence" in log
+
+
+def test_measured_vs_gaussian_compares_the_two_scanners(sequence, tmp_path):
+    import sim
+    from sim.optics import centre_moments
+
+    lens = sequence["seq"] / "lens.npz"
+    out = run_example("measured_vs_gaussian.py", str(lens), str(tmp_path))
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    measured = sim.MeasuredLens.load(lens)
+    # the Gaussian model is the measured lens's: its variance is the measured second moment
+    # at the optical centre (OPTICS.md section 7)
+    _, cov = centre_moments(measured)
+    assert summary["gaussian_sigma_mm"] ** 2 == pytest.approx(0.5 * np.trace(cov), rel=1e-9)
+    focus, defocus = summary["positions"]
+    for row in (focus, defocus):
+        assert row["measured"]["points"] > 100 and row["gaussian"]["points"] > 100
+        assert (tmp_path / f"{row['position'].replace(' ', '_')}_measured.ply").is_file()
+    # the two models part where the blur is large: further apart out of focus than in focus
+    assert abs(defocus["gaussian_vs_measured"]["mean_um"]) > \
+        abs(focus["gaussian_vs_measured"]["mean_um"])
+    assert "Gaussian cloud vs measured" in out
