@@ -26,8 +26,9 @@ from sim.optics.lens import AberratedLens
 from sim.optics.plane_ltc import plane_ltc
 
 
-class BenchConfig(BaseModel):
-    """Geometry and optics of the fake LTC bench. Defaults are the reference system."""
+class BenchGeometry(BaseModel):
+    """LCD and camera of a fake bench (the exact one, ``fakes.synthetic``'s). Defaults are
+    the reference system."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -36,6 +37,11 @@ class BenchConfig(BaseModel):
     camera_size: tuple[int, int] = Field((4096, 2168), description="sensor (width, height), px")
     pixel_pitch_um: float = Field(3.45, gt=0, description="sensor pixel pitch, um")
     focal_length_mm: float = Field(16.0, gt=0, description="lens focal length, mm")
+
+
+class BenchConfig(BenchGeometry):
+    """Geometry and optics of the fake LTC bench. Defaults are the reference system."""
+
     f_number: float = Field(4.0, gt=0, description="f-number; pupil diameter = f / N")
     focus_distance_mm: float = Field(760.0, gt=0, description="in-focus distance z_f, mm")
     vignetting_shift_mm: float = Field(

@@ -42,6 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from scipy import ndimage
 
 from drivers.interfaces import Camera, Frame, PatternDisplay, ShownFrame, Stage
+from fakes.bench import BenchGeometry
 from fakes.camera import NoiseModel, SettableExposure
 from sim.validation import format_validation_error
 
@@ -50,15 +51,9 @@ PROFILE_SUB = 4  # stripe-table samples per LCD pixel
 MIN_COEFFICIENT = 1e-4  # tile DFT coefficients kept, fraction of full white
 
 
-class SyntheticConfig(BaseModel):
+class SyntheticConfig(BenchGeometry):
     """Geometry, LTC field and camera of the synthetic bench (defaults: the paper's scale)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    lcd_size: tuple[int, int] = Field((3840, 2160), description="LCD (width, height), px")
-    lcd_pitch_mm: float = Field(0.2715, gt=0, description="LCD pixel pitch, mm")
-    camera_size: tuple[int, int] = Field((4096, 2168), description="sensor (width, height)")
-    pixel_pitch_um: float = Field(3.45, gt=0, description="sensor pixel pitch, um")
-    focal_length_mm: float = Field(16.0, gt=0, description="focal length, mm")
     pupil_mm: float = Field(4.0, gt=0, description="entrance pupil diameter, mm")
     focus_distance_mm: float = Field(760.0, gt=0, description="in-focus distance D_f, mm")
     lcd_distance_at_zero_mm: float = Field(600.0, gt=0, description="pupil-LCD distance at z=0")

@@ -42,10 +42,15 @@ def half_plane_frequencies(period: int) -> tuple[np.ndarray, np.ndarray]:
     return kl[flat < partner], kl[flat == partner]
 
 
-class FourierPatternSet(BaseModel):
-    """Periodic Fourier patterns ``L = a + b cos(2 pi (k x + l y) / P + phi_m)``."""
+class _PatternSet(BaseModel):
+    """A validated, immutable pattern-set description (round-trips through JSON)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class FourierPatternSet(_PatternSet):
+    """Periodic Fourier patterns ``L = a + b cos(2 pi (k x + l y) / P + phi_m)``."""
+
     kind: Literal["fourier"] = "fourier"
     period: int = Field(24, ge=4, le=256, description="period P of the patterns, LCD pixels")
     steps: int = Field(4, ge=3, le=16, description="phase steps n, phi_m = 2 pi m / n")
@@ -98,7 +103,7 @@ class FourierPatternSet(BaseModel):
         return self.steps * len(reg) + 2 * len(sc)
 
 
-class LocalisationPatternSet(BaseModel):
+class LocalisationPatternSet(_PatternSet):
     """Gray code plus phase shifting along both LCD axes, with a white and a black frame.
 
     Gray code bit patterns (0 or 1) split each axis into half-period stripes of ``period / 2``
@@ -106,7 +111,6 @@ class LocalisationPatternSet(BaseModel):
     bit first. Phase patterns: ``0.5 + 0.5 cos(2 pi x / period - 2 pi i / steps)``.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
     kind: Literal["localisation"] = "localisation"
     period: int = Field(48, ge=4, le=4096, description="phase-shift period Q, LCD pixels (even)")
     steps: int = Field(4, ge=3, le=16, description="phase steps per axis")
