@@ -128,7 +128,7 @@ def test_corrupted_and_missing_files(tmp_path):
         ({"weights": None}, r"missing field\(s\) \['weights'\]"),
         ({"extra_thing": np.zeros(2)}, r"unknown field\(s\) \['extra_thing'\]"),
         ({"metadata_json": np.array("{not json")}, "field 'metadata_json' is not JSON"),
-        ({"node_u": np.array(["a", "b"])}, "field 'node_u' must be numeric"),
+        ({"node_u": np.array(["a", "b"])}, "field 'node_u' must be real numbers"),
     ],
 )
 def test_file_level_errors_name_file_and_field(tmp_path, over, message):
