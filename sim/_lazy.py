@@ -13,9 +13,11 @@ def lazy_exports(package: str, namespace: dict[str, Any], where: dict[str, str]
 
     ``where`` maps each submodule (relative, e.g. ``"optics.lens"``) to the public names it
     defines, separated by spaces; a resolved name is stored in the package's ``namespace`` (its
-    ``globals()``), so the next use is a plain attribute.
+    ``globals()``), so the next use is a plain attribute. The table name -> submodule is kept
+    as the package's ``_EXPORTS``.
     """
     exports = {name: sub for sub, names in where.items() for name in names.split()}
+    namespace["_EXPORTS"] = exports
 
     def __getattr__(name: str) -> Any:
         sub = exports.get(name)
