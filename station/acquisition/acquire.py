@@ -303,10 +303,7 @@ class Acquisition:
 
     def _show(self, image: np.ndarray) -> ShownFrame:
         shown = self.hw.display.show(image)
-        d = self.config.display
-        wait = shown.swap_time + d.latency_frames / d.refresh_hz - time.monotonic()
-        if wait > 0:
-            time.sleep(wait)
+        self.config.display.wait_settled(shown.swap_time)
         return shown
 
     def _capture(self, shown: ShownFrame) -> tuple[Frame | None, tuple[str, str] | None]:

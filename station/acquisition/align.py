@@ -30,7 +30,6 @@ rotated about its x axis by ``t_x``, then its y axis by ``t_y``) that direction 
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 
@@ -141,11 +140,9 @@ def tilt_from_axis(vanishing_px: np.ndarray, principal_px: np.ndarray,
 def measure_depth(hw: Hardware, config: StationConfig, shift_px: int) -> dict:
     """LCD centre image point, Jacobian and magnification at the current stage position."""
     size = hw.display.size
-    latency = config.display.latency_frames / config.display.refresh_hz
-
     def capture(img: np.ndarray) -> np.ndarray:
         shown = hw.display.show(img)
-        time.sleep(max(0.0, shown.swap_time + latency - time.monotonic()))
+        config.display.wait_settled(shown.swap_time)
         return capture_after(hw, shown.swap_time, config).astype(np.float64)
 
     background = capture(np.zeros(size[::-1], np.uint8))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -51,6 +53,8 @@ class DisplayConfig(_Strict):
     lut_path: str | None = Field(None, description="inverse response LUT file (from `ltc gamma`)")
     refresh_hz: float = Field(60.0, gt=0, description="display refresh rate, Hz")
     latency_frames: int = Field(2, ge=0, description="refreshes to wait after show before capture")
+    settle_ms: float = Field(0.0, ge=0, description="the LCD's liquid-crystal settle time after "
+                             "the latency, ms (a few ms for fast panels; see its datasheet)")
     frame_code: bool = Field(
         False, description="the display driver draws its own strip frame code in the LCD's top-left "
         "corner (for a camera that sees that corner sharply); the acquisition's own check code "
@@ -58,6 +62,16 @@ class DisplayConfig(_Strict):
     )
     frame_code_block_px: int = Field(16, ge=1, description="strip frame code block edge, LCD pixels")
     pitch_mm: float = Field(0.2715, gt=0, description="LCD pixel pitch, mm")
+
+    @property
+    def settled_s(self) -> float:
+        """Seconds from a frame's swap until the LCD shows it steadily: the latency, then the
+        settle time; the camera is triggered no earlier."""
+        return self.latency_frames / self.refresh_hz + self.settle_ms / 1000.0
+
+    def wait_settled(self, swap_time: float) -> None:
+        """Sleep until ``swap_time`` (time.monotonic, s) + :attr:`settled_s`."""
+        time.sleep(max(0.0, swap_time + self.settled_s - time.monotonic()))
 
 
 CameraMatrix = tuple[tuple[float, float, float], tuple[float, float, float],

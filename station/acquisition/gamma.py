@@ -11,7 +11,6 @@ what ``PatternDisplay.set_lut`` and ``station.acquisition.patterns.apply_lut`` t
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -106,11 +105,10 @@ def save_lut(path: str | Path, lut: np.ndarray) -> Path:
 def capture_levels(hw: Hardware, levels: np.ndarray, config: StationConfig) -> np.ndarray:
     """Show each level full screen (display LUT as set) and capture it: (n, rows, cols)."""
     w, h = hw.display.size
-    latency = config.display.latency_frames / config.display.refresh_hz
     frames = []
     for g in levels:
         shown = hw.display.show(np.full((h, w), int(g), np.uint8))
-        time.sleep(max(0.0, shown.swap_time + latency - time.monotonic()))
+        config.display.wait_settled(shown.swap_time)
         frames.append(capture_after(hw, shown.swap_time, config))
     return np.stack(frames)
 

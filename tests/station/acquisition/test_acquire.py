@@ -546,3 +546,15 @@ def test_fake_example_acquire_and_reconstruct_recover_the_true_ltc(tmp_path, cap
     with capsys.disabled():
         print(f"\nfake example end to end: acquire {t1 - t0:.1f} s, reconstruct {t2 - t1:.1f} s\n  "
               + "\n  ".join(lines))
+
+
+def test_every_frame_is_captured_after_the_latency_and_the_lcd_settle_time(tmp_path):
+    config = small_config(**{"latency_frames = 0 ": "latency_frames = 1\nsettle_ms = 40.0 "})
+    assert config.display.settle_ms == 40.0
+    out = tmp_path / "run.zarr"
+    acquire(config, out, progress=False)
+    g = zarr.open_group(str(out), mode="r")
+    waited = np.asarray(g["camera_timestamp_s"][...]) - np.asarray(g["swap_time_s"][...])
+    settled = config.display.latency_frames / config.display.refresh_hz + 0.040
+    assert config.display.settled_s == pytest.approx(settled)
+    assert waited.min() >= settled  # the camera is never triggered before the LCD settled
