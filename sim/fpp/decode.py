@@ -61,7 +61,11 @@ class DecodeSettings(BaseModel):
         0.5, gt=0, description="stereo points must reproject into the projector this close, px"
     )
     interpolation_order: Literal[1, 3] = Field(
-        3, description="phase-map interpolation in stereo matching: 1 linear, 3 cubic"
+        3, description="phase-map interpolation of the coarse stereo search: 1 linear, 3 cubic "
+        "(the sub-pixel match comes from the local phase model and does not depend on it)"
+    )
+    max_lr_error_px: float = Field(
+        0.25, gt=0, description="stereo left-right consistency tolerance, camera px"
     )
 
 
@@ -232,7 +236,8 @@ def scan(
         return stereo_cloud(
             views[0].coord["u"], views[1].coord["u"], rig.cameras[0], rig.cameras[1],
             projector=rig.projector, max_projector_error_px=settings.max_projector_error_px,
-            quality1=views[0].modulation, order=settings.interpolation_order,
+            quality1=views[0].modulation, quality2=views[1].modulation,
+            order=settings.interpolation_order, max_lr_error_px=settings.max_lr_error_px,
         )
     if not 0 <= camera < len(rig.cameras):
         raise ValueError(f"camera must be 0 or 1, got {camera}")
