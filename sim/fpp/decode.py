@@ -67,6 +67,15 @@ class DecodeSettings(BaseModel):
     max_lr_error_px: float = Field(
         0.25, gt=0, description="stereo left-right consistency tolerance, camera px"
     )
+    max_model_residual: float = Field(
+        5.0, gt=0, description="stereo: pixels whose local phase model fits worse than this many "
+        "times the camera's median residual are not matched (silhouettes, mixed pixels)"
+    )
+    max_range_step: float = Field(
+        8.0, gt=0, description="stereo: points whose range differs from a neighbour's by more "
+        "than this many pixel footprints, or that lack one of their 8 neighbours, are dropped "
+        "(depth steps, silhouettes); inf skips the check"
+    )
 
 
 @dataclass(frozen=True)
@@ -238,6 +247,7 @@ def scan(
             projector=rig.projector, max_projector_error_px=settings.max_projector_error_px,
             quality1=views[0].modulation, quality2=views[1].modulation,
             order=settings.interpolation_order, max_lr_error_px=settings.max_lr_error_px,
+            max_model_residual=settings.max_model_residual, max_range_step=settings.max_range_step,
         )
     if not 0 <= camera < len(rig.cameras):
         raise ValueError(f"camera must be 0 or 1, got {camera}")

@@ -425,6 +425,7 @@ def stereo_cloud(
     quality2: np.ndarray | None = None,
     max_lr_error_px: float = 0.25,
     max_model_residual: float = 5.0,
+    max_range_step: float = 8.0,
 ) -> PointCloud:
     """Point cloud from the projector-coordinate maps (H, W) of two cameras (NaN = invalid).
 
@@ -437,6 +438,9 @@ def stereo_cloud(
     max_lr_error_px : left-right consistency tolerance, pixels.
     max_model_residual : pixels whose local phase model fits worse than this many times the
         median over the camera (silhouettes, mixed pixels, phase errors) are not used.
+    max_range_step : points whose range differs from a neighbour's by more than this many
+        pixel footprints, or that lack a neighbour, are dropped (depth steps, edges; 8 passes
+        surfaces up to 83 degrees oblique; ``inf`` skips the check).
     Returns points in the world frame, from both directions, with normals (facing each point's
     reference camera), quality and per-point fields (see ``PointCloud``).
     """
@@ -494,6 +498,8 @@ def stereo_cloud(
         back = np.full((hs, ws, 2), np.nan)
         back[other[1][:, 1].astype(int), other[1][:, 0].astype(int)] = other[2]
         ok = _lr_consistent(uv_s, ref_pix, back, max_lr_error_px)
+        if np.isfinite(max_range_step):
+            ok[ok] = _continuous(world[ok], ref_pix[ok], sides[a].cam, max_range_step)
         kept.append((world[ok], ref_pix[ok], err[ok]))
     if not any(len(k[0]) for k in kept):
         raise ValueError("stereo matching found no pixel with the same projector coordinate in both cameras")
@@ -514,6 +520,26 @@ def stereo_cloud(
                       np.concatenate(quality) if has_q else None,
                       {"camera": np.concatenate(camera).astype(np.float64),
                        "u": np.concatenate(pixels)[:, 0], "v": np.concatenate(pixels)[:, 1]})
+
+
+def _continuous(world: np.ndarray, ref_pix: np.ndarray, cam: DeviceCalibration, max_step: float
+                ) -> np.ndarray:
+    """Points (n,) whose 8 neighbours are all reconstructed, with ranges from the camera within
+    ``max_step`` pixel footprints (range / f) of theirs: the edges of what was reconstructed
+    and depth steps (silhouettes, and the mixed pixels a blurred silhouette leaves between
+    the surfaces) are dropped, on both sides."""
+    h, w = cam.height, cam.width
+    rng = np.full((h + 2, w + 2), np.nan)
+    iu, iv = ref_pix[:, 0].astype(np.int64) + 1, ref_pix[:, 1].astype(np.int64) + 1
+    rng[iv, iu] = np.linalg.norm(world - cam.centre_world, axis=1)
+    limit = max_step * rng[iv, iu] / min(cam.K_array[0, 0], cam.K_array[1, 1])
+    ok = np.ones(len(world), dtype=bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dx or dy:
+                step = np.abs(rng[iv + dy, iu + dx] - rng[iv, iu])
+                ok &= step <= limit  # NaN (no neighbour) fails
+    return ok
 
 
 def replace_coef(side: _Side, usable: np.ndarray) -> _Side:
