@@ -8,7 +8,7 @@ from sim._lazy import lazy_exports
 
 _EXPORTS = {
     **dict.fromkeys(("SphereFit", "BallBar", "fit_sphere", "fit_sphere_algebraic", "find_spheres",
-                     "measure_ball_bar"), "spheres"),
+                     "find_sphere_unknown", "sphere_shell", "measure_ball_bar"), "spheres"),
     **dict.fromkeys(("RigidTransform", "CloudComparison", "icp", "compare_clouds",
                      "estimate_normals", "signed_distance_to_cloud", "mesh_signed_distance",
                      "distance_colormap_png"), "compare"),
