@@ -27,8 +27,18 @@ from sim.fpp.phase import (
     wrapped_phase,
 )
 from sim.optics.rig import DeviceCalibration, Rig
-from sim.fpp.stereo import PointCloud, camera_projector_cloud, grid_normals, stereo_cloud
+from sim.fpp.stereo import (
+    PointCloud,
+    camera_projector_cloud,
+    grid_normals,
+    local_phase_model,
+    phase_noise_px,
+    stereo_cloud,
+)
 from sim.tolerances import EDGE_MARGIN_PX
+
+SENSITIVITY_PX = 1e-3
+"""Projector px: step of the finite difference giving a point's sensitivity to phase error."""
 
 
 
@@ -256,9 +266,17 @@ def scan(
     _check_camera(stack, cam, f"camera {camera}")
     view = decode_view(stack, patterns, psize, settings, f"camera {camera}")
     axis = "u" if "u" in view.coord else "v"
-    pts, uv = camera_projector_cloud(view.coord[axis], cam, rig.projector, axis)
+    coord = view.coord[axis]
+    pts, uv = camera_projector_cloud(coord, cam, rig.projector, axis)
     grid = np.full((cam.height, cam.width, 3), np.nan)
     iu, iv = uv[:, 0].astype(int), uv[:, 1].astype(int)
     grid[iv, iu] = pts
     normals = grid_normals(grid, cam.centre_world)[iv, iu]
-    return PointCloud(pts, normals, view.modulation[iv, iu])
+    # per-point phase error and the uncertainty it propagates to (mm per projector px)
+    _, residual = local_phase_model(coord)
+    noise = phase_noise_px(residual, view.modulation)
+    moved, _ = camera_projector_cloud(coord + SENSITIVITY_PX, cam, rig.projector, axis)
+    sens = np.linalg.norm(moved - pts, axis=1) / SENSITIVITY_PX
+    fields = {"camera": np.full(len(pts), float(camera)), "u": uv[:, 0], "v": uv[:, 1],
+              "phase_error": residual[iv, iu], "uncertainty_mm": sens * noise[iv, iu]}
+    return PointCloud(pts, normals, view.modulation[iv, iu], fields)

@@ -20,10 +20,14 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.stats import chi2
 
 from sim.optics.projection import camera_to_world, project_points
 from sim.optics.rig import DeviceCalibration
 from sim.tolerances import MODEL_RESIDUAL_FLOOR_PX, STEREO_STEP
+
+STEREO_SENSITIVITY_PX = 1e-3
+"""Rectified px: the step of the finite difference that gives a stereo point's sensitivity."""
 
 
 @dataclass(frozen=True)
@@ -281,6 +285,8 @@ def _basis_grad(dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return gx, gy
 
 
+MEDIAN_CHI_RATIO = {d: float(np.sqrt(chi2.median(d) / d)) for d in range(1, 64)}
+"""Median over mean of a chi distribution with d degrees of freedom, as RMS ratio."""
 _PINV = np.linalg.pinv(_basis(_OFFSETS[:, 0], _OFFSETS[:, 1]))  # (m, stencil)
 
 
@@ -360,14 +366,15 @@ def _refine(side: _Side, x: np.ndarray, y: np.ndarray, q: np.ndarray, iterations
         x = np.where(ok, x - np.clip(f / np.where(ok, df, 1.0), -1.0, 1.0), x)
     # converged: the phase matches to a millionth of a pixel's worth of slope
     ok &= np.abs(f) <= 1e-6 * np.abs(df) + 1e-12 * np.maximum(1.0, np.abs(q))
-    return x, uv, ok
+    return x, uv, ok, df
 
 
 def _match_direction(ref: _Side, srch: _Side, rows: tuple[int, int], order: int,
                      ref_ok: np.ndarray) -> tuple[np.ndarray, ...]:
     """Every candidate match of the reference camera's pixels ``ref_ok`` (H, W) bool in the
     search camera: reference pixel indices (n,) (flat), rectified ``xy_ref`` (n, 2),
-    rectified search column (n,), search pixel (n, 2)."""
+    rectified search column (n,), search pixel (n, 2), and the slope of the search camera's
+    phase along the row there (n,) (projector px per rectified px)."""
     vv, uu = np.nonzero(ref_ok)
     q = ref.coord[vv, uu]
     xy = _to_rectified(np.stack([uu, vv], axis=1).astype(np.float64), ref.cam, ref.r, ref.p)
@@ -387,13 +394,13 @@ def _match_direction(ref: _Side, srch: _Side, rows: tuple[int, int], order: int,
             idx_all.append(mine[j])
             x_all.append(srch.cols[0] + xr)
     if not idx_all:
-        return (np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)))
+        return (np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), np.zeros(0))
     k = np.concatenate(idx_all)
     x0 = np.concatenate(x_all)
-    x, uv, ok = _refine(srch, x0, xy[k, 1], q[k])
-    k, x, uv = k[ok], x[ok], uv[ok]
+    x, uv, ok, slope = _refine(srch, x0, xy[k, 1], q[k])
+    k, x, uv, slope = k[ok], x[ok], uv[ok], slope[ok]
     flat = vv[k] * ref.coord.shape[1] + uu[k]
-    return flat, xy[k], x, uv
+    return flat, xy[k], x, uv, slope
 
 
 def _lr_consistent(uv_match: np.ndarray, ref_pix: np.ndarray, back: np.ndarray, tol_px: float
@@ -463,15 +470,20 @@ def stereo_cloud(
             raise ValueError(f"camera '{s.cam.name}': no valid pixel with 8 valid neighbours to match")
         limit = max(max_model_residual * float(np.median(s.residual[fine])), MODEL_RESIDUAL_FLOOR_PX)
         usable.append(fine & (s.residual <= limit))
+    noise = [phase_noise_px(s.residual, q) for s, q in zip(sides, (quality1, quality2))]
     # the search model is used at the matched pixel too: mask its coefficients
     sides = [replace_coef(s, u) for s, u in zip(sides, usable)]
     results = []
     for a, b in ((0, 1), (1, 0)):
-        flat, xy_ref, x_s, uv_s = _match_direction(sides[a], sides[b], rect.rows, order, usable[a])
+        flat, xy_ref, x_s, uv_s, slope = _match_direction(sides[a], sides[b], rect.rows, order,
+                                                         usable[a])
         xy_s = np.stack([x_s, xy_ref[:, 1]], axis=1)
         pa, pb = (rect.P1, rect.P2) if a == 0 else (rect.P2, rect.P1)
         pts_rect = triangulate(pa, pb, xy_ref, xy_s)
         world = camera_to_world(pts_rect @ rect.R1, cam1.R_array, cam1.T_array)
+        # mm per projector px of phase error: the search position moves by 1 / slope
+        moved = triangulate(pa, pb, xy_ref, xy_s + [STEREO_SENSITIVITY_PX, 0.0])
+        sens = np.linalg.norm(moved - pts_rect, axis=1) / STEREO_SENSITIVITY_PX / np.abs(slope)
         w = sides[a].coord.shape[1]
         measured = sides[a].coord.ravel()[flat]
         if projector is not None:
@@ -489,10 +501,10 @@ def stereo_cloud(
             chosen = chosen[counts == 1]
         chosen = chosen[good[chosen]]
         ref_pix = np.stack([flat[chosen] % w, flat[chosen] // w], axis=1).astype(np.float64)
-        results.append((world[chosen], ref_pix, uv_s[chosen], err[chosen]))
+        results.append((world[chosen], ref_pix, uv_s[chosen], sens[chosen]))
     kept = []
     for a in (0, 1):
-        world, ref_pix, uv_s, err = results[a]
+        world, ref_pix, uv_s, sens = results[a]
         other = results[1 - a]
         hs, ws = sides[1 - a].coord.shape
         back = np.full((hs, ws, 2), np.nan)
@@ -500,11 +512,14 @@ def stereo_cloud(
         ok = _lr_consistent(uv_s, ref_pix, back, max_lr_error_px)
         if np.isfinite(max_range_step):
             ok[ok] = _continuous(world[ok], ref_pix[ok], sides[a].cam, max_range_step)
-        kept.append((world[ok], ref_pix[ok], err[ok]))
+        node = np.round(uv_s[ok]).astype(np.int64)
+        sigma = np.hypot(noise[a][ref_pix[ok][:, 1].astype(int), ref_pix[ok][:, 0].astype(int)],
+                         noise[1 - a][node[:, 1], node[:, 0]])
+        kept.append((world[ok], ref_pix[ok], sens[ok] * sigma))
     if not any(len(k[0]) for k in kept):
         raise ValueError("stereo matching found no pixel with the same projector coordinate in both cameras")
-    points, normals, quality, camera, pixels = [], [], [], [], []
-    for a, (world, ref_pix, err) in enumerate(kept):
+    points, normals, quality, camera, pixels, perr, unc = [], [], [], [], [], [], []
+    for a, (world, ref_pix, u_mm) in enumerate(kept):
         cam = sides[a].cam
         iu, iv = ref_pix[:, 0].astype(int), ref_pix[:, 1].astype(int)
         grid = np.full((cam.height, cam.width, 3), np.nan)
@@ -515,11 +530,35 @@ def stereo_cloud(
         quality.append(np.asarray(qa, dtype=np.float64)[iv, iu] if qa is not None else np.full(len(world), np.nan))
         camera.append(np.full(len(world), a))
         pixels.append(ref_pix)
+        perr.append(sides[a].residual[iv, iu])
+        unc.append(u_mm)
     has_q = quality1 is not None or quality2 is not None
+    pix = np.concatenate(pixels)
     return PointCloud(np.concatenate(points), np.concatenate(normals),
                       np.concatenate(quality) if has_q else None,
-                      {"camera": np.concatenate(camera).astype(np.float64),
-                       "u": np.concatenate(pixels)[:, 0], "v": np.concatenate(pixels)[:, 1]})
+                      {"camera": np.concatenate(camera).astype(np.float64), "u": pix[:, 0],
+                       "v": pix[:, 1], "phase_error": np.concatenate(perr),
+                       "uncertainty_mm": np.concatenate(unc)})
+
+
+def phase_noise_px(residual: np.ndarray, modulation: np.ndarray | None = None) -> np.ndarray:
+    """Standard deviation (H, W) of a projector-coordinate map's random error, projector px,
+    from its local phase model's residuals (H, W) (``local_phase_model``): the residual of
+    a least-squares fit of m coefficients to s samples has ``E[rms^2] = sigma^2 (s - m) / s``;
+    the camera's median gives sigma, scaled per pixel by ``sqrt(median(B) / B)`` where the
+    fringe modulation B (H, W) is given (shot-noise-limited phase noise goes as
+    ``sqrt(A) / B``, and A as B for a given fringe contrast)."""
+    fine = np.isfinite(residual)
+    if not fine.any():
+        return np.full(np.shape(residual), np.nan)
+    s, m = len(_OFFSETS), len(_POWERS)
+    sigma = float(np.median(residual[fine])) * np.sqrt(s / (s - m)) / MEDIAN_CHI_RATIO[s - m]
+    if modulation is None:
+        return np.full(np.shape(residual), sigma)
+    b = np.asarray(modulation, dtype=np.float64)
+    ref = float(np.median(b[fine & (b > 0)])) if np.any(fine & (b > 0)) else 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(b > 0, sigma * np.sqrt(ref / b), np.inf)
 
 
 def _continuous(world: np.ndarray, ref_pix: np.ndarray, cam: DeviceCalibration, max_step: float

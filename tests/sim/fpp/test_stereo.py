@@ -263,14 +263,44 @@ def test_ply_round_trip(tmp_path):
     np.testing.assert_array_equal(back.points, pts)  # double precision, exact
     np.testing.assert_allclose(back.normals, n, rtol=1e-6)
     np.testing.assert_allclose(back.quality, q, rtol=1e-6)
+    header = (tmp_path / "a.ply").read_bytes().split(b"end_header")[0].decode()
+    assert "property float nx" in header and "property float scalar_quality" in header
     write_ply(tmp_path / "b.ply", PointCloud(pts))
     b = read_ply(tmp_path / "b.ply")
-    assert b.normals is None and b.quality is None
+    assert b.normals is None and b.quality is None and b.fields == {}
     ascii_ply = (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
                  b"property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
                  b"end_header\n1 2 3\n4 5 6\n3 0 1 1\n")
     (tmp_path / "c.ply").write_bytes(ascii_ply)
     np.testing.assert_array_equal(read_ply(tmp_path / "c.ply").points, [[1, 2, 3], [4, 5, 6]])
+
+
+def test_scanned_ply_carries_scalar_fields_and_normals(tmp_path):
+    """A scan's PLY: ``x y z``, ``nx ny nz`` and ``scalar_<name>`` per-point extras (the names
+    CloudCompare shows as scalar fields), read back as they were written."""
+    rig = Rig(cameras=[crop(k, np.zeros(3), (96, 80)) for k in default_rig(distortion=False).cameras],
+              projector=default_rig(distortion=False).projector)
+    ps = PhaseShiftSet(periods_px=[1920.0, 120.0, 16.0], steps=4)
+    geom = Scene(objects=[SphereObject()]).trace_geometry()
+    settings = RenderSettings(camera=CameraResponse(shot_noise=True, read_noise_e=5.0, bit_depth=12))
+    res = render_views(geom, rig, [PinholeLens()] * 2, ps.images(rig.projector.size), settings,
+                       np.random.default_rng(2))
+    for camera in (None, 0):
+        cloud = scan([c.images for c in res.cameras], ps, rig, camera=camera)
+        write_ply(tmp_path / "s.ply", cloud)
+        header = (tmp_path / "s.ply").read_bytes().split(b"end_header")[0].decode()
+        for name in ("x", "y", "z", "nx", "ny", "nz", "scalar_quality", "scalar_camera",
+                     "scalar_u", "scalar_v", "scalar_phase_error", "scalar_uncertainty_mm"):
+            assert f" {name}\n" in header
+        back = read_ply(tmp_path / "s.ply")
+        for name, values in cloud.fields.items():
+            np.testing.assert_allclose(back.fields[name], values, rtol=1e-6)
+        # the propagated uncertainty is the size of the real error: a few to tens of um
+        r = np.abs(np.linalg.norm(cloud.points, axis=1) - R_SPHERE)
+        u = cloud.fields["uncertainty_mm"]
+        assert 0.3 < np.sqrt(np.mean(r * r)) / np.sqrt(np.mean(u * u)) < 1.5
+        pe = cloud.fields["phase_error"]  # NaN where the 3 x 3 stencil leaves the image
+        assert np.mean(np.isfinite(pe)) > 0.9 and np.all(pe[np.isfinite(pe)] >= 0)
 
 
 @pytest.mark.parametrize(
