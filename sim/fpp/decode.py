@@ -252,13 +252,15 @@ def scan(
         views = [decode_view(images[i], patterns, psize, settings, f"camera {i}") for i in range(2)]
         if "u" not in views[0].coord:
             raise ValueError("stereo matching needs fringes along 'u' (projector columns)")
-        return stereo_cloud(
+        cloud = stereo_cloud(
             views[0].coord["u"], views[1].coord["u"], rig.cameras[0], rig.cameras[1],
             projector=rig.projector, max_projector_error_px=settings.max_projector_error_px,
             quality1=views[0].modulation, quality2=views[1].modulation,
             order=settings.interpolation_order, max_lr_error_px=settings.max_lr_error_px,
             max_model_residual=settings.max_model_residual, max_range_step=settings.max_range_step,
         )
+        top = float(np.percentile(np.concatenate([v.modulation.ravel() for v in views]), 99))
+        return _relative_quality(cloud, top)
     if not 0 <= camera < len(rig.cameras):
         raise ValueError(f"camera must be 0 or 1, got {camera}")
     stack = images[camera] if len(images) == len(rig.cameras) else images[0]
@@ -279,4 +281,13 @@ def scan(
     sens = np.linalg.norm(moved - pts, axis=1) / SENSITIVITY_PX
     fields = {"camera": np.full(len(pts), float(camera)), "u": uv[:, 0], "v": uv[:, 1],
               "phase_error": residual[iv, iu], "uncertainty_mm": sens * noise[iv, iu]}
-    return PointCloud(pts, normals, view.modulation[iv, iu], fields)
+    return _relative_quality(PointCloud(pts, normals, view.modulation[iv, iu], fields),
+                             float(np.percentile(view.modulation, 99)))
+
+
+def _relative_quality(cloud: PointCloud, top: float) -> PointCloud:
+    """``cloud`` with its modulation (image units) as field ``modulation`` and as quality the
+    modulation relative to ``top`` (the 99th percentile over the images: about 0 to 1)."""
+    fields = {"modulation": cloud.quality, **cloud.fields}
+    quality = cloud.quality / top if top > 0 else cloud.quality
+    return PointCloud(cloud.points, cloud.normals, quality, fields)

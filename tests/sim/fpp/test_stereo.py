@@ -289,7 +289,7 @@ def test_scanned_ply_carries_scalar_fields_and_normals(tmp_path):
         cloud = scan([c.images for c in res.cameras], ps, rig, camera=camera)
         write_ply(tmp_path / "s.ply", cloud)
         header = (tmp_path / "s.ply").read_bytes().split(b"end_header")[0].decode()
-        for name in ("x", "y", "z", "nx", "ny", "nz", "scalar_quality", "scalar_camera",
+        for name in ("x", "y", "z", "nx", "ny", "nz", "scalar_quality", "scalar_modulation", "scalar_camera",
                      "scalar_u", "scalar_v", "scalar_phase_error", "scalar_uncertainty_mm"):
             assert f" {name}\n" in header
         back = read_ply(tmp_path / "s.ply")
@@ -299,6 +299,7 @@ def test_scanned_ply_carries_scalar_fields_and_normals(tmp_path):
         r = np.abs(np.linalg.norm(cloud.points, axis=1) - R_SPHERE)
         u = cloud.fields["uncertainty_mm"]
         assert 0.3 < np.sqrt(np.mean(r * r)) / np.sqrt(np.mean(u * u)) < 1.5
+        assert 0 < np.median(cloud.quality) <= 1.0
         pe = cloud.fields["phase_error"]  # NaN where the 3 x 3 stencil leaves the image
         assert np.mean(np.isfinite(pe)) > 0.9 and np.all(pe[np.isfinite(pe)] >= 0)
 
