@@ -47,7 +47,8 @@ class DecodeSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     min_modulation: float = Field(
-        2.0, ge=0, description="smallest fringe amplitude B kept, image units (DN)"
+        0.0, ge=0, description="smallest fringe amplitude B kept, image units (0: only the "
+        "relative threshold applies)"
     )
     min_modulation_fraction: float = Field(
         0.05, ge=0, lt=1,
@@ -130,6 +131,11 @@ def _valid(wps, images, settings: DecodeSettings, where: str) -> tuple[np.ndarra
     return ok, mod
 
 
+def _typed(periods: list[float], extent: int) -> str:
+    """Periods as typed and as fringe counts across the projector."""
+    return ", ".join(f"{p:g} px = {extent / p:.4g} fringes" for p in periods)
+
+
 def _decode_phase_shift(images, descs, ps: PhaseShiftSet, size, settings, where):
     groups: dict[tuple[str, float], list[int]] = defaultdict(list)
     for d in sorted(descs, key=lambda d: d.shift or 0):
@@ -147,16 +153,27 @@ def _decode_phase_shift(images, descs, ps: PhaseShiftSet, size, settings, where)
             if max(periods) < extent:
                 raise ValueError(
                     f"{where}: hierarchical unwrapping needs a period of at least {extent} px "
-                    f"(the projector along '{axis}'), the longest is {max(periods):g} px"
+                    f"(1 fringe across the projector along '{axis}'); the longest is "
+                    f"{max(periods):g} px ({extent / max(periods):.4g} fringes); periods are in "
+                    "projector pixels, or give fringe counts as 'fringes'"
                 )
             absph, oerr = unwrap_hierarchical([w.phase for w in wps], periods, extent, True)
         else:
             if len(periods) not in (2, 3):
                 raise ValueError(
-                    f"{where}: {len(periods)} period(s) along '{axis}' cannot be unwrapped: "
-                    f"use one period >= {extent} px or 2-3 periods for heterodyne"
+                    f"{where}: {len(periods)} period(s) along '{axis}' cannot be unwrapped "
+                    f"({_typed(periods, extent)}): use one period >= {extent} px (1 fringe) or "
+                    "2-3 periods for heterodyne"
                 )
-            absph, oerr = unwrap_heterodyne([w.phase for w in wps], periods, extent, True)
+            try:
+                absph, oerr = unwrap_heterodyne([w.phase for w in wps], periods, extent, True)
+            except ValueError as exc:
+                raise ValueError(
+                    f"{where}: the periods along '{axis}' ({_typed(periods, extent)}) cannot be "
+                    f"unwrapped: the longest is {max(periods):g} px ({extent / max(periods):.4g} "
+                    f"fringes), shorter than the {extent} px projector, and heterodyne failed "
+                    f"({exc}); periods are in projector pixels, or give fringe counts as 'fringes'"
+                ) from exc
         c = absolute_phase_to_projector(absph, min(periods))
         coord[axis] = np.where(oerr <= settings.max_order_error, c, np.nan)
     return coord, wps_all

@@ -1,7 +1,8 @@
 """``ltc scan IMAGES --rig RIG --out CLOUD.ply [--json]``: fringe images to a point cloud.
 
 IMAGES is an ``ltc render`` folder, a zarr stack, or a folder with ``camera_0/`` and
-``camera_1/`` image folders (``sim.fpp.scan_input``; docs/formats.md). Stereo between the rig's
+``camera_1/`` image folders (PNG, TIFF, float TIFF or ``.npy``; ``sim.fpp.scan_input``;
+docs/formats.md, "Bring your own scanner"). Stereo between the rig's
 two cameras by default; ``--camera i`` triangulates camera i against the projector instead.
 """
 
@@ -30,8 +31,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     p.add_argument("--patterns", type=Path, help="pattern set JSON (overrides the one in IMAGES)")
     p.add_argument("--camera", type=int, help="triangulate this camera against the projector")
-    p.add_argument("--min-modulation", type=positive_float, default=2.0,
-                   help="smallest fringe amplitude kept, image units (default 2)")
+    p.add_argument("--min-modulation", type=positive_float,
+                   help="also drop pixels whose fringe amplitude is below this, image units "
+                        "(default: only the relative threshold)")
+    p.add_argument("--min-modulation-fraction", type=positive_float, default=0.05,
+                   help="drop pixels whose fringe amplitude is below this fraction of the "
+                        "image's 99th percentile (default 0.05)")
     p.add_argument("--unwrap", choices=("auto", "hierarchical", "heterodyne"), default="auto",
                    help="temporal unwrapping of phase-shift sets (default auto)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
@@ -48,8 +53,10 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.out, args.force)
     t0 = time.perf_counter()
     rig = Rig.load(args.rig)
-    stacks, pset = load_scan_input(args.images, args.patterns)
-    settings = DecodeSettings(min_modulation=args.min_modulation, unwrap=args.unwrap)
+    stacks, pset = load_scan_input(args.images, args.patterns, tuple(rig.projector.size))
+    settings = DecodeSettings(min_modulation=args.min_modulation or 0.0,
+                              min_modulation_fraction=args.min_modulation_fraction,
+                              unwrap=args.unwrap)
     t_read = time.perf_counter() - t0
     cloud = scan(stacks, pset, rig, settings, camera=args.camera)
     t1 = time.perf_counter()

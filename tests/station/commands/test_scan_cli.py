@@ -204,7 +204,7 @@ def test_scan_errors_inputs_and_pattern_sets(sphere_render, tmp_path, capsys):
     shutil.rmtree(plain / "camera_1")
     (plain / "camera_1").mkdir()
     code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", tmp_path / "patterns.json")
-    assert code == 1 and "camera_1: no PNG or TIFF images" in err
+    assert code == 1 and "camera_1: no PNG, TIFF or .npy images" in err
     cv2.imwrite(str(plain / "camera_1" / "a.png"), np.zeros((4, 4, 3), np.uint8))
     code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", tmp_path / "patterns.json")
     assert code == 1 and "a.png: not a single-channel image" in err
