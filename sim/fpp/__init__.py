@@ -12,8 +12,10 @@ _EXPORTS = {
                      "absolute_phase_to_projector", "fringe_order_error", "gray_to_index",
                      "gray_bits", "beat"), "phase"),
     **dict.fromkeys(("DecodeSettings", "DecodedView", "decode_view", "scan"), "decode"),
+    **dict.fromkeys(("ScanInputError", "load_scan_input"), "scan_input"),
     **dict.fromkeys(("PointCloud", "Rectification", "stereo_cloud", "camera_projector_cloud",
-                     "stereo_rectification", "triangulate", "grid_normals", "relative_pose"),
+                     "stereo_rectification", "triangulate", "grid_normals", "relative_pose",
+                     "local_phase_model", "phase_noise_px"),
                     "stereo"),
     **dict.fromkeys(("read_ply", "write_ply"), "cloud"),
 }
