@@ -11,7 +11,9 @@ thin lens at f/2.8 focused at 760 mm (64 spp).
 Each camera is rendered by Mitsuba (``_mitsuba_scene.MitsubaFringeRenderer``, one renderer per
 camera, same projector), and, for reference, by ours. The images go through
 ``sim.fpp.decode.scan`` in stereo and camera-projector mode (relative modulation threshold
-only: the images are float radiance). Judged with no outlier rejection on every point within
+only: the images are float radiance; Mitsuba's images with the pixel-footprint correction of a
+full square pixel, ``pixel_variance_px2 = 1/12``, as its box pixel filter averages each pixel's
+area like a real camera; ours sample the pixel centres). Judged with no outlier rejection on every point within
 R + 3 mm of the true centre: the least-squares diameter error, the fit RMS, the share of
 points more than 20 um off the true surface; and the scan time (decode, match, triangulate).
 
@@ -57,7 +59,10 @@ BASELINE_MM = 220.0
 DISTANCE_MM = 760.0
 FRINGES = (1, 8, 64)
 F_NUMBER = 2.8
-DECODE = DecodeSettings(min_modulation=0.0)
+DECODE = {  # Mitsuba's box filter averages each pixel's area, as a real camera does; ours samples its centre
+    "mitsuba": DecodeSettings(min_modulation=0.0, pixel_variance_px2=1.0 / 12.0),
+    "ours": DecodeSettings(min_modulation=0.0),
+}
 R = SPHERE_DIAMETER_MM / 2
 
 
@@ -107,11 +112,11 @@ def judge(points: np.ndarray) -> dict:
                 centre_error_mm=float(np.linalg.norm(fit.centre)))
 
 
-def run_case(rig, ps, images) -> dict:
+def run_case(rig, ps, images, who: str) -> dict:
     out = {}
     for mode, camera in (("stereo", None), ("camera 0 + projector", 0), ("camera 1 + projector", 1)):
         t0 = time.perf_counter()
-        cloud = scan(images, ps, rig, DECODE, camera=camera)
+        cloud = scan(images, ps, rig, DECODE[who], camera=camera)
         out[mode] = {**judge(cloud.points), "scan_s": time.perf_counter() - t0}
     return out
 
@@ -123,7 +128,8 @@ def report(rows: dict, spp: int, scale: float, date: str, host: str) -> str:
          f"{rig.projector.width} x {rig.projector.height} projector between them, the sphere and "
          "a plane 100 mm behind it; 4-step phase shift at 1, 8 and 64 fringes. Each camera rendered "
          "by Mitsuba and by ours, scanned by `sim.fpp.decode.scan` (stereo: both directions, local "
-         "phase model, consistency checks; and each camera against the projector). No outlier "
+         "phase model, consistency checks; and each camera against the projector; Mitsuba's "
+         "box-filtered pixels with the pixel-footprint correction 1/12 px^2). No outlier "
          "rejection: every point within R + 3 mm of the true centre counts.", "",
          f"Run of {date} on {host}. Errors in micrometres; 'off' is the share of points more than "
          "20 um from the true surface.", "",
@@ -168,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 np.savez(path, images=np.stack(images))
         t_render = time.perf_counter() - t0
-        rows[case] = run_case(rig, ps, images)
+        rows[case] = run_case(rig, ps, images, who)
         for mode, m in rows[case].items():
             print(f"{case} {mode}: diameter {1e3 * m['diameter_error_mm']:+.2f} um, RMS "
                   f"{1e3 * m['fit_rms_mm']:.2f} um, off {100 * m['over_20um']:.2f} %, "

@@ -33,6 +33,8 @@ from sim.fpp.stereo import (
     grid_normals,
     local_phase_model,
     phase_noise_px,
+    pixel_footprint_correction,
+    usable_pixels,
     stereo_cloud,
 )
 from sim.tolerances import EDGE_MARGIN_PX
@@ -81,6 +83,12 @@ class DecodeSettings(BaseModel):
     max_model_residual: float = Field(
         5.0, gt=0, description="stereo: pixels whose local phase model fits worse than this many "
         "times the camera's median residual are not matched (silhouettes, mixed pixels)"
+    )
+    pixel_variance_px2: float = Field(
+        0.0, ge=0, description="second moment per axis (px^2) of a camera pixel's spatial "
+        "response, whose averaging of intensity and phase across the pixel is undone to second "
+        "order (sim.fpp.stereo.pixel_footprint_correction): 1/12 for real cameras (a square "
+        "pixel of full fill factor; Mitsuba's box filter), 0 for point-sampled renders (ours)"
     )
     max_range_step: float = Field(
         8.0, gt=0, description="stereo: points whose range differs from a neighbour's by more "
@@ -140,12 +148,13 @@ def _decode_phase_shift(images, descs, ps: PhaseShiftSet, size, settings, where)
     groups: dict[tuple[str, float], list[int]] = defaultdict(list)
     for d in sorted(descs, key=lambda d: d.shift or 0):
         groups[(d.direction, d.period_px)].append(d.index)
-    coord, wps_all = {}, []
+    coord, wps_all, fine = {}, [], {}
     for axis in sorted({a for a, _ in groups}):
         extent = size[0] if axis == "u" else size[1]
         periods = [p for a, p in groups if a == axis]
         wps = [wrapped_phase(images[groups[(axis, p)]]) for p in periods]
         wps_all += wps
+        fine[axis] = wps[int(np.argmin(periods))].modulation
         method = settings.unwrap
         if method == "auto":
             method = "hierarchical" if max(periods) >= extent else "heterodyne"
@@ -176,7 +185,7 @@ def _decode_phase_shift(images, descs, ps: PhaseShiftSet, size, settings, where)
                 ) from exc
         c = absolute_phase_to_projector(absph, min(periods))
         coord[axis] = np.where(oerr <= settings.max_order_error, c, np.nan)
-    return coord, wps_all
+    return coord, wps_all, fine
 
 
 def _indices(descs: list[PatternDescriptor], kind: str) -> list[int]:
@@ -187,11 +196,12 @@ def _indices(descs: list[PatternDescriptor], kind: str) -> list[int]:
 
 
 def _decode_gray(images, descs, gs: GrayCodeSet, settings, where):
-    coord, wps_all = {}, []
+    coord, wps_all, fine = {}, [], {}
     for axis in sorted({d.direction for d in descs}):
         mine = [d for d in descs if d.direction == axis]
         wp = wrapped_phase(images[_indices(mine, "phase")])
         wps_all.append(wp)
+        fine[axis] = wp.modulation
         gray = images[_indices(mine, "gray")]
         if gs.inverse:
             bits = gray_bits(gray, inverse=images[_indices(mine, "gray_inverse")])
@@ -205,7 +215,7 @@ def _decode_gray(images, descs, gs: GrayCodeSet, settings, where):
         )
         c = absolute_phase_to_projector(absph, gs.period_px)
         coord[axis] = np.where(oerr <= settings.max_order_error, c, np.nan)
-    return coord, wps_all
+    return coord, wps_all, fine
 
 
 def decode_view(
@@ -221,15 +231,22 @@ def decode_view(
     descs = patterns.descriptors(projector_size)
     images = _check_stack(images, descs, where)
     if isinstance(patterns, GrayCodeSet):
-        coord, wps = _decode_gray(images, descs, patterns, settings, where)
+        coord, wps, fine = _decode_gray(images, descs, patterns, settings, where)
     else:
-        coord, wps = _decode_phase_shift(images, descs, patterns, projector_size, settings, where)
+        coord, wps, fine = _decode_phase_shift(images, descs, patterns, projector_size, settings,
+                                               where)
     ok, mod = _valid(wps, images, settings, where)
     for axis, c in coord.items():
         extent = projector_size[0] if axis == "u" else projector_size[1]
         # outside the edge pixels' centres the pattern stops varying and the phase is wrong
         inside = (c >= EDGE_MARGIN_PX) & (c <= extent - 1 - EDGE_MARGIN_PX)
         coord[axis] = np.where(ok & inside, c, np.nan)
+        if settings.pixel_variance_px2 > 0:
+            # only where the local models are trustworthy (not at silhouettes, mixed pixels)
+            _, residual = local_phase_model(coord[axis])
+            usable = usable_pixels(residual, settings.max_model_residual)
+            coord[axis] = pixel_footprint_correction(np.where(usable, coord[axis], np.nan),
+                                                     fine[axis], settings.pixel_variance_px2)
     return DecodedView(coord, mod)
 
 
@@ -286,13 +303,16 @@ def scan(
     view = decode_view(stack, patterns, psize, settings, f"camera {camera}")
     axis = "u" if "u" in view.coord else "v"
     coord = view.coord[axis]
+    _, residual = local_phase_model(coord)
+    coord = np.where(usable_pixels(residual, settings.max_model_residual), coord, np.nan)
+    if not np.isfinite(coord).any():
+        raise ValueError(f"camera {camera}: no valid pixel with 8 valid neighbours to triangulate")
     pts, uv = camera_projector_cloud(coord, cam, rig.projector, axis)
     grid = np.full((cam.height, cam.width, 3), np.nan)
     iu, iv = uv[:, 0].astype(int), uv[:, 1].astype(int)
     grid[iv, iu] = pts
     normals = grid_normals(grid, cam.centre_world)[iv, iu]
     # per-point phase error and the uncertainty it propagates to (mm per projector px)
-    _, residual = local_phase_model(coord)
     noise = phase_noise_px(residual, view.modulation)
     moved, _ = camera_projector_cloud(coord + SENSITIVITY_PX, cam, rig.projector, axis)
     sens = np.linalg.norm(moved - pts, axis=1) / SENSITIVITY_PX

@@ -129,6 +129,13 @@ def _from_zarr(path: Path) -> tuple[list[np.ndarray], dict | None]:
     return stacks, dict(root.attrs).get("summary", {}).get("pattern_set")
 
 
+def point_sampled(images: Path) -> bool:
+    """Whether a scan input is our renderer's output (``ltc render`` folder or zarr stack),
+    whose pixels sample their centres; a real camera's pixels average their area."""
+    return ((images / "zarr.json").is_file() or (images / "summary.json").is_file()
+            or (images / "render.zarr").is_dir())
+
+
 def load_scan_input(images: Path, patterns: Path | None = None,
                     projector_size: tuple[int, int] | None = None) -> tuple[list[np.ndarray], object]:
     """The two cameras' image stacks (n, H, W) and the pattern set of a scan input;

@@ -495,11 +495,9 @@ def stereo_cloud(
         sides.append(_Side(np.asarray(coord, dtype=np.float64), cam, r, p, cols, coef, res))
     usable = []
     for s in sides:
-        fine = np.isfinite(s.residual)
-        if not fine.any():
+        if not np.isfinite(s.residual).any():
             raise ValueError(f"camera '{s.cam.name}': no valid pixel with 8 valid neighbours to match")
-        limit = max(max_model_residual * float(np.median(s.residual[fine])), MODEL_RESIDUAL_FLOOR_PX)
-        usable.append(fine & (s.residual <= limit))
+        usable.append(usable_pixels(s.residual, max_model_residual))
     noise = [phase_noise_px(s.residual, q) for s, q in zip(sides, (quality1, quality2))]
     # the search model is used at the matched pixel too: mask its coefficients
     sides = [_masked(s, u) for s, u in zip(sides, usable)]
@@ -569,6 +567,36 @@ def stereo_cloud(
                       {"camera": np.concatenate(camera).astype(np.float64), "u": pix[:, 0],
                        "v": pix[:, 1], "phase_error": np.concatenate(perr),
                        "uncertainty_mm": np.concatenate(unc)})
+
+
+def usable_pixels(residual: np.ndarray, max_model_residual: float) -> np.ndarray:
+    """Pixels (H, W) bool whose local phase model exists and fits within ``max_model_residual``
+    times the camera's median residual (or ``MODEL_RESIDUAL_FLOOR_PX``, whichever is larger)."""
+    fine = np.isfinite(residual)
+    if not fine.any():
+        return fine
+    limit = max(max_model_residual * float(np.median(residual[fine])), MODEL_RESIDUAL_FLOOR_PX)
+    return fine & (residual <= limit)
+
+
+def pixel_footprint_correction(coord: np.ndarray, modulation: np.ndarray, variance_px2: float
+                               ) -> np.ndarray:
+    """Projector coordinate (H, W) at the pixel centres, from one measured by pixels that
+    average the light over their area (second moment ``variance_px2`` per axis, px^2; 1/12 for
+    a full square pixel).
+
+    Averaging ``B (1 + b.x) exp(i (phi + g.x + x.C.x / 2))`` over the pixel shifts the phase by
+    ``var (b.g + trace(C) / 2)`` to second order: the fringe amplitude's relative gradient ``b``
+    (from ``modulation`` (H, W) of the finest fringes) times the phase gradient ``g``, and half
+    the phase curvature. Both come from local quadratic models (``local_phase_model``) of the
+    coordinate and of ``ln B``; the shift is subtracted. NaN where either model is missing."""
+    coef, _ = local_phase_model(coord)
+    b = np.asarray(modulation, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lnb, _ = local_phase_model(np.where(np.isfinite(coord) & (b > 0), np.log(b), np.nan))
+    shift = variance_px2 * (lnb[..., 1] * coef[..., 1] + lnb[..., 2] * coef[..., 2]
+                            + coef[..., 3] + coef[..., 5])
+    return coord - shift
 
 
 def phase_noise_px(residual: np.ndarray, modulation: np.ndarray | None = None) -> np.ndarray:

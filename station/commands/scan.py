@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from station.commands import positive_float
-from station.errors import check_output
+from station.errors import UsageError, check_output
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -37,6 +37,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--min-modulation-fraction", type=positive_float, default=0.05,
                    help="drop pixels whose fringe amplitude is below this fraction of the "
                         "image's 99th percentile (default 0.05)")
+    p.add_argument("--pixel-variance", type=float, metavar="PX2",
+                   help="second moment per axis of a pixel's spatial response, px^2, whose "
+                        "averaging across the pixel is undone (default: 1/12, a full square "
+                        "pixel, for camera images; 0 for ltc render output, which samples "
+                        "pixel centres)")
     p.add_argument("--unwrap", choices=("auto", "hierarchical", "heterodyne"), default="auto",
                    help="temporal unwrapping of phase-shift sets (default auto)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
@@ -47,14 +52,19 @@ def run(args: argparse.Namespace) -> int:
     """Read, decode, match, triangulate, write."""
     from sim.fpp.cloud import write_ply
     from sim.fpp.decode import DecodeSettings, scan
-    from sim.fpp.scan_input import load_scan_input
+    from sim.fpp.scan_input import load_scan_input, point_sampled
     from sim.optics.rig import Rig
 
     check_output(args.out, args.force)
     t0 = time.perf_counter()
     rig = Rig.load(args.rig)
     stacks, pset = load_scan_input(args.images, args.patterns, tuple(rig.projector.size))
-    settings = DecodeSettings(min_modulation=args.min_modulation or 0.0,
+    variance = args.pixel_variance
+    if variance is None:
+        variance = 0.0 if point_sampled(args.images) else 1.0 / 12.0
+    if not (variance >= 0 and variance < float("inf")):
+        raise UsageError(f"--pixel-variance must be a finite number >= 0, got {args.pixel_variance}")
+    settings = DecodeSettings(min_modulation=args.min_modulation or 0.0, pixel_variance_px2=variance,
                               min_modulation_fraction=args.min_modulation_fraction,
                               unwrap=args.unwrap)
     t_read = time.perf_counter() - t0
@@ -66,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
         "images": str(args.images), "rig": str(args.rig), "out": str(args.out),
         "mode": "stereo" if args.camera is None else f"camera {args.camera} + projector",
         "points": len(cloud.points), "pattern_set": pset.model_dump(mode="json"),
+        "pixel_variance_px2": variance,
         "timings": {"read_s": t_read, "scan_s": t1 - t0 - t_read,
                     "total_s": time.perf_counter() - t0},
     }

@@ -92,3 +92,35 @@ def test_consistency_checks_drop_the_silhouette(scene):
         mine = checked.fields["camera"] == k
         u, v = checked.fields["u"][mine].astype(int), checked.fields["v"][mine].astype(int)
         assert mixed.sum() > 100 and not mixed[v, u].any()
+
+
+def test_pixel_footprint_correction_undoes_area_averaging(scene):
+    """Pixels that average their area (rendered 3 x 3 supersampled, then averaged: a box of
+    second moment 2/27 px^2 per axis) bias the sphere; the footprint correction removes it.
+    Fringes of 18 projector px (about 18 camera px, as in the Mitsuba benchmark's 20)."""
+    rig, _, geom, settings = scene
+    ps = PhaseShiftSet(periods_px=[576.0, 72.0, 18.0], steps=4)
+    scene = (rig, ps, geom, settings)
+    s = 3
+
+    def fine(cam):
+        k = cam.K_array.copy()
+        k[:2, :2] *= s
+        k[:2, 2] = (k[:2, 2] + 0.5) * s - 0.5
+        return cam.model_copy(update={"K": k.tolist(), "size": (cam.width * s, cam.height * s)})
+
+    big = Rig(cameras=[fine(c) for c in rig.cameras], projector=rig.projector)
+    res = render_views(geom, big, [PinholeLens()] * 2, ps.images(rig.projector.size), settings,
+                       np.random.default_rng(0))
+    images = []
+    for c in res.cameras:
+        n, h, w = c.images.shape
+        images.append(c.images.reshape(n, h // s, s, w // s, s).mean(axis=(2, 4)))
+    point, _ = _render(scene, PinholeLens())
+    d = {}
+    for name, imgs, var in (("point", point, 0.0), ("area", images, 0.0),
+                            ("corrected", images, 2.0 / 27.0)):
+        cloud = scan(imgs, ps, rig, DecodeSettings(min_modulation=0.0, pixel_variance_px2=var))
+        d[name] = fit_sphere(_sphere_points(cloud.points), reject_sigma=None).diameter
+    assert abs(d["area"] - d["point"]) > 2e-3  # the bias is real
+    assert abs(d["corrected"] - d["point"]) < 0.3 * abs(d["area"] - d["point"])
