@@ -105,8 +105,11 @@ def _to_rectified(uv: np.ndarray, cam: DeviceCalibration, r: np.ndarray, p: np.n
 
 
 def _bounds(valid: np.ndarray, cam: DeviceCalibration, r: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Rectified bounding box ``[[x0, y0], [x1, y1]]`` of the valid pixels."""
-    v, u = np.nonzero(valid)
+    """Rectified bounding box ``[[x0, y0], [x1, y1]]`` of the valid pixels (of those on the
+    valid region's boundary: the rectification maps the region's inside inside)."""
+    pad = np.pad(valid, 1, constant_values=False)
+    inner = pad[:-2, 1:-1] & pad[2:, 1:-1] & pad[1:-1, :-2] & pad[1:-1, 2:]
+    v, u = np.nonzero(valid & ~inner)
     xy = _to_rectified(np.stack([u, v], axis=1), cam, r, p)
     return np.stack([np.floor(xy.min(axis=0)) - 1, np.ceil(xy.max(axis=0)) + 1]).astype(int)
 
