@@ -63,7 +63,7 @@ def main(lens_path: str, out_dir: str = "out/measured_vs_gaussian") -> dict:
           f"{gaussian.sigma_mm:.3f} mm; sphere {diameter_mm:.2f} mm")
     summary = {"lens": str(lens_path), "gaussian_sigma_mm": gaussian.sigma_mm,
                "sphere_diameter_mm": diameter_mm, "positions": []}
-    for name, shift in (("in focus", 0.0), ("defocused", -0.25)):
+    for name, shift in (("in focus", 0.0), ("defocused", -0.12)):
         z_mm = shift * measured.focus_distance_mm  # towards the cameras: nearer than focus
         scene = sim.Scene(objects=[SphereObject(name="sphere", diameter_mm=diameter_mm,
                                                 pose={"t": [0.0, 0.0, z_mm]})])
@@ -75,7 +75,7 @@ def main(lens_path: str, out_dir: str = "out/measured_vs_gaussian") -> dict:
             s = scanner.with_lenses([lens, lens])
             cloud = s.scan(s.render())
             sim.write_ply(out / f"{name.replace(' ', '_')}_{label}.ply", cloud)
-            fit = s.measure(cloud, sphere_mm=0)
+            fit = s.measure(cloud, sphere_mm=diameter_mm)
             clouds[label] = cloud
             row[label] = {"points": len(cloud.points),
                           "diameter_error_um": 1e3 * (fit["diameter_mm"] - diameter_mm)}

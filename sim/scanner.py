@@ -101,14 +101,14 @@ class Scanner:
     def measure(cloud: PointCloud, *, sphere_mm: float | None = None,
                 ballbar_mm: tuple[float, float | None] | None = None,
                 reference: str | Path | PointCloud | None = None, align: bool = True) -> dict:
-        """Measure a cloud: ``sphere_mm`` (nominal diameter; ``0`` fits one sphere to every
-        point), ``ballbar_mm`` (ball diameter, nominal length or None), or ``reference`` (a
+        """Measure a cloud: ``sphere_mm`` (nominal diameter; ``0``: the best-supported sphere of
+        any size), ``ballbar_mm`` (ball diameter, nominal length or None), or ``reference`` (a
         CAD mesh file, or another cloud). Returns the JSON-able report (lengths mm)."""
         pts = cloud.points
         if sphere_mm is not None:
-            return _measure.measure_sphere(pts, sphere_mm or None)
+            return _measure.measure_sphere(pts, sphere_mm or None)[0]
         if ballbar_mm is not None:
-            return _measure.measure_ballbar(pts, *ballbar_mm)
+            return _measure.measure_ballbar(pts, *ballbar_mm)[0]
         if isinstance(reference, PointCloud):
             return _measure.measure_against_cloud(pts, reference, align)[0]
         if reference is not None:

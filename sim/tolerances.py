@@ -34,6 +34,10 @@ EDGE_MARGIN_PX = 0.5
 STEREO_STEP = 1e-6
 """Finite-difference step (spline parameter, dimensionless) of the stereo cubic inversion."""
 
+MODEL_RESIDUAL_FLOOR_PX = 0.01
+"""Stereo: local phase models fitting better than this (RMS, projector px) are always used,
+however small the camera's median residual (noise-free renders, flat backdrops)."""
+
 ICP_RCOND = 1e-3
 """ICP: singular values below this fraction of the largest count as unconstrained."""
 

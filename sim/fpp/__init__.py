@@ -11,7 +11,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
              "unwrap_heterodyne unwrap_gray_code absolute_phase_to_projector fringe_order_error "
              "gray_to_index gray_bits beat",
     "decode": "DecodeSettings DecodedView decode_view scan",
+    "scan_input": "ScanInputError load_scan_input",
     "stereo": "PointCloud Rectification stereo_cloud camera_projector_cloud stereo_rectification "
-              "triangulate grid_normals relative_pose",
+              "triangulate grid_normals relative_pose local_phase_model phase_noise_px",
     "cloud": "read_ply write_ply",
 })

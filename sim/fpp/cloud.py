@@ -1,10 +1,13 @@
-"""Point clouds as PLY files: points, optional normals and a per-point quality.
+"""Point clouds as PLY files: points, normals and per-point scalar fields.
 
-Written as ``binary_little_endian`` with ``double x y z``, ``float nx ny nz`` and
-``float quality`` (double coordinates keep sub-micrometre detail far from the origin). Read:
-ASCII and binary PLY (either endianness) whose first element is ``vertex`` with scalar
-properties ``x y z`` (any numeric type) and optionally ``nx ny nz`` and ``quality``; any
-later elements (faces) are ignored. Lengths in mm.
+Written as ``binary_little_endian`` with ``double x y z``, ``float nx ny nz`` and one ``float
+scalar_<name>`` per extra (``scalar_quality`` and every entry of ``PointCloud.fields``, e.g.
+``scalar_camera scalar_u scalar_v scalar_phase_error scalar_uncertainty_mm``): the ``scalar_``
+prefix is what CloudCompare and most viewers pick up as scalar fields. Double coordinates keep
+sub-micrometre detail far from the origin. Read: ASCII and binary PLY (either endianness)
+whose first element is ``vertex`` with scalar properties ``x y z`` (any numeric type) and
+optionally ``nx ny nz``, ``quality`` or ``scalar_quality``, and any other ``scalar_<name>``
+(into ``fields[name]``); any later elements (faces) are ignored. Lengths in mm.
 """
 
 from __future__ import annotations
@@ -26,7 +29,8 @@ FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 
 
 def write_ply(path: str | Path, cloud: PointCloud) -> None:
-    """Write ``cloud`` (points (n, 3), optional normals (n, 3) and quality (n,)) as binary PLY."""
+    """Write ``cloud`` (points (n, 3), optional normals (n, 3), quality (n,) and fields) as
+    binary PLY (see the module docstring)."""
     pts = np.asarray(cloud.points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"write_ply {path}: points must be (n, 3), got shape {pts.shape}")
@@ -38,12 +42,17 @@ def write_ply(path: str | Path, cloud: PointCloud) -> None:
             raise ValueError(f"write_ply {path}: normals have shape {n.shape}, points {pts.shape}")
         fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
         cols.update(nx=n[:, 0], ny=n[:, 1], nz=n[:, 2])
+    extras = dict(cloud.fields)
     if cloud.quality is not None:
-        q = np.asarray(cloud.quality).ravel()
+        extras = {"quality": cloud.quality, **extras}
+    for name, values in extras.items():
+        q = np.asarray(values).ravel()
         if len(q) != len(pts):
-            raise ValueError(f"write_ply {path}: {len(q)} quality values for {len(pts)} points")
-        fields.append(("quality", "<f4"))
-        cols["quality"] = q
+            raise ValueError(f"write_ply {path}: {len(q)} {name} values for {len(pts)} points")
+        if not name.replace("_", "").isalnum():
+            raise ValueError(f"write_ply {path}: field name '{name}' must be letters, digits and _")
+        fields.append((f"scalar_{name}", "<f4"))
+        cols[f"scalar_{name}"] = q
     rec = np.empty(len(pts), dtype=fields)
     for name, _ in fields:
         rec[name] = cols[name]
@@ -147,4 +156,7 @@ def read_ply(path: str | Path) -> PointCloud:
             col = {n: rec[n].astype(np.float64) for n in names}
     pts = np.stack([col["x"], col["y"], col["z"]], axis=1)
     normals = np.stack([col["nx"], col["ny"], col["nz"]], axis=1) if {"nx", "ny", "nz"} <= set(col) else None
-    return PointCloud(pts, normals, col.get("quality"))
+    quality = col.get("scalar_quality", col.get("quality"))
+    extras = {n[len("scalar_"):]: v for n, v in col.items()
+              if n.startswith("scalar_") and n != "scalar_quality"}
+    return PointCloud(pts, normals, quality, extras)

@@ -27,8 +27,20 @@ from sim.fpp.phase import (
     wrapped_phase,
 )
 from sim.optics.rig import DeviceCalibration, Rig
-from sim.fpp.stereo import PointCloud, camera_projector_cloud, grid_normals, stereo_cloud
+from sim.fpp.stereo import (
+    PointCloud,
+    camera_projector_cloud,
+    grid_normals,
+    local_phase_model,
+    phase_noise_px,
+    pixel_footprint_correction,
+    usable_pixels,
+    stereo_cloud,
+)
 from sim.tolerances import EDGE_MARGIN_PX
+
+SENSITIVITY_PX = 1e-3
+"""Projector px: step of the finite difference giving a point's sensitivity to phase error."""
 
 
 
@@ -37,7 +49,8 @@ class DecodeSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     min_modulation: float = Field(
-        2.0, ge=0, description="smallest fringe amplitude B kept, image units (DN)"
+        0.0, ge=0, description="smallest fringe amplitude B kept, image units (0: only the "
+        "relative threshold applies)"
     )
     min_modulation_fraction: float = Field(
         0.05, ge=0, lt=1,
@@ -61,7 +74,26 @@ class DecodeSettings(BaseModel):
         0.5, gt=0, description="stereo points must reproject into the projector this close, px"
     )
     interpolation_order: Literal[1, 3] = Field(
-        3, description="phase-map interpolation in stereo matching: 1 linear, 3 cubic"
+        3, description="phase-map interpolation of the coarse stereo search: 1 linear, 3 cubic "
+        "(the sub-pixel match comes from the local phase model and does not depend on it)"
+    )
+    max_lr_error_px: float = Field(
+        0.25, gt=0, description="stereo left-right consistency tolerance, camera px"
+    )
+    max_model_residual: float = Field(
+        5.0, gt=0, description="stereo: pixels whose local phase model fits worse than this many "
+        "times the camera's median residual are not matched (silhouettes, mixed pixels)"
+    )
+    pixel_variance_px2: float = Field(
+        0.0, ge=0, description="second moment per axis (px^2) of a camera pixel's spatial "
+        "response, whose averaging of intensity and phase across the pixel is undone to second "
+        "order (sim.fpp.stereo.pixel_footprint_correction): 1/12 for real cameras (a square "
+        "pixel of full fill factor; Mitsuba's box filter), 0 for point-sampled renders (ours)"
+    )
+    max_range_step: float = Field(
+        8.0, gt=0, description="stereo: points whose range differs from a neighbour's by more "
+        "than this many pixel footprints, or that lack one of their 8 neighbours, are dropped "
+        "(depth steps, silhouettes); inf skips the check"
     )
 
 
@@ -107,16 +139,22 @@ def _valid(wps, images, settings: DecodeSettings, where: str) -> tuple[np.ndarra
     return ok, mod
 
 
+def _typed(periods: list[float], extent: int) -> str:
+    """Periods as typed and as fringe counts across the projector."""
+    return ", ".join(f"{p:g} px = {extent / p:.4g} fringes" for p in periods)
+
+
 def _decode_phase_shift(images, descs, ps: PhaseShiftSet, size, settings, where):
     groups: dict[tuple[str, float], list[int]] = defaultdict(list)
     for d in sorted(descs, key=lambda d: d.shift or 0):
         groups[(d.direction, d.period_px)].append(d.index)
-    coord, wps_all = {}, []
+    coord, wps_all, fine = {}, [], {}
     for axis in sorted({a for a, _ in groups}):
         extent = size[0] if axis == "u" else size[1]
         periods = [p for a, p in groups if a == axis]
         wps = [wrapped_phase(images[groups[(axis, p)]]) for p in periods]
         wps_all += wps
+        fine[axis] = wps[int(np.argmin(periods))].modulation
         method = settings.unwrap
         if method == "auto":
             method = "hierarchical" if max(periods) >= extent else "heterodyne"
@@ -124,19 +162,30 @@ def _decode_phase_shift(images, descs, ps: PhaseShiftSet, size, settings, where)
             if max(periods) < extent:
                 raise ValueError(
                     f"{where}: hierarchical unwrapping needs a period of at least {extent} px "
-                    f"(the projector along '{axis}'), the longest is {max(periods):g} px"
+                    f"(1 fringe across the projector along '{axis}'); the longest is "
+                    f"{max(periods):g} px ({extent / max(periods):.4g} fringes); periods are in "
+                    "projector pixels, or give fringe counts as 'fringes'"
                 )
             absph, oerr = unwrap_hierarchical([w.phase for w in wps], periods, extent, True)
         else:
             if len(periods) not in (2, 3):
                 raise ValueError(
-                    f"{where}: {len(periods)} period(s) along '{axis}' cannot be unwrapped: "
-                    f"use one period >= {extent} px or 2-3 periods for heterodyne"
+                    f"{where}: {len(periods)} period(s) along '{axis}' cannot be unwrapped "
+                    f"({_typed(periods, extent)}): use one period >= {extent} px (1 fringe) or "
+                    "2-3 periods for heterodyne"
                 )
-            absph, oerr = unwrap_heterodyne([w.phase for w in wps], periods, extent, True)
+            try:
+                absph, oerr = unwrap_heterodyne([w.phase for w in wps], periods, extent, True)
+            except ValueError as exc:
+                raise ValueError(
+                    f"{where}: the periods along '{axis}' ({_typed(periods, extent)}) cannot be "
+                    f"unwrapped: the longest is {max(periods):g} px ({extent / max(periods):.4g} "
+                    f"fringes), shorter than the {extent} px projector, and heterodyne failed "
+                    f"({exc}); periods are in projector pixels, or give fringe counts as 'fringes'"
+                ) from exc
         c = absolute_phase_to_projector(absph, min(periods))
         coord[axis] = np.where(oerr <= settings.max_order_error, c, np.nan)
-    return coord, wps_all
+    return coord, wps_all, fine
 
 
 def _indices(descs: list[PatternDescriptor], kind: str) -> list[int]:
@@ -147,11 +196,12 @@ def _indices(descs: list[PatternDescriptor], kind: str) -> list[int]:
 
 
 def _decode_gray(images, descs, gs: GrayCodeSet, settings, where):
-    coord, wps_all = {}, []
+    coord, wps_all, fine = {}, [], {}
     for axis in sorted({d.direction for d in descs}):
         mine = [d for d in descs if d.direction == axis]
         wp = wrapped_phase(images[_indices(mine, "phase")])
         wps_all.append(wp)
+        fine[axis] = wp.modulation
         gray = images[_indices(mine, "gray")]
         if gs.inverse:
             bits = gray_bits(gray, inverse=images[_indices(mine, "gray_inverse")])
@@ -165,7 +215,7 @@ def _decode_gray(images, descs, gs: GrayCodeSet, settings, where):
         )
         c = absolute_phase_to_projector(absph, gs.period_px)
         coord[axis] = np.where(oerr <= settings.max_order_error, c, np.nan)
-    return coord, wps_all
+    return coord, wps_all, fine
 
 
 def decode_view(
@@ -181,15 +231,22 @@ def decode_view(
     descs = patterns.descriptors(projector_size)
     images = _check_stack(images, descs, where)
     if isinstance(patterns, GrayCodeSet):
-        coord, wps = _decode_gray(images, descs, patterns, settings, where)
+        coord, wps, fine = _decode_gray(images, descs, patterns, settings, where)
     else:
-        coord, wps = _decode_phase_shift(images, descs, patterns, projector_size, settings, where)
+        coord, wps, fine = _decode_phase_shift(images, descs, patterns, projector_size, settings,
+                                               where)
     ok, mod = _valid(wps, images, settings, where)
     for axis, c in coord.items():
         extent = projector_size[0] if axis == "u" else projector_size[1]
         # outside the edge pixels' centres the pattern stops varying and the phase is wrong
         inside = (c >= EDGE_MARGIN_PX) & (c <= extent - 1 - EDGE_MARGIN_PX)
         coord[axis] = np.where(ok & inside, c, np.nan)
+        if settings.pixel_variance_px2 > 0:
+            # only where the local models are trustworthy (not at silhouettes, mixed pixels)
+            _, residual = local_phase_model(coord[axis])
+            usable = usable_pixels(residual, settings.max_model_residual)
+            coord[axis] = pixel_footprint_correction(np.where(usable, coord[axis], np.nan),
+                                                     fine[axis], settings.pixel_variance_px2)
     return DecodedView(coord, mod)
 
 
@@ -229,11 +286,15 @@ def scan(
         views = [decode_view(images[i], patterns, psize, settings, f"camera {i}") for i in range(2)]
         if "u" not in views[0].coord:
             raise ValueError("stereo matching needs fringes along 'u' (projector columns)")
-        return stereo_cloud(
+        cloud = stereo_cloud(
             views[0].coord["u"], views[1].coord["u"], rig.cameras[0], rig.cameras[1],
             projector=rig.projector, max_projector_error_px=settings.max_projector_error_px,
-            quality1=views[0].modulation, order=settings.interpolation_order,
+            quality1=views[0].modulation, quality2=views[1].modulation,
+            order=settings.interpolation_order, max_lr_error_px=settings.max_lr_error_px,
+            max_model_residual=settings.max_model_residual, max_range_step=settings.max_range_step,
         )
+        top = float(np.percentile(np.concatenate([v.modulation.ravel() for v in views]), 99))
+        return _relative_quality(cloud, top)
     if not 0 <= camera < len(rig.cameras):
         raise ValueError(f"camera must be 0 or 1, got {camera}")
     stack = images[camera] if len(images) == len(rig.cameras) else images[0]
@@ -241,9 +302,29 @@ def scan(
     _check_camera(stack, cam, f"camera {camera}")
     view = decode_view(stack, patterns, psize, settings, f"camera {camera}")
     axis = "u" if "u" in view.coord else "v"
-    pts, uv = camera_projector_cloud(view.coord[axis], cam, rig.projector, axis)
+    coord = view.coord[axis]
+    _, residual = local_phase_model(coord)
+    coord = np.where(usable_pixels(residual, settings.max_model_residual), coord, np.nan)
+    if not np.isfinite(coord).any():
+        raise ValueError(f"camera {camera}: no valid pixel with 8 valid neighbours to triangulate")
+    pts, uv = camera_projector_cloud(coord, cam, rig.projector, axis)
     grid = np.full((cam.height, cam.width, 3), np.nan)
     iu, iv = uv[:, 0].astype(int), uv[:, 1].astype(int)
     grid[iv, iu] = pts
     normals = grid_normals(grid, cam.centre_world)[iv, iu]
-    return PointCloud(pts, normals, view.modulation[iv, iu])
+    # per-point phase error and the uncertainty it propagates to (mm per projector px)
+    noise = phase_noise_px(residual, view.modulation)
+    moved, _ = camera_projector_cloud(coord + SENSITIVITY_PX, cam, rig.projector, axis)
+    sens = np.linalg.norm(moved - pts, axis=1) / SENSITIVITY_PX
+    fields = {"camera": np.full(len(pts), float(camera)), "u": uv[:, 0], "v": uv[:, 1],
+              "phase_error": residual[iv, iu], "uncertainty_mm": sens * noise[iv, iu]}
+    return _relative_quality(PointCloud(pts, normals, view.modulation[iv, iu], fields),
+                             float(np.percentile(view.modulation, 99)))
+
+
+def _relative_quality(cloud: PointCloud, top: float) -> PointCloud:
+    """``cloud`` with its modulation (image units) as field ``modulation`` and as quality the
+    modulation relative to ``top`` (the 99th percentile over the images: about 0 to 1)."""
+    fields = {"modulation": cloud.quality, **cloud.fields}
+    quality = cloud.quality / top if top > 0 else cloud.quality
+    return PointCloud(cloud.points, cloud.normals, quality, fields)

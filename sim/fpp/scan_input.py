@@ -7,8 +7,12 @@ A scan input is one of:
   from its ``render.zarr``;
 - a zarr stack (``render.zarr``): groups ``camera_<i>`` with ``images`` (n, H, W), the pattern set
   in the root attributes (``summary.pattern_set``);
-- any folder with ``camera_0/`` and ``camera_1/`` of PNG or TIFF images (sorted by name), with the
-  pattern set given separately (a JSON file of a ``sim.render.fringe_patterns`` set).
+- any folder with ``camera_0/`` and ``camera_1/`` holding one image per pattern, sorted by name:
+  8- or 16-bit PNG or TIFF, float32 TIFF, or ``.npy`` (one 2-D array each; or a single ``.npy``
+  holding the whole (n, H, W) stack), with the pattern set given separately: a JSON file of a
+  ``sim.render.fringe_patterns`` set, in which a phase-shift set may give ``fringes`` (fringe
+  counts across the projector) instead of ``periods_px``, and a Gray-code set ``fringes`` (one
+  count) instead of ``period_px``.
 
 docs/formats.md describes every layout.
 """
@@ -26,20 +30,37 @@ from pydantic import TypeAdapter, ValidationError
 from sim.render.fringe_patterns import PatternSet
 from sim.validation import format_validation_error
 
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
 
 
 class ScanInputError(ValueError):
     """IMAGES cannot be read as a scan; the message names the path and what was expected."""
 
 
+def _read_image(f: Path) -> np.ndarray:
+    """One image file: PNG / TIFF (8, 16 bit or float32) or a 2-D ``.npy`` array."""
+    if f.suffix.lower() == ".npy":
+        try:
+            im = np.load(f, allow_pickle=False)
+        except (ValueError, OSError) as exc:
+            raise ScanInputError(f"{f}: not a readable .npy array: {exc}") from exc
+        if im.dtype.kind not in "uif":
+            raise ScanInputError(f"{f}: .npy images must hold numbers, got dtype {im.dtype}")
+        return im
+    return cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+
+
 def _read_stack(folder: Path) -> np.ndarray:
     files = sorted(f for f in folder.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
     if not files:
-        raise ScanInputError(f"{folder}: no PNG or TIFF images")
+        raise ScanInputError(f"{folder}: no PNG, TIFF or .npy images")
+    if len(files) == 1 and files[0].suffix.lower() == ".npy":
+        stack = _read_image(files[0])
+        if stack.ndim == 3:
+            return stack
     images = []
     for f in files:
-        im = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        im = _read_image(f)
         if im is None or im.ndim != 2:
             raise ScanInputError(f"{f}: not a single-channel image")
         if images and im.shape != images[0].shape:
@@ -51,7 +72,43 @@ def _read_stack(folder: Path) -> np.ndarray:
     return np.stack(images)
 
 
-def _pattern_set(raw, where: str):
+def _from_fringes(raw, projector_size: tuple[int, int] | None, where: str):
+    """A pattern-set mapping with ``fringes`` (counts across the projector) turned into periods
+    in projector pixels (``periods_px`` or ``period_px``)."""
+    if not isinstance(raw, dict) or "fringes" not in raw:
+        return raw
+    raw = dict(raw)
+    fringes = raw.pop("fringes")
+    kind = raw.get("kind")
+    key = {"phase_shift": "periods_px", "gray_code": "period_px"}.get(kind)
+    if key is None:
+        raise ScanInputError(f"{where}: 'fringes' needs 'kind' phase_shift or gray_code, got {kind!r}")
+    if key in raw:
+        raise ScanInputError(f"{where}: give 'fringes' or '{key}', not both")
+    if projector_size is None:
+        raise ScanInputError(f"{where}: 'fringes' needs the projector's size (the rig)")
+    direction = raw.get("direction", "u")
+    if direction not in ("u", "v"):
+        raise ScanInputError(f"{where}: 'fringes' with direction {direction!r}: the projector's "
+                             f"width and height differ, give '{key}' (projector pixels) instead")
+    extent = projector_size[0] if direction == "u" else projector_size[1]
+    counts = fringes if isinstance(fringes, list) else [fringes]
+    if kind == "gray_code" and isinstance(fringes, list):
+        raise ScanInputError(f"{where}: a gray_code set's 'fringes' is one count, got {fringes!r}")
+    try:
+        values = [float(c) for c in counts]
+    except (TypeError, ValueError):
+        raise ScanInputError(f"{where}: 'fringes' must be numbers (fringes across the projector), "
+                             f"got {fringes!r}") from None
+    if not values or any(not c > 0 for c in values):
+        raise ScanInputError(f"{where}: 'fringes' must be counts > 0, got {fringes!r}")
+    periods = [extent / c for c in values]
+    raw[key] = periods if kind == "phase_shift" else periods[0]
+    return raw
+
+
+def _pattern_set(raw, where: str, projector_size: tuple[int, int] | None = None):
+    raw = _from_fringes(raw, projector_size, where)
     try:
         return TypeAdapter(PatternSet).validate_python(raw)
     except ValidationError as exc:
@@ -72,8 +129,9 @@ def _from_zarr(path: Path) -> tuple[list[np.ndarray], dict | None]:
     return stacks, dict(root.attrs).get("summary", {}).get("pattern_set")
 
 
-def load_pattern_set(path: Path) -> object:
-    """A pattern set from a JSON file (``sim.render.fringe_patterns``); errors name the file."""
+def load_pattern_set(path: Path, projector_size: tuple[int, int] | None = None) -> object:
+    """A pattern set from a JSON file (``sim.render.fringe_patterns``); errors name the file.
+    ``projector_size`` (width, height) turns fringe counts into periods."""
     path = Path(path)
     if not path.is_file():
         raise ScanInputError(f"{path}: not found")
@@ -81,11 +139,20 @@ def load_pattern_set(path: Path) -> object:
         raw = json.loads(path.read_bytes())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ScanInputError(f"{path}: not valid JSON: {exc}") from exc
-    return _pattern_set(raw, str(path))
+    return _pattern_set(raw, str(path), projector_size)
 
 
-def load_scan_input(images: Path, patterns: Path | None = None) -> tuple[list[np.ndarray], object]:
-    """The two cameras' image stacks (n, H, W) and the pattern set of a scan input."""
+def point_sampled(images: Path) -> bool:
+    """Whether a scan input is our renderer's output (``ltc render`` folder or zarr stack),
+    whose pixels sample their centres; a real camera's pixels average their area."""
+    return ((images / "zarr.json").is_file() or (images / "summary.json").is_file()
+            or (images / "render.zarr").is_dir())
+
+
+def load_scan_input(images: Path, patterns: Path | None = None,
+                    projector_size: tuple[int, int] | None = None) -> tuple[list[np.ndarray], object]:
+    """The two cameras' image stacks (n, H, W) and the pattern set of a scan input;
+    ``projector_size`` (width, height) turns fringe counts into periods."""
     if not images.exists():
         raise ScanInputError(f"{images}: not found")
     raw = None
@@ -110,7 +177,45 @@ def load_scan_input(images: Path, patterns: Path | None = None) -> tuple[list[np
             "image folders"
         )
     if patterns is not None:
-        return stacks, load_pattern_set(patterns)
+        return stacks, load_pattern_set(patterns, projector_size)
     if raw is None:
         raise ScanInputError(f"{images}: no pattern set recorded; give it with --patterns FILE.json")
-    return stacks, _pattern_set(raw, f"{images}: pattern_set")
+    return stacks, _pattern_set(raw, f"{images}: pattern_set", projector_size)
+
+
+def scan_files(images: str | Path, rig_path: str | Path, out: str | Path, *,
+               patterns: str | Path | None = None, camera: int | None = None,
+               pixel_variance_px2: float | None = None, min_modulation: float = 0.0,
+               min_modulation_fraction: float = 0.05, unwrap: str = "auto") -> dict:
+    """``ltc scan``: read a scan input and a rig file, decode, triangulate, write the PLY
+    ``out``; returns the summary. ``pixel_variance_px2`` None: 0 for our renderer's output
+    (pixel centres), 1/12 for camera images (square pixels average their area)."""
+    import time
+
+    from sim.fpp.cloud import write_ply
+    from sim.fpp.decode import DecodeSettings, scan
+    from sim.optics.rig import Rig
+
+    images, out = Path(images), Path(out)
+    t0 = time.perf_counter()
+    rig = Rig.load(rig_path)
+    stacks, pset = load_scan_input(images, None if patterns is None else Path(patterns),
+                                   tuple(rig.projector.size))
+    if pixel_variance_px2 is None:
+        pixel_variance_px2 = 0.0 if point_sampled(images) else 1.0 / 12.0
+    settings = DecodeSettings(min_modulation=min_modulation, unwrap=unwrap,
+                              pixel_variance_px2=pixel_variance_px2,
+                              min_modulation_fraction=min_modulation_fraction)
+    t_read = time.perf_counter() - t0
+    cloud = scan(stacks, pset, rig, settings, camera=camera)
+    t1 = time.perf_counter()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_ply(out, cloud)
+    return {
+        "images": str(images), "rig": str(rig_path), "out": str(out),
+        "mode": "stereo" if camera is None else f"camera {camera} + projector",
+        "points": len(cloud.points), "pattern_set": pset.model_dump(mode="json"),
+        "pixel_variance_px2": pixel_variance_px2,
+        "timings": {"read_s": t_read, "scan_s": t1 - t0 - t_read,
+                    "total_s": time.perf_counter() - t0},
+    }

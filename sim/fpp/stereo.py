@@ -1,29 +1,63 @@
 """Stereo correspondence by equal projector coordinate along epipolar lines, and triangulation.
 
-Both cameras' absolute phase maps (as projector coordinates ``u_p``, NaN where invalid) are
-resampled onto a rectified grid: ``cv2.stereoRectify`` gives the rotations and projection
-matrices; the maps (``cv2.initUndistortRectifyMap``'s) are computed here in float64 and
-sampled with cubic interpolation and NaN propagation, because ``cv2.remap`` quantises its
-interpolation weights to 1/32 pixel and its maps are float32. For every rectified
-left pixel the right row is searched for the sub-pixel position with the same ``u_p``
-(cubic interpolation around the crossing), and the pair is triangulated in the rectified
-frame (linear least squares, as ``cv2.triangulatePoints``), then moved to the world frame.
+Method (``stereo_cloud``), for the maps of projector coordinate ``u_p`` (NaN = invalid) of two
+cameras, each camera in turn the reference and the other the search camera:
 
-Where a right row holds the left value more than once (depth steps, folds) the candidate whose
-triangulated point projects into the projector closest to ``u_p`` wins when the projector
-calibration is given; otherwise such pixels are dropped.
+1. ``cv2.stereoRectify`` gives the rectified frame (rows are epipolar lines).
+2. Every valid reference pixel is used **at its own centre, with its own measured phase**: no
+   interpolation on the reference side. Its rectified coordinates follow from the calibration
+   (undistortion, rotation), exactly.
+3. A coarse match: the search map resampled on the rectified grid (``interpolation_order``
+   1 or 3, float64 maps as ``cv2.initUndistortRectifyMap``'s) is searched along the rectified
+   row nearest the pixel's for every monotone run holding its phase (binary search).
+4. The sub-pixel match is where a **local model of the search camera's phase** equals the
+   reference phase, on the reference pixel's own epipolar line (its exact rectified row, mapped
+   into the search image through the distortion): the model is the least-squares quadratic
+   over the 3 x 3 original pixels around the nearest search pixel (``local_phase_model``),
+   solved by Newton steps that re-centre on the nearest pixel. The coarse step only picks the
+   run; the result does not depend on the interpolation order.
+5. Triangulation in the rectified frame (``triangulate``, linear least squares as
+   ``cv2.triangulatePoints``), then to the world frame.
+
+Why it is unbiased. The reference phase is measured, not interpolated. The search model's
+error is the part of the phase its quadratic cannot follow: third-order terms, which on the
+symmetric 3 x 3 stencil are odd in the offset from the model's centre pixel, so their effect on
+the matched position averages to zero over the offsets the pixels of a surface fall at (a
+linear interpolation's error, in contrast, has one sign between nodes: ``-t (1 - t) phi'' / 2``,
+and biased the diameter of a sphere by micrometres to tens of micrometres as the sphere spans
+hundreds to tens of pixels). Running both directions puts both cameras' pixels in the cloud.
+
+Consistency checks: a pixel is used only where its whole 3 x 3 stencil is valid and the
+model's RMS residual is within ``max_model_residual`` times the camera's median (mixed pixels
+at silhouettes, steep flanks, phase errors); the search runs must be monotone and the model's
+slope along the row non-zero at the converged match, inside the centre pixel's cell; where a
+row holds the phase more than once, the candidate whose point projects into the projector
+closest to ``u_p`` wins (without a projector calibration such pixels are dropped), and points
+further than ``max_projector_error_px`` are dropped; left-right: a match must be confirmed
+by the other direction's matches (interpolated at the matched position) within
+``max_lr_error_px``; continuity: a point whose 8 neighbours are not all reconstructed, or
+whose range differs from one of theirs by more than ``max_range_step`` pixel footprints, is
+dropped (silhouettes and the points a blurred silhouette leaves between two surfaces). A point
+that cannot be made right is dropped, not kept wrong.
+
+``camera_projector_cloud`` triangulates one camera against the projector (ray and the
+projector's plane of constant coordinate, refined through the projector's distortion).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.stats import chi2
 
 from sim.optics.projection import camera_to_world, project_points
 from sim.optics.rig import DeviceCalibration
-from sim.tolerances import STEREO_STEP
+from sim.tolerances import MODEL_RESIDUAL_FLOOR_PX, STEREO_STEP
+
+STEREO_SENSITIVITY_PX = 1e-3
+"""Rectified px: the step of the finite difference that gives a stereo point's sensitivity."""
 
 
 @dataclass(frozen=True)
@@ -47,11 +81,14 @@ class Rectification:
 
 @dataclass(frozen=True)
 class PointCloud:
-    """Points (n, 3) mm in the world frame, with optional unit normals (n, 3) and quality (n,)."""
+    """Points (n, 3) mm in the world frame, with optional unit normals (n, 3), quality (n,) and
+    named per-point fields (n,) (e.g. ``camera``, ``u``, ``v``: the reference camera and its
+    pixel; ``modulation``; ``phase_error``; ``uncertainty_mm``)."""
 
     points: np.ndarray
     normals: np.ndarray | None = None
     quality: np.ndarray | None = None
+    fields: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def relative_pose(cam1: DeviceCalibration, cam2: DeviceCalibration) -> tuple[np.ndarray, np.ndarray]:
@@ -68,8 +105,11 @@ def _to_rectified(uv: np.ndarray, cam: DeviceCalibration, r: np.ndarray, p: np.n
 
 
 def _bounds(valid: np.ndarray, cam: DeviceCalibration, r: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Rectified bounding box ``[[x0, y0], [x1, y1]]`` of the valid pixels."""
-    v, u = np.nonzero(valid)
+    """Rectified bounding box ``[[x0, y0], [x1, y1]]`` of the valid pixels (of those on the
+    valid region's boundary: the rectification maps the region's inside inside)."""
+    pad = np.pad(valid, 1, constant_values=False)
+    inner = pad[:-2, 1:-1] & pad[2:, 1:-1] & pad[1:-1, :-2] & pad[1:-1, 2:]
+    v, u = np.nonzero(valid & ~inner)
     xy = _to_rectified(np.stack([u, v], axis=1), cam, r, p)
     return np.stack([np.floor(xy.min(axis=0)) - 1, np.ceil(xy.max(axis=0)) + 1]).astype(int)
 
@@ -256,6 +296,162 @@ def grid_normals(grid: np.ndarray, towards: np.ndarray) -> np.ndarray:
     return n
 
 
+MODEL_RADIUS = 1
+"""Half-width (px) of the stencil of the local phase model: (2 r + 1)^2 pixels."""
+MODEL_DEGREE = 2
+"""Total degree of the local phase model's 2-D polynomial."""
+_POWERS = np.array([(i, d - i) for d in range(MODEL_DEGREE + 1) for i in range(d, -1, -1)])
+_OFFSETS = np.array([(dx, dy) for dy in range(-MODEL_RADIUS, MODEL_RADIUS + 1)
+                     for dx in range(-MODEL_RADIUS, MODEL_RADIUS + 1)], dtype=np.float64)
+
+
+def _basis(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    """Monomials ``dx^i dy^j`` (..., m), ``i + j <= MODEL_DEGREE``, of the local phase model."""
+    dx, dy = np.asarray(dx, dtype=np.float64), np.asarray(dy, dtype=np.float64)
+    return np.stack([dx**i * dy**j for i, j in _POWERS], axis=-1)
+
+
+def _basis_grad(dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Derivatives (..., m) of ``_basis`` along dx and dy."""
+    gx = np.stack([i * dx ** max(i - 1, 0) * dy**j for i, j in _POWERS], axis=-1)
+    gy = np.stack([j * dx**i * dy ** max(j - 1, 0) for i, j in _POWERS], axis=-1)
+    return gx, gy
+
+
+MEDIAN_CHI_RATIO = {d: float(np.sqrt(chi2.median(d) / d)) for d in range(1, 64)}
+"""Median over mean of a chi distribution with d degrees of freedom, as RMS ratio."""
+_PINV = np.linalg.pinv(_basis(_OFFSETS[:, 0], _OFFSETS[:, 1]))  # (m, stencil)
+
+
+def local_phase_model(coord: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares polynomial (``MODEL_DEGREE``) of ``coord`` (H, W) over the stencil of
+    ``(2 MODEL_RADIUS + 1)^2`` pixels centred on every pixel: coefficients (H, W, m) of
+    ``_basis`` in pixel offsets from that pixel, and the fit's RMS residual (H, W), both NaN
+    where a stencil pixel is NaN or outside the image."""
+    c = np.asarray(coord, dtype=np.float64)
+    h, w = c.shape
+    r = MODEL_RADIUS
+    pad = np.pad(c, r, constant_values=np.nan)
+    vals = np.stack([pad[r + dy : r + dy + h, r + dx : r + dx + w] for dx, dy in
+                     _OFFSETS.astype(int)], axis=-1)  # (H, W, stencil)
+    coef = vals @ _PINV.T
+    fit = coef @ _basis(_OFFSETS[:, 0], _OFFSETS[:, 1]).T
+    return coef, np.sqrt(np.mean((vals - fit) ** 2, axis=-1))
+
+
+def _rectified_to_pixel(xy: np.ndarray, cam: DeviceCalibration, r: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Original (distorted) pixel coordinates (n, 2) of rectified pixels (n, 2): the OpenCV
+    5-coefficient model, as ``cv2.projectPoints``, vectorised."""
+    m = r.T @ np.linalg.inv(p[:, :3])  # rectified pixel -> camera ray
+    x, y = xy[:, 0], xy[:, 1]
+    rx = m[0, 0] * x + m[0, 1] * y + m[0, 2]
+    ry = m[1, 0] * x + m[1, 1] * y + m[1, 2]
+    rz = m[2, 0] * x + m[2, 1] * y + m[2, 2]
+    xn, yn = rx / rz, ry / rz
+    k1, k2, p1, p2, k3 = cam.dist_array
+    r2 = xn * xn + yn * yn
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+    k = cam.K_array
+    return np.stack([k[0, 0] * xd + k[0, 1] * yd + k[0, 2], k[1, 1] * yd + k[1, 2]], axis=1)
+
+
+@dataclass(frozen=True)
+class _Side:
+    """One camera of the pair in the rectified frame: map, rectification, local phase model."""
+
+    coord: np.ndarray
+    cam: DeviceCalibration
+    r: np.ndarray
+    p: np.ndarray
+    cols: tuple[int, int]
+    coef: np.ndarray
+    residual: np.ndarray
+
+
+def _refine(side: _Side, x: np.ndarray, y: np.ndarray, q: np.ndarray, iterations: int = 5
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Newton search along the rectified rows ``y`` (n,) of ``side`` for the rectified column
+    where its local phase model equals ``q`` (n,), from ``x`` (n,): the column, the original
+    pixel there (n, 2), and whether it converged inside the stencil of a valid model with a
+    non-zero slope along the row."""
+    h, w = side.coord.shape
+    ok = np.ones(len(x), dtype=bool)
+    step = 1e-3  # rectified px, finite difference of the row's mapping into the image
+    uv = _rectified_to_pixel(np.stack([x, y], axis=1), side.cam, side.r, side.p)
+    duv = (_rectified_to_pixel(np.stack([x + step, y], axis=1), side.cam, side.r, side.p) - uv) / step
+    for it in range(iterations + 1):
+        if it:
+            uv = _rectified_to_pixel(np.stack([x, y], axis=1), side.cam, side.r, side.p)
+        node = np.round(uv)
+        inside = (node[:, 0] >= 0) & (node[:, 0] < w) & (node[:, 1] >= 0) & (node[:, 1] < h)
+        nu = np.clip(node[:, 0], 0, w - 1).astype(np.int64)
+        nv = np.clip(node[:, 1], 0, h - 1).astype(np.int64)
+        c = side.coef[nv, nu]
+        d = uv - node
+        f = np.sum(c * _basis(d[:, 0], d[:, 1]), axis=1) - q
+        gx, gy = _basis_grad(d[:, 0], d[:, 1])
+        df = np.sum(c * gx, axis=1) * duv[:, 0] + np.sum(c * gy, axis=1) * duv[:, 1]
+        ok &= inside & np.isfinite(f) & np.isfinite(df) & (df != 0)
+        if it == iterations:
+            break
+        x = np.where(ok, x - np.clip(f / np.where(ok, df, 1.0), -1.0, 1.0), x)
+    # converged: the phase matches to a millionth of a pixel's worth of slope
+    ok &= np.abs(f) <= 1e-6 * np.abs(df) + 1e-12 * np.maximum(1.0, np.abs(q))
+    return x, uv, ok, df
+
+
+def _match_direction(ref: _Side, srch: _Side, rows: tuple[int, int], order: int,
+                     ref_ok: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Every candidate match of the reference camera's pixels ``ref_ok`` (H, W) bool in the
+    search camera: reference pixel indices (n,) (flat), rectified ``xy_ref`` (n, 2),
+    rectified search column (n,), search pixel (n, 2), and the slope of the search camera's
+    phase along the row there (n,) (projector px per rectified px)."""
+    vv, uu = np.nonzero(ref_ok)
+    q = ref.coord[vv, uu]
+    xy = _to_rectified(np.stack([uu, vv], axis=1).astype(np.float64), ref.cam, ref.r, ref.p)
+    row = np.round(xy[:, 1]).astype(np.int64) - rows[0]
+    keep = (row >= 0) & (row <= rows[1] - rows[0])
+    mu, mv = rectify_map(srch.cam, srch.r, srch.p, srch.cols, rows)
+    grid = sample_image(srch.coord, mu, mv, order)  # coarse search only
+    idx_all, x_all = [], []
+    sel = np.flatnonzero(keep)
+    order_rows = sel[np.argsort(row[sel], kind="stable")]
+    bounds = np.searchsorted(row[order_rows], np.arange(grid.shape[0] + 1))
+    for i in range(grid.shape[0]):
+        mine = order_rows[bounds[i] : bounds[i + 1]]
+        if len(mine) == 0:
+            continue
+        for j, xr in match_row(q[mine], grid[i], 1):
+            idx_all.append(mine[j])
+            x_all.append(srch.cols[0] + xr)
+    if not idx_all:
+        return (np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), np.zeros(0))
+    k = np.concatenate(idx_all)
+    x0 = np.concatenate(x_all)
+    x, uv, ok, slope = _refine(srch, x0, xy[k, 1], q[k])
+    k, x, uv, slope = k[ok], x[ok], uv[ok], slope[ok]
+    flat = vv[k] * ref.coord.shape[1] + uu[k]
+    return flat, xy[k], x, uv, slope
+
+
+def _lr_consistent(uv_match: np.ndarray, ref_pix: np.ndarray, back: np.ndarray, tol_px: float
+                   ) -> np.ndarray:
+    """Left-right check: the other direction's matches ``back`` (H_s, W_s, 2) (NaN where none),
+    bilinearly interpolated at ``uv_match`` (n, 2), must land within ``tol_px`` of ``ref_pix``."""
+    h, w = back.shape[:2]
+    u0, v0 = np.floor(uv_match[:, 0]), np.floor(uv_match[:, 1])
+    inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 <= w - 1) & (v0 + 1 <= h - 1)
+    iu = np.where(inside, u0, 0).astype(np.int64)
+    iv = np.where(inside, v0, 0).astype(np.int64)
+    fu, fv = (uv_match[:, 0] - u0)[:, None], (uv_match[:, 1] - v0)[:, None]
+    pred = ((1 - fv) * ((1 - fu) * back[iv, iu] + fu * back[iv, iu + 1])
+            + fv * ((1 - fu) * back[iv + 1, iu] + fu * back[iv + 1, iu + 1]))
+    err = np.linalg.norm(pred - ref_pix, axis=1)
+    return inside & (err <= tol_px)
+
+
 def stereo_cloud(
     coord1: np.ndarray,
     coord2: np.ndarray,
@@ -266,15 +462,27 @@ def stereo_cloud(
     max_projector_error_px: float = 0.5,
     quality1: np.ndarray | None = None,
     order: int = 3,
+    quality2: np.ndarray | None = None,
+    max_lr_error_px: float = 0.25,
+    max_model_residual: float = 5.0,
+    max_range_step: float = 8.0,
 ) -> PointCloud:
     """Point cloud from the projector-coordinate maps (H, W) of two cameras (NaN = invalid).
 
     projector : its calibration resolves ambiguous matches and rejects points that reproject
         further than ``max_projector_error_px`` from the measured coordinate along ``axis``.
-    quality1 : optional (H1, W1) per-pixel quality of camera 1 (e.g. modulation), sampled
-        like the phase onto the rectified grid and returned per point.
-    order : interpolation of the phase maps, 1 linear or 3 cubic (see ``sample_image``).
-    Returns points in the world frame with normals (facing camera 1) and quality.
+    quality1, quality2 : optional per-pixel quality (e.g. modulation) of each camera, returned
+        per point (of the point's reference pixel).
+    order : interpolation of the search map for the coarse match, 1 linear or 3 cubic
+        (``sample_image``); the sub-pixel position does not depend on it.
+    max_lr_error_px : left-right consistency tolerance, pixels.
+    max_model_residual : pixels whose local phase model fits worse than this many times the
+        median over the camera (silhouettes, mixed pixels, phase errors) are not used.
+    max_range_step : points whose range differs from a neighbour's by more than this many
+        pixel footprints, or that lack a neighbour, are dropped (depth steps, edges; 8 passes
+        surfaces up to 83 degrees oblique; ``inf`` skips the check).
+    Returns points in the world frame, from both directions, with normals (facing each point's
+    reference camera), quality and per-point fields (see ``PointCloud``).
     """
     for cam, c in ((cam1, coord1), (cam2, coord2)):
         if np.shape(c) != (cam.height, cam.width):
@@ -283,50 +491,161 @@ def stereo_cloud(
                 f"its calibration expects (height, width) = ({cam.height}, {cam.width})"
             )
     rect = stereo_rectification(cam1, cam2, np.isfinite(coord1), np.isfinite(coord2))
-    mu1, mv1 = rectify_map(cam1, rect.R1, rect.P1, rect.cols1, rect.rows)
-    mu2, mv2 = rectify_map(cam2, rect.R2, rect.P2, rect.cols2, rect.rows)
-    left = sample_image(coord1, mu1, mv1, order)
-    right = sample_image(coord2, mu2, mv2, order)
-    rows_i, jl_all, xr_all = [], [], []
-    for i in range(left.shape[0]):
-        for jl, xr in match_row(left[i], right[i], order):
-            rows_i.append(np.full(len(jl), i))
-            jl_all.append(jl)
-            xr_all.append(xr)
-    ri = np.concatenate(rows_i) if rows_i else np.zeros(0, dtype=np.int64)
-    if len(ri) == 0:
+    sides = []
+    for coord, cam, r, p, cols in ((coord1, cam1, rect.R1, rect.P1, rect.cols1),
+                                   (coord2, cam2, rect.R2, rect.P2, rect.cols2)):
+        coef, res = local_phase_model(coord)
+        sides.append(_Side(np.asarray(coord, dtype=np.float64), cam, r, p, cols, coef, res))
+    usable = []
+    for s in sides:
+        if not np.isfinite(s.residual).any():
+            raise ValueError(f"camera '{s.cam.name}': no valid pixel with 8 valid neighbours to match")
+        usable.append(usable_pixels(s.residual, max_model_residual))
+    noise = [phase_noise_px(s.residual, q) for s, q in zip(sides, (quality1, quality2))]
+    # the search model is used at the matched pixel too: mask its coefficients
+    sides = [_masked(s, u) for s, u in zip(sides, usable)]
+    results = []
+    for a, b in ((0, 1), (1, 0)):
+        flat, xy_ref, x_s, uv_s, slope = _match_direction(sides[a], sides[b], rect.rows, order,
+                                                         usable[a])
+        xy_s = np.stack([x_s, xy_ref[:, 1]], axis=1)
+        pa, pb = (rect.P1, rect.P2) if a == 0 else (rect.P2, rect.P1)
+        pts_rect = triangulate(pa, pb, xy_ref, xy_s)
+        world = camera_to_world(pts_rect @ rect.R1, cam1.R_array, cam1.T_array)
+        # mm per projector px of phase error: the search position moves by 1 / slope
+        moved = triangulate(pa, pb, xy_ref, xy_s + [STEREO_SENSITIVITY_PX, 0.0])
+        sens = np.linalg.norm(moved - pts_rect, axis=1) / STEREO_SENSITIVITY_PX / np.abs(slope)
+        w = sides[a].coord.shape[1]
+        measured = sides[a].coord.ravel()[flat]
+        if projector is not None:
+            k = 0 if axis == "u" else 1
+            err = np.abs(projector.project(world)[:, k] - measured)
+            good = err <= max_projector_error_px
+        else:
+            err = np.zeros(len(world))
+            good = np.ones(len(world), dtype=bool)
+        ranked = np.lexsort((np.where(good, err, np.inf), flat))
+        first = np.r_[True, np.diff(flat[ranked]) != 0] if len(ranked) else np.zeros(0, bool)
+        counts = np.diff(np.r_[np.flatnonzero(first), len(ranked)])
+        chosen = ranked[first]
+        if projector is None:
+            chosen = chosen[counts == 1]
+        chosen = chosen[good[chosen]]
+        ref_pix = np.stack([flat[chosen] % w, flat[chosen] // w], axis=1).astype(np.float64)
+        results.append((world[chosen], ref_pix, uv_s[chosen], sens[chosen]))
+    kept = []
+    for a in (0, 1):
+        world, ref_pix, uv_s, sens = results[a]
+        other = results[1 - a]
+        hs, ws = sides[1 - a].coord.shape
+        back = np.full((hs, ws, 2), np.nan)
+        back[other[1][:, 1].astype(int), other[1][:, 0].astype(int)] = other[2]
+        ok = _lr_consistent(uv_s, ref_pix, back, max_lr_error_px)
+        if np.isfinite(max_range_step):
+            ok[ok] = _continuous(world[ok], ref_pix[ok], sides[a].cam, max_range_step)
+        node = np.round(uv_s[ok]).astype(np.int64)
+        sigma = np.hypot(noise[a][ref_pix[ok][:, 1].astype(int), ref_pix[ok][:, 0].astype(int)],
+                         noise[1 - a][node[:, 1], node[:, 0]])
+        kept.append((world[ok], ref_pix[ok], sens[ok] * sigma))
+    if not any(len(k[0]) for k in kept):
         raise ValueError("stereo matching found no pixel with the same projector coordinate in both cameras")
-    jl, xr = np.concatenate(jl_all), np.concatenate(xr_all)
-    y = rect.rows[0] + ri.astype(np.float64)
-    xy1 = np.stack([rect.cols1[0] + jl.astype(np.float64), y], axis=1)
-    xy2 = np.stack([rect.cols2[0] + xr, y], axis=1)
-    pts_cam1 = triangulate(rect.P1, rect.P2, xy1, xy2) @ rect.R1  # rectified -> camera 1
-    world = camera_to_world(pts_cam1, cam1.R_array, cam1.T_array)
-    measured = left[ri, jl]
-    keep = np.ones(len(world), dtype=bool)
-    if projector is not None:
-        k = 0 if axis == "u" else 1
-        err = np.abs(projector.project(world)[:, k] - measured)
-        keep = err <= max_projector_error_px
-        err = np.where(keep, err, np.inf)
-    else:
-        err = np.zeros(len(world))
-    # one point per left pixel: the best candidate, or none when ambiguous without a projector
-    flat = ri * left.shape[1] + jl
-    ranked = np.lexsort((err, flat))
-    first = np.r_[True, np.diff(flat[ranked]) != 0]
-    counts = np.diff(np.r_[np.flatnonzero(first), len(ranked)])
-    chosen = ranked[first]
-    if projector is None:
-        chosen = chosen[counts == 1]
-    chosen = chosen[keep[chosen]]
-    grid = np.full(left.shape + (3,), np.nan)
-    grid[ri[chosen], jl[chosen]] = world[chosen]
-    normals = grid_normals(grid, cam1.centre_world)[ri[chosen], jl[chosen]]
-    quality = None
-    if quality1 is not None:
-        quality = sample_image(quality1, mu1, mv1, 1)[ri[chosen], jl[chosen]]
-    return PointCloud(world[chosen], normals, quality)
+    points, normals, quality, camera, pixels, perr, unc = [], [], [], [], [], [], []
+    for a, (world, ref_pix, u_mm) in enumerate(kept):
+        cam = sides[a].cam
+        iu, iv = ref_pix[:, 0].astype(int), ref_pix[:, 1].astype(int)
+        grid = np.full((cam.height, cam.width, 3), np.nan)
+        grid[iv, iu] = world
+        points.append(world)
+        normals.append(grid_normals(grid, cam.centre_world)[iv, iu])
+        qa = (quality1, quality2)[a]
+        quality.append(np.asarray(qa, dtype=np.float64)[iv, iu] if qa is not None else np.full(len(world), np.nan))
+        camera.append(np.full(len(world), a))
+        pixels.append(ref_pix)
+        perr.append(sides[a].residual[iv, iu])
+        unc.append(u_mm)
+    has_q = quality1 is not None or quality2 is not None
+    pix = np.concatenate(pixels)
+    return PointCloud(np.concatenate(points), np.concatenate(normals),
+                      np.concatenate(quality) if has_q else None,
+                      {"camera": np.concatenate(camera).astype(np.float64), "u": pix[:, 0],
+                       "v": pix[:, 1], "phase_error": np.concatenate(perr),
+                       "uncertainty_mm": np.concatenate(unc)})
+
+
+def usable_pixels(residual: np.ndarray, max_model_residual: float) -> np.ndarray:
+    """Pixels (H, W) bool whose local phase model exists and fits within ``max_model_residual``
+    times the camera's median residual (or ``MODEL_RESIDUAL_FLOOR_PX``, whichever is larger)."""
+    fine = np.isfinite(residual)
+    if not fine.any():
+        return fine
+    limit = max(max_model_residual * float(np.median(residual[fine])), MODEL_RESIDUAL_FLOOR_PX)
+    return fine & (residual <= limit)
+
+
+def pixel_footprint_correction(coord: np.ndarray, modulation: np.ndarray, variance_px2: float
+                               ) -> np.ndarray:
+    """Projector coordinate (H, W) at the pixel centres, from one measured by pixels that
+    average the light over their area (second moment ``variance_px2`` per axis, px^2; 1/12 for
+    a full square pixel).
+
+    Averaging ``B (1 + b.x) exp(i (phi + g.x + x.C.x / 2))`` over the pixel shifts the phase by
+    ``var (b.g + trace(C) / 2)`` to second order: the fringe amplitude's relative gradient ``b``
+    (from ``modulation`` (H, W) of the finest fringes) times the phase gradient ``g``, and half
+    the phase curvature. Both come from local quadratic models (``local_phase_model``) of the
+    coordinate and of ``ln B``; the shift is subtracted. NaN where either model is missing."""
+    coef, _ = local_phase_model(coord)
+    b = np.asarray(modulation, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lnb, _ = local_phase_model(np.where(np.isfinite(coord) & (b > 0), np.log(b), np.nan))
+    shift = variance_px2 * (lnb[..., 1] * coef[..., 1] + lnb[..., 2] * coef[..., 2]
+                            + coef[..., 3] + coef[..., 5])
+    return coord - shift
+
+
+def phase_noise_px(residual: np.ndarray, modulation: np.ndarray | None = None) -> np.ndarray:
+    """Standard deviation (H, W) of a projector-coordinate map's random error, projector px,
+    from its local phase model's residuals (H, W) (``local_phase_model``): the residual of
+    a least-squares fit of m coefficients to s samples has ``E[rms^2] = sigma^2 (s - m) / s``;
+    the camera's median gives sigma, scaled per pixel by ``sqrt(median(B) / B)`` where the
+    fringe modulation B (H, W) is given (shot-noise-limited phase noise goes as
+    ``sqrt(A) / B``, and A as B for a given fringe contrast)."""
+    fine = np.isfinite(residual)
+    if not fine.any():
+        return np.full(np.shape(residual), np.nan)
+    s, m = len(_OFFSETS), len(_POWERS)
+    sigma = float(np.median(residual[fine])) * np.sqrt(s / (s - m)) / MEDIAN_CHI_RATIO[s - m]
+    if modulation is None:
+        return np.full(np.shape(residual), sigma)
+    b = np.asarray(modulation, dtype=np.float64)
+    ref = float(np.median(b[fine & (b > 0)])) if np.any(fine & (b > 0)) else 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(b > 0, sigma * np.sqrt(ref / b), np.inf)
+
+
+def _continuous(world: np.ndarray, ref_pix: np.ndarray, cam: DeviceCalibration, max_step: float
+                ) -> np.ndarray:
+    """Points (n,) whose 8 neighbours are all reconstructed, with ranges from the camera within
+    ``max_step`` pixel footprints (range / f) of theirs: the edges of what was reconstructed
+    and depth steps (silhouettes, and the mixed pixels a blurred silhouette leaves between
+    the surfaces) are dropped, on both sides."""
+    h, w = cam.height, cam.width
+    rng = np.full((h + 2, w + 2), np.nan)
+    iu, iv = ref_pix[:, 0].astype(np.int64) + 1, ref_pix[:, 1].astype(np.int64) + 1
+    rng[iv, iu] = np.linalg.norm(world - cam.centre_world, axis=1)
+    limit = max_step * rng[iv, iu] / min(cam.K_array[0, 0], cam.K_array[1, 1])
+    ok = np.ones(len(world), dtype=bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dx or dy:
+                step = np.abs(rng[iv + dy, iu + dx] - rng[iv, iu])
+                ok &= step <= limit  # NaN (no neighbour) fails
+    return ok
+
+
+def _masked(side: _Side, usable: np.ndarray) -> _Side:
+    """``side`` with its model coefficients NaN outside ``usable`` (H, W) bool."""
+    coef = np.where(usable[..., None], side.coef, np.nan)
+    return _Side(side.coord, side.cam, side.r, side.p, side.cols, coef, side.residual)
 
 
 def camera_projector_cloud(

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.metrology.compare import compare_clouds, distance_colormap_png, icp, mesh_signed_distance
-from sim.metrology.spheres import find_spheres, fit_sphere, measure_ball_bar
+from sim.metrology.spheres import find_sphere_unknown, find_spheres, measure_ball_bar, sphere_shell
 
 
 def distance_stats(d: np.ndarray) -> dict:
@@ -21,27 +21,61 @@ def distance_stats(d: np.ndarray) -> dict:
             "std_mm": float(d.std()), "min_mm": float(d.min()), "max_mm": float(d.max())}
 
 
-def measure_sphere(points: np.ndarray, diameter_mm: float | None = None) -> dict:
-    """Sphere fit with outlier rejection. With ``diameter_mm`` the sphere of about that size
-    is first found among other points, and the diameter error is reported."""
+class NotCredible(ValueError):
+    """A fit that does not match what the user said was measured (exit 1 in the CLI)."""
+
+
+def _check_diameter(what: str, fitted: float, nominal: float, tolerance: float) -> None:
+    dev = abs(fitted - nominal) / nominal
+    if dev > tolerance:
+        raise NotCredible(
+            f"{what}: the fitted diameter {fitted:.4f} mm differs from the nominal {nominal:g} mm "
+            f"by {100 * dev:.1f} % (tolerance {100 * tolerance:g} %); is the nominal diameter right "
+            "(not the radius), and is the artefact in the cloud?"
+        )
+
+
+def measure_sphere(points: np.ndarray, diameter_mm: float | None = None,
+                   tolerance: float = 0.02) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Sphere fit with outlier rejection. With ``diameter_mm`` the sphere of about that size is
+    found among other points (RANSAC on the radius), the diameter error is reported, and a fit
+    further than ``tolerance`` (relative) from the nominal raises ``NotCredible``; without it
+    the best-supported sphere of any size (``find_sphere_unknown``). Returns the report, the
+    points near the sphere (m, 3) and their signed radial distances (m,) mm."""
     if diameter_mm is not None:
-        fit = find_spheres(points, 1, diameter_mm / 2)[0]
+        if not diameter_mm > 0:
+            raise ValueError(f"nominal diameter must be > 0 mm, got {diameter_mm:g}")
+        try:
+            fit = find_spheres(points, 1, diameter_mm / 2)[0]
+        except ValueError as exc:
+            raise NotCredible(f"no sphere of nominal diameter {diameter_mm:g} mm in the points "
+                              f"({exc}); is the nominal diameter right (not the radius)?") from exc
+        _check_diameter("sphere", fit.diameter, diameter_mm, tolerance)
     else:
-        fit = fit_sphere(points)
+        fit = find_sphere_unknown(points)
     out = {"kind": "sphere", **fit.as_dict()}
     if diameter_mm is not None:
         out["diameter_error_mm"] = fit.diameter - diameter_mm
-    return out
+    near, d = sphere_shell(points, fit)
+    return out, near, d
 
 
-def measure_ballbar(points: np.ndarray, diameter_mm: float, length_mm: float | None = None) -> dict:
-    """The two balls of nominal ``diameter_mm`` and their centre distance (with
-    ``length_mm`` also the length error)."""
-    bar = measure_ball_bar(points, diameter_mm / 2)
+def measure_ballbar(points: np.ndarray, diameter_mm: float, length_mm: float | None = None,
+                    tolerance: float = 0.02) -> tuple[dict, np.ndarray, np.ndarray]:
+    """The two balls of nominal ``diameter_mm`` and their centre distance (with ``length_mm``
+    also the length error); a ball further than ``tolerance`` from the nominal diameter raises
+    ``NotCredible``. Returns the report, the points near the balls and their distances (mm)."""
+    try:
+        bar = measure_ball_bar(points, diameter_mm / 2)
+    except ValueError as exc:
+        raise NotCredible(f"no two balls of nominal diameter {diameter_mm:g} mm: {exc}") from exc
+    for i, s in enumerate(bar.spheres):
+        _check_diameter(f"ball {i + 1}", s.diameter, diameter_mm, tolerance)
     out = {"kind": "ballbar", **bar.as_dict()}
     if length_mm is not None:
         out["length_error_mm"] = bar.length - length_mm
-    return out
+    shells = [sphere_shell(points, s) for s in bar.spheres]
+    return out, np.concatenate([p for p, _ in shells]), np.concatenate([d for _, d in shells])
 
 
 def load_mesh(path: str | Path):

@@ -141,7 +141,7 @@ def find_spheres(
     radius_mm: float,
     radius_tolerance: float = 0.1,
     inlier_mm: float = 0.2,
-    iterations: int = 400,
+    iterations: int = 3000,
     rng: np.random.Generator | None = None,
 ) -> list[SphereFit]:
     """Detect ``count`` spheres of about ``radius_mm`` in a cloud (RANSAC, then ``fit_sphere``).
@@ -178,16 +178,111 @@ def find_spheres(
                 f"sphere {k + 1} of {count}: no candidate sphere of radius {radius_mm:g} mm "
                 f"(+-{100 * radius_tolerance:g}%) in the points"
             )
-        dist = np.linalg.norm(sub[None, :, :] - c[:, None, :], axis=2)
-        score = np.sum(np.abs(dist - r[:, None]) <= inlier_mm, axis=1)
-        best = int(np.argmax(score))
+        score = _scores(sub, c, r, inlier_mm)
         wide = max(5.0 * inlier_mm, 0.1 * radius_mm)  # noisy points too; fit_sphere trims
-        shell = np.abs(np.linalg.norm(remaining - c[best], axis=1) - r[best]) <= wide
-        fit = fit_sphere(remaining[shell])
+        fit = _best_fit(remaining, c, r, score, wide,
+                        lambda f: abs(f.radius - radius_mm) <= radius_tolerance * radius_mm)
+        if fit is None:
+            raise ValueError(
+                f"sphere {k + 1} of {count}: no fit of radius {radius_mm:g} mm "
+                f"(+-{100 * radius_tolerance:g}%) to the best candidates' points"
+            )
         found.append(fit)
         near = np.linalg.norm(remaining - fit.centre, axis=1) <= fit.radius + wide
         remaining = remaining[~near]
     return found
+
+
+MIN_SPHERE_SUPPORT = 20
+"""Fewest subset points on a candidate's surface for a sphere to be found without a prior."""
+TOP_CANDIDATES = 5
+"""RANSAC candidates (best scores first) whose points are fitted before one is accepted."""
+
+
+def _scores(sub: np.ndarray, c: np.ndarray, r: np.ndarray, inlier_mm: float) -> np.ndarray:
+    """Points of ``sub`` (n, 3) within ``inlier_mm`` of each candidate sphere (m,)."""
+    score = np.zeros(len(r), dtype=np.int64)
+    for k in range(0, len(r), 256):  # bounded memory
+        dist = np.linalg.norm(sub[None, :, :] - c[k : k + 256, None, :], axis=2)
+        score[k : k + 256] = np.sum(np.abs(dist - r[k : k + 256, None]) <= inlier_mm, axis=1)
+    return score
+
+
+def _best_fit(p: np.ndarray, c: np.ndarray, r: np.ndarray, score: np.ndarray,
+              wide: float | None, accept) -> SphereFit | None:
+    """``fit_sphere`` of the points within ``wide`` (None: ``max(5 inlier, 0.1 r)`` as the
+    caller's) of each of the ``TOP_CANDIDATES`` best candidates; the accepted fit with the
+    most inliers, or None."""
+    best: SphereFit | None = None
+    for i in np.argsort(-score, kind="stable")[:TOP_CANDIDATES]:
+        band = wide if wide is not None else 0.1 * r[i]
+        shell = np.abs(np.linalg.norm(p - c[i], axis=1) - r[i]) <= band
+        if shell.sum() < 4:
+            continue
+        try:
+            fit = fit_sphere(p[shell])
+        except ValueError:
+            continue
+        if accept(fit) and (best is None or fit.inliers.sum() > best.inliers.sum()):
+            best = fit
+    return best
+
+
+def find_sphere_unknown(
+    points: np.ndarray,
+    inlier_mm: float = 0.2,
+    iterations: int = 1500,
+    rng: np.random.Generator | None = None,
+) -> SphereFit:
+    """The best-supported sphere of a cloud, with no radius prior (RANSAC, then ``fit_sphere``).
+
+    RANSAC on a random subset of ``RANSAC_POINTS`` points: quadruples are drawn from a seed
+    point's neighbourhood, of 5, 10, 20 or 40 % of the subset's extent (bounding-box diagonal);
+    spheres larger than half the extent (planes, in effect) or smaller than ``5 inlier_mm`` are
+    not candidates; the score is the number of points within ``inlier_mm`` of the surface. The
+    best candidate's points within ``max(5 inlier_mm, 0.1 r)`` of its surface go to
+    ``fit_sphere``, as in ``find_spheres``. Raises ``ValueError`` when no credible sphere is found.
+    """
+    p = finite_points(points, "points", 4)
+    rng = np.random.default_rng(0) if rng is None else rng
+    sub = p[rng.choice(len(p), size=min(len(p), RANSAC_POINTS), replace=False)]
+    extent = float(np.linalg.norm(np.ptp(sub, axis=0)))
+    if extent <= 0:
+        raise ValueError("points: all at one place, no sphere")
+    tree = cKDTree(sub)
+    seeds = rng.integers(0, len(sub), size=iterations)
+    scales = extent * np.array([0.05, 0.1, 0.2, 0.4])
+    quads = np.empty((iterations, 4, 3))
+    valid = np.zeros(iterations, dtype=bool)
+    for i, seed in enumerate(seeds):
+        nb = tree.query_ball_point(sub[seed], scales[i % len(scales)])
+        if len(nb) >= 4:
+            quads[i] = sub[rng.choice(nb, size=4, replace=False)]
+            valid[i] = True
+    c, r = _sphere_through_4(quads[valid])
+    good = np.isfinite(r) & (r < 0.5 * extent) & (r > 5.0 * inlier_mm)
+    c, r = c[good], r[good]
+    if len(r) == 0:
+        raise ValueError("no sphere in the points: every candidate was flat or larger than "
+                         "half the cloud")
+    score = _scores(sub, c, r, inlier_mm)
+    if score.max() < MIN_SPHERE_SUPPORT:
+        raise ValueError(f"no sphere in the points: the best candidate has {score.max()} points "
+                         f"within {inlier_mm:g} mm of its surface")
+    fit = _best_fit(p, c, r, score, None, lambda f: 5.0 * inlier_mm < f.radius < 0.5 * extent)
+    if fit is None:
+        raise ValueError("no sphere in the points: the best candidates' fits are flat or larger "
+                         "than half the cloud")
+    return fit
+
+
+def sphere_shell(points: np.ndarray, fit: SphereFit, inlier_mm: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
+    """Points (m, 3) within ``max(5 inlier_mm, 0.1 r)`` of a fitted sphere, and their signed
+    radial distances (m,) mm (positive outside)."""
+    p = finite_points(points, "points", 1)
+    d = np.linalg.norm(p - fit.centre, axis=1) - fit.radius
+    near = np.abs(d) <= max(5.0 * inlier_mm, 0.1 * fit.radius)
+    return p[near], d[near]
 
 
 @dataclass(frozen=True)

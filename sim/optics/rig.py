@@ -18,6 +18,13 @@ File formats (chosen by the extension):
   camera 1 or to the projector) drops in with the world frame on camera 0: its R = I, T = 0.
   Only the 5-coefficient distortion model is supported (rational and thin-prism models are
   refused with an error naming the node).
+- The same FileStorage files in the names OpenCV's ``stereoCalibrate`` sample writes
+  (``intrinsics.yml`` and ``extrinsics.yml`` pasted into one file): ``M1 D1`` (camera 0),
+  ``M2 D2`` (camera 1), ``R T`` (camera 0 to camera 1), and the projector calibrated as a
+  third camera against camera 0: ``M3 D3 R3 T3``. Sizes: ``image_width image_height`` (or
+  ``imageSize`` / ``image_size`` = [width, height]) for the cameras, ``projector_width
+  projector_height`` (or ``projector_size``) for the projector. The world frame is camera 0's.
+  ``D1 D2 D3`` may hold 4, 5, 8, 12 or 14 coefficients; beyond the fifth they must be zero.
 """
 
 from __future__ import annotations
@@ -221,10 +228,14 @@ def _write_filestorage(rig: Rig, path: Path) -> None:
     fs.release()
 
 
+def _path(where: str, key: str) -> str:
+    return f"{where}/{key}" if where else key
+
+
 def _node(parent: cv2.FileNode, key: str, path: Path, where: str) -> cv2.FileNode:
     node = parent.getNode(key)
     if node.empty() or node.isNone():
-        raise ValueError(f"rig file {path}: node '{where}/{key}' is missing")
+        raise ValueError(f"rig file {path}: node '{_path(where, key)}' is missing")
     return node
 
 
@@ -232,11 +243,11 @@ def _node_matrix(parent: cv2.FileNode, key: str, path: Path, where: str, n: int)
     """An opencv-matrix node, or a flat sequence of numbers, with ``n`` values."""
     node = _node(parent, key, path, where)
     if node.isSeq():
-        m = _numbers(node, path, f"{where}/{key}")
+        m = _numbers(node, path, _path(where, key))
     elif node.isMap():
         # read rows, cols, dt and data here: OpenCV's FileNode.mat() aborts the process on
         # some malformed matrices (found by tests/sim/test_sim_opener_fuzz.py)
-        at = f"{where}/{key}"
+        at = _path(where, key)
         rows, cols = _node_int(node, "rows", path, at), _node_int(node, "cols", path, at)
         dt = node.getNode("dt")
         if not dt.isString() or dt.string() not in OPENCV_DTYPES:
@@ -248,10 +259,10 @@ def _node_matrix(parent: cv2.FileNode, key: str, path: Path, where: str, n: int)
                              f"{rows} x cols {cols} but "
                              f"{m.size} data values")
     else:
-        raise ValueError(f"rig file {path}: node '{where}/{key}' must be an opencv-matrix or a sequence")
+        raise ValueError(f"rig file {path}: node '{_path(where, key)}' must be an opencv-matrix or a sequence")
     if m is None or m.size != n:
         shape = None if m is None else m.shape
-        raise ValueError(f"rig file {path}: node '{where}/{key}' must have {n} values, "
+        raise ValueError(f"rig file {path}: node '{_path(where, key)}' must have {n} values, "
                          f"got shape {shape}")
     return m.astype(np.float64).ravel()
 
@@ -268,8 +279,74 @@ def _numbers(node: cv2.FileNode, path: Path, where: str) -> np.ndarray:
 def _node_int(parent: cv2.FileNode, key: str, path: Path, where: str) -> int:
     node = _node(parent, key, path, where)
     if not node.isInt():
-        raise ValueError(f"rig file {path}: node '{where}/{key}' must be an integer")
+        raise ValueError(f"rig file {path}: node '{_path(where, key)}' must be an integer")
     return int(node.real())
+
+
+STEREO_CALIBRATE_NODES = ("M1", "D1", "M2", "D2", "R", "T", "M3", "D3", "R3", "T3")
+
+
+def _present(parent: cv2.FileNode, key: str) -> bool:
+    node = parent.getNode(key)
+    return not (node.empty() or node.isNone())
+
+
+def _node_dist(parent: cv2.FileNode, key: str, path: Path) -> np.ndarray:
+    """OpenCV distortion of 4, 5, 8, 12 or 14 coefficients as the 5 used (the rest must be 0)."""
+    node = _node(parent, key, path, "")
+    for n in (4, 5, 8, 12, 14):
+        try:
+            d = _node_matrix(parent, key, path, "", n)
+        except ValueError:
+            continue
+        if np.any(d[5:] != 0):
+            raise ValueError(f"rig file {path}: node '{key}' has non-zero coefficients beyond k3 "
+                             f"({d[5:].tolist()}): only k1 k2 p1 p2 k3 are supported")
+        return np.concatenate([d, np.zeros(5)])[:5] if n == 4 else d[:5]
+    shape = node.mat().shape if node.isMap() and node.mat() is not None else "?"
+    raise ValueError(f"rig file {path}: node '{key}' must have 4, 5, 8, 12 or 14 distortion "
+                     f"coefficients, got shape {shape}")
+
+
+def _node_size(fs: cv2.FileNode, names: tuple[str, str], joint: tuple[str, ...], path: Path,
+               what: str) -> tuple[int, int]:
+    if all(_present(fs, n) for n in names):
+        return (_node_int(fs, names[0], path, ""), _node_int(fs, names[1], path, ""))
+    for key in joint:
+        if _present(fs, key):
+            v = _node_matrix(fs, key, path, "", 2)
+            return (int(v[0]), int(v[1]))
+    raise ValueError(f"rig file {path}: the {what} size is missing: give '{names[0]}' and "
+                     f"'{names[1]}' (or '{joint[0]}' = [width, height])")
+
+
+def _read_stereo_calibrate(fs: cv2.FileStorage, path: Path) -> Rig:
+    """A rig in ``cv2.stereoCalibrate`` naming (see the module docstring)."""
+    root = fs.root()
+    missing = [k for k in STEREO_CALIBRATE_NODES if not _present(root, k)]
+    if missing:
+        raise ValueError(f"rig file {path}: stereoCalibrate naming (M1 D1 M2 D2 R T, projector "
+                         f"M3 D3 R3 T3) but node(s) {', '.join(missing)} missing")
+    cam_size = _node_size(root, ("image_width", "image_height"), ("imageSize", "image_size"),
+                          path, "camera")
+    proj_size = _node_size(root, ("projector_width", "projector_height"), ("projector_size",),
+                           path, "projector")
+    eye, zero = np.eye(3), np.zeros(3)
+    spec = [("camera_0", "M1", "D1", eye, zero, cam_size),
+            ("camera_1", "M2", "D2", _node_matrix(root, "R", path, "", 9).reshape(3, 3),
+             _node_matrix(root, "T", path, "", 3), cam_size),
+            ("projector", "M3", "D3", _node_matrix(root, "R3", path, "", 9).reshape(3, 3),
+             _node_matrix(root, "T3", path, "", 3), proj_size)]
+    devices = []
+    for name, m, d, r, t, size in spec:
+        try:
+            devices.append(DeviceCalibration(
+                name=name, K=_node_matrix(root, m, path, "", 9).reshape(3, 3),
+                dist=_node_dist(root, d, path), R=r, T=t, size=size))
+        except ValidationError as exc:
+            raise ValueError(format_validation_error(f"rig file {path}: nodes {m} {d}", exc)) from exc
+    fs.release()
+    return Rig(cameras=devices[:2], projector=devices[2])
 
 
 def _read_filestorage(path: Path) -> Rig:
@@ -291,6 +368,8 @@ def _rig_from_filestorage(fs: cv2.FileStorage, path: Path) -> Rig:
     if not fs.root().isMap():
         raise ValueError(f"rig file {path}: the top level must be a map of the nodes "
                          f"{', '.join(DEVICE_NODES)}")
+    if _present(fs.root(), "M1") and not _present(fs.root(), "camera_0"):
+        return _read_stereo_calibrate(fs, path)
     devices = []
     for where in DEVICE_NODES:
         dev = _node(fs.root(), where, path, "")

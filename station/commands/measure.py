@@ -1,13 +1,15 @@
 """Sphere, ball-bar, cloud-to-CAD and cloud-to-cloud metrology on a point cloud.
 
---sphere: sphere fit with outlier rejection: centre, diameter, fit RMS and peak-to-valley
-(with --diameter D the sphere of about that size is first found among other points, and the
-diameter error is reported). --ballbar: the two balls (nominal --diameter, required) and their
-centre distance (with --length L also the length error). --reference MESH: signed distances to
-a CAD mesh (positive outside), after ICP alignment unless --no-align. --against CLOUD2.ply:
-ICP-align the cloud to CLOUD2, then mean and RMSE of the signed distances of corresponding
-points. --png FILE writes a colour map of the signed distances (reference and against).
-Lengths in mm.
+--sphere: sphere fit with outlier rejection: centre, diameter, fit RMS and peak-to-valley. With
+--diameter D the sphere of about that size is found among other points and the diameter error
+reported; a fit more than --tolerance (default 2 %) from D is refused (exit 1). Without it, the
+best-supported sphere of any size (RANSAC with no radius prior). --ballbar: the two balls
+(nominal --diameter, required, same refusal) and their centre distance (with --length L also
+the length error). --reference MESH: signed distances to a CAD mesh (positive outside), after
+ICP alignment unless --no-align. --against CLOUD2.ply: ICP-align the cloud to CLOUD2, then
+mean and RMSE of the signed distances of corresponding points. --png FILE writes a colour map
+of the signed distances (to the fitted spheres, the mesh or the reference cloud). Lengths in
+mm.
 """
 
 from __future__ import annotations
@@ -32,9 +34,12 @@ def arguments(p: argparse.ArgumentParser) -> None:
     what.add_argument("--against", type=Path, metavar="CLOUD2", help="reference point cloud (PLY)")
     p.add_argument("--diameter", type=positive_float, help="nominal sphere / ball diameter, mm")
     p.add_argument("--length", type=positive_float, help="nominal ball-bar centre distance, mm")
+    p.add_argument("--tolerance", type=positive_float, default=2.0, metavar="PERCENT",
+                   help="refuse sphere / ball fits further than this from --diameter (default 2)")
     p.add_argument("--no-align", action="store_true", help="skip the ICP alignment")
     p.add_argument("--png", type=Path,
-                   help="write a colour map of the signed distances here (--reference, --against)")
+                   help="write a colour map of the signed distances here (to the fitted "
+                        "sphere(s), the mesh or the reference cloud)")
     p.add_argument("--force", action="store_true", help="overwrite --png if it exists")
 
 
@@ -46,22 +51,20 @@ def run(args: argparse.Namespace) -> dict:
     if args.ballbar and args.diameter is None:
         raise UsageError("--ballbar needs --diameter (the nominal ball diameter, mm)")
     if args.png is not None:
-        if args.sphere or args.ballbar:
-            raise UsageError("--png maps signed distances: use it with --reference or --against")
         check_output(args.png, args.force, "--png")
     pts = read_ply(args.cloud).points
-    d = None
+    tol = args.tolerance / 100.0
     if args.sphere:
-        out = m.measure_sphere(pts, args.diameter)
+        out, pts, d = m.measure_sphere(pts, args.diameter, tol)
     elif args.ballbar:
-        out = m.measure_ballbar(pts, args.diameter, args.length)
+        out, pts, d = m.measure_ballbar(pts, args.diameter, args.length, tol)
     elif args.reference is not None:
         out, d = m.measure_against_mesh(pts, args.reference, not args.no_align)
     else:
         out, d = m.measure_against_cloud(pts, read_ply(args.against), not args.no_align)
         out["against"] = str(args.against)
     out = {"cloud": str(args.cloud), **out}
-    if args.png is not None and d is not None:
+    if args.png is not None:
         out.update(m.distance_png(pts, d, args.png, f"signed distance, {out['kind']}"))
     return out
 

@@ -138,7 +138,8 @@ def test_match_row_cubic_is_exact_on_a_cubic_row():
 
 def test_stereo_cloud_of_an_analytic_sphere_is_exact(sphere_pair):
     cams, proj, c, maps = sphere_pair
-    cloud = stereo_cloud(maps[0], maps[1], cams[0], cams[1], projector=proj, quality1=np.ones((360, 360)))
+    cloud = stereo_cloud(maps[0], maps[1], cams[0], cams[1], projector=proj,
+                         quality1=np.ones((360, 360)), quality2=np.ones((360, 360)))
     r = np.linalg.norm(cloud.points - c, axis=1) - R_SPHERE
     assert len(r) > 0.9 * min(np.isfinite(m).sum() for m in maps)
     assert np.median(np.abs(r)) < 1e-5 and np.sqrt(np.mean(r * r)) < 1e-3  # grazing rim: larger
@@ -147,11 +148,17 @@ def test_stereo_cloud_of_an_analytic_sphere_is_exact(sphere_pair):
     radial = (cloud.points - c) / np.linalg.norm(cloud.points - c, axis=1, keepdims=True)
     cosine = np.sum(cloud.normals * radial, axis=1)
     assert np.mean(np.isfinite(cosine)) > 0.999  # NaN: points without a row or column neighbour
-    assert np.nanmedian(cosine) > 0.9999 and np.nanmin(cosine) > 0  # outward, facing camera 1
+    assert np.nanmedian(cosine) > 0.9999 and np.nanmin(cosine) > 0  # outward, facing the camera
     np.testing.assert_allclose(cloud.quality, 1.0)
+    # both directions: every point names its reference camera and pixel
+    assert set(np.unique(cloud.fields["camera"])) == {0.0, 1.0}
+    for k in (0, 1):
+        mine = cloud.fields["camera"] == k
+        uv = np.stack([cloud.fields["u"][mine], cloud.fields["v"][mine]], axis=1)
+        np.testing.assert_allclose(cams[k].project(cloud.points[mine]), uv, atol=1e-6)
+    # the sub-pixel match comes from the local phase model, not from the interpolation
     linear = stereo_cloud(maps[0], maps[1], cams[0], cams[1], projector=proj, order=1)
-    r1 = np.linalg.norm(linear.points - c, axis=1) - R_SPHERE
-    assert np.median(np.abs(r1)) > 30 * np.median(np.abs(r))  # why cubic is the default
+    assert abs(fit_sphere(linear.points).diameter - fit.diameter) < 1e-7
 
 
 def test_ambiguous_matches_resolved_by_the_projector(sphere_pair):
@@ -256,14 +263,45 @@ def test_ply_round_trip(tmp_path):
     np.testing.assert_array_equal(back.points, pts)  # double precision, exact
     np.testing.assert_allclose(back.normals, n, rtol=1e-6)
     np.testing.assert_allclose(back.quality, q, rtol=1e-6)
+    header = (tmp_path / "a.ply").read_bytes().split(b"end_header")[0].decode()
+    assert "property float nx" in header and "property float scalar_quality" in header
     write_ply(tmp_path / "b.ply", PointCloud(pts))
     b = read_ply(tmp_path / "b.ply")
-    assert b.normals is None and b.quality is None
+    assert b.normals is None and b.quality is None and b.fields == {}
     ascii_ply = (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
                  b"property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
                  b"end_header\n1 2 3\n4 5 6\n3 0 1 1\n")
     (tmp_path / "c.ply").write_bytes(ascii_ply)
     np.testing.assert_array_equal(read_ply(tmp_path / "c.ply").points, [[1, 2, 3], [4, 5, 6]])
+
+
+def test_scanned_ply_carries_scalar_fields_and_normals(tmp_path):
+    """A scan's PLY: ``x y z``, ``nx ny nz`` and ``scalar_<name>`` per-point extras (the names
+    CloudCompare shows as scalar fields), read back as they were written."""
+    rig = Rig(cameras=[crop(k, np.zeros(3), (96, 80)) for k in default_rig(distortion=False).cameras],
+              projector=default_rig(distortion=False).projector)
+    ps = PhaseShiftSet(periods_px=[1920.0, 120.0, 16.0], steps=4)
+    geom = Scene(objects=[SphereObject()]).trace_geometry()
+    settings = RenderSettings(camera=CameraResponse(shot_noise=True, read_noise_e=5.0, bit_depth=12))
+    res = render_views(geom, rig, [PinholeLens()] * 2, ps.images(rig.projector.size), settings,
+                       np.random.default_rng(2))
+    for camera in (None, 0):
+        cloud = scan([c.images for c in res.cameras], ps, rig, camera=camera)
+        write_ply(tmp_path / "s.ply", cloud)
+        header = (tmp_path / "s.ply").read_bytes().split(b"end_header")[0].decode()
+        for name in ("x", "y", "z", "nx", "ny", "nz", "scalar_quality", "scalar_modulation", "scalar_camera",
+                     "scalar_u", "scalar_v", "scalar_phase_error", "scalar_uncertainty_mm"):
+            assert f" {name}\n" in header
+        back = read_ply(tmp_path / "s.ply")
+        for name, values in cloud.fields.items():
+            np.testing.assert_allclose(back.fields[name], values, rtol=1e-6)
+        # the propagated uncertainty is the size of the real error: a few to tens of um
+        r = np.abs(np.linalg.norm(cloud.points, axis=1) - R_SPHERE)
+        u = cloud.fields["uncertainty_mm"]
+        assert 0.3 < np.sqrt(np.mean(r * r)) / np.sqrt(np.mean(u * u)) < 1.5
+        assert 0 < np.median(cloud.quality) <= 1.0
+        pe = cloud.fields["phase_error"]  # NaN where the 3 x 3 stencil leaves the image
+        assert np.mean(np.isfinite(pe)) > 0.9 and np.all(pe[np.isfinite(pe)] >= 0)
 
 
 @pytest.mark.parametrize(

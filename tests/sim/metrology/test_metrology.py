@@ -18,7 +18,9 @@ from sim.metrology.compare import (
     mesh_signed_distance,
     signed_distance_to_cloud,
 )
+from sim.metrology.measure import NotCredible, measure_ballbar, measure_sphere
 from sim.metrology.spheres import (
+    find_sphere_unknown,
     find_spheres,
     fit_sphere,
     fit_sphere_algebraic,
@@ -116,6 +118,38 @@ def test_find_spheres_errors():
     plane = np.column_stack([rng.uniform(-50, 50, (3000, 2)), np.full(3000, 40.0)])
     with pytest.raises(ValueError, match="sphere 2 of 2: no candidate sphere"):
         find_spheres(np.concatenate([pts, plane]), 2, 10.0)
+
+
+def test_sphere_found_without_a_radius_prior_among_a_plane():
+    """RANSAC with no radius prior finds the sphere (not the larger plane behind it), and the
+    result is the one found with the nominal radius."""
+    rng = np.random.default_rng(8)
+    plane = np.column_stack([rng.uniform(-250, 250, 60000), rng.uniform(-200, 200, 60000),
+                             80.0 + rng.normal(0, 0.005, 60000)])
+    pts = rng.permutation(np.concatenate([cap(rng, 3000, [1.0, -2.0, 0.0], R_SPHERE, 0.005), plane]))
+    free = find_sphere_unknown(pts)
+    assert free.diameter == pytest.approx(2 * R_SPHERE, abs=2e-3)
+    np.testing.assert_allclose(free.centre, [1.0, -2.0, 0.0], atol=2e-3)
+    prior = find_spheres(pts, 1, R_SPHERE)[0]
+    assert abs(prior.diameter - free.diameter) < 1e-9
+    with pytest.raises(ValueError, match="no sphere in the points"):
+        find_sphere_unknown(plane)
+
+
+def test_measure_refuses_a_fit_far_from_the_nominal():
+    rng = np.random.default_rng(9)
+    pts = cap(rng, 3000, [0, 0, 0], R_SPHERE, 0.002)
+    report, near, d = measure_sphere(pts, 2 * R_SPHERE)
+    assert abs(report["diameter_error_mm"]) < 1e-3 and len(near) == len(pts)
+    np.testing.assert_allclose(d, np.linalg.norm(near - report["centre_mm"], axis=1)
+                               - report["diameter_mm"] / 2)
+    with pytest.raises(NotCredible, match=r"nominal diameter 25\.4 mm .*not the radius"):
+        measure_sphere(pts, 25.4)  # the radius typed for the diameter
+    with pytest.raises(NotCredible, match="tolerance 1 %"):
+        measure_sphere(pts, 2 * R_SPHERE * 1.015, tolerance=0.01)
+    assert measure_sphere(pts, 2 * R_SPHERE * 1.015)[0]["diameter_error_mm"] < 0
+    with pytest.raises(NotCredible, match="no two balls of nominal diameter 50.8007 mm"):
+        measure_ballbar(pts, 2 * R_SPHERE)
 
 
 # ---------------------------------------------------------------- clouds and meshes

@@ -127,7 +127,7 @@ def _yaml(tmp_path, edit):
 
 @pytest.mark.parametrize("edit, match", [
     (lambda t: "garbage: [unclosed\n", "not a readable OpenCV FileStorage file"),
-    (lambda t: t.replace("camera_1:", "camera_9:"), r"node '/camera_1' is missing"),
+    (lambda t: t.replace("camera_1:", "camera_9:"), r"node 'camera_1' is missing"),
     (lambda t: t.replace("projector:\n", "projector: 3\nunused:\n"), r"node 'projector' must be a map"),
     (lambda t: t.replace("   name: right", "   name: 5"), r"node 'camera_1/name' must be a string"),
     (lambda t: t.replace("   image_width: 16", "   image_width: 1.5\n   old: 16", 1),

@@ -204,7 +204,7 @@ def test_scan_errors_inputs_and_pattern_sets(sphere_render, tmp_path, capsys):
     shutil.rmtree(plain / "camera_1")
     (plain / "camera_1").mkdir()
     code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", tmp_path / "patterns.json")
-    assert code == 1 and "camera_1: no PNG or TIFF images" in err
+    assert code == 1 and "camera_1: no PNG, TIFF or .npy images" in err
     cv2.imwrite(str(plain / "camera_1" / "a.png"), np.zeros((4, 4, 3), np.uint8))
     code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", tmp_path / "patterns.json")
     assert code == 1 and "a.png: not a single-channel image" in err
@@ -234,3 +234,27 @@ def test_measure_errors(sphere_render, tmp_path, capsys):
     assert code == 1 and "not a PLY file" in err
     code, out, _ = ltc(capsys, "measure", d / "cloud.ply", "--sphere")
     assert code == 0 and out.startswith("sphere: diameter 50.80")
+
+
+def test_measure_finds_the_example_sphere_and_refuses_wrong_nominals(tmp_path, capsys):
+    """examples/sphere_scene.toml (sphere and backdrop, noisy 12-bit images): the sphere found
+    with no nominal is the one found with it; the radius typed as the diameter is refused."""
+    example = Path(__file__).resolve().parents[3] / "examples" / "sphere_scene.toml"
+    assert main(["render", str(example), "--out", str(tmp_path / "render"), "--quiet"]) == 0
+    rig = example.parent / "sphere_rig.yaml"
+    code, _, _ = ltc(capsys, "scan", tmp_path / "render", "--rig", rig, "--out", tmp_path / "c.ply")
+    assert code == 0
+    code, out, _ = ltc(capsys, "measure", tmp_path / "c.ply", "--sphere", "--json", "--png", tmp_path / "s.png")
+    free = json.loads(out)
+    assert code == 0 and cv2.imread(str(tmp_path / "s.png")) is not None
+    code, out, _ = ltc(capsys, "measure", tmp_path / "c.ply", "--sphere", "--diameter", SPHERE_D, "--json")
+    nominal = json.loads(out)
+    assert code == 0 and abs(free["diameter_mm"] - nominal["diameter_mm"]) < 0.010
+    assert abs(nominal["diameter_error_mm"]) < 0.5  # noisy 31 px sphere: noise-limited
+    code, out, _ = ltc(capsys, "measure", tmp_path / "c.ply", "--sphere")
+    assert code == 0 and "centre (" in out
+    code, _, err = ltc(capsys, "measure", tmp_path / "c.ply", "--sphere", "--diameter", 25.4)
+    assert code == 1 and err.startswith("ltc measure: error:") and "25.4 mm" in err
+    with pytest.raises(SystemExit) as exc:  # argparse: bad usage
+        main(["measure", str(tmp_path / "c.ply"), "--sphere", "--tolerance", "0"])
+    assert exc.value.code == 2
