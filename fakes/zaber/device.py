@@ -32,6 +32,18 @@ from fakes.zaber.motion import Profile
 WARNING_ORDER = ("FF", "FS", "FE", "FD", "FQ", "WL", "WR", "WH", "WV", "WT", "WM", "NI", "NC", "NU")
 
 
+# The device's settings a test may choose: keyword -> (Zaber setting name, default); units are
+# the device's (microsteps, microsteps per 1.6384 s, ...).
+SETTINGS: dict[str, tuple[str, int | str]] = {
+    "device_id": ("deviceid", 50081),
+    "version": ("version", "7.38"),
+    "limit_min": ("limit.min", 0),
+    "limit_max": ("limit.max", 1_066_666),
+    "maxspeed": ("maxspeed", 153_600),
+    "accel": ("accel", 2000),
+}
+
+
 class FakeZaberDevice:
     """A single-axis Zaber controller model. Feed it host bytes, read back its reply bytes.
 
@@ -44,30 +56,23 @@ class FakeZaberDevice:
         self,
         *,
         address: int = 1,
-        device_id: int = 50081,
-        version: str = "7.38",
-        limit_min: int = 0,
-        limit_max: int = 1_066_666,
-        maxspeed: int = 153_600,
-        accel: int = 2000,
         position: int = 0,
         reply_checksums: bool = False,
         clock: Callable[[], float] = time.monotonic,
         faults: Faults | None = None,
+        **settings: int | str,
     ) -> None:
+        unknown = set(settings) - set(SETTINGS)
+        if unknown:
+            raise TypeError(f"FakeZaberDevice: unknown setting(s) {sorted(unknown)}; "
+                            f"known: {sorted(SETTINGS)}")
         self.address = address
         self.reply_checksums = reply_checksums
         self.clock = clock
         self.faults = faults if faults is not None else Faults()
-        self.settings: dict[str, int | str] = {
-            "deviceid": device_id,
-            "version": version,
-            "system.axiscount": 1,
-            "limit.min": limit_min,
-            "limit.max": limit_max,
-            "maxspeed": maxspeed,
-            "accel": accel,
-        }
+        self.settings: dict[str, int | str] = {"system.axiscount": 1}
+        for name, (zaber_name, default) in SETTINGS.items():
+            self.settings[zaber_name] = settings.get(name, default)
         self.received: list[str] = []
         self.received_bytes = bytearray()
         self._lock = threading.RLock()
