@@ -64,10 +64,11 @@ def _check_size(size: tuple[int, int]) -> tuple[int, int]:
     return w, h
 
 
-class _Fringes(BaseModel):
+class Modulation(BaseModel):
+    """Offset and amplitude of a sinusoidal pattern family, ``A + B cos(...)``, values in
+    [0, 1]: the projector's fringe sets here and the station's Fourier patterns."""
+
     model_config = ConfigDict(extra="forbid", frozen=True)
-    steps: int = Field(4, ge=3, description="N, phase shifts per period")
-    direction: Direction = Field("u", description="fringes vary along u (columns), v (rows) or both")
     offset: float = Field(0.5, description="A, mean pattern value in [0, 1]")
     amplitude: float = Field(0.5, gt=0, description="B, fringe amplitude; A - B >= 0, A + B <= 1")
 
@@ -79,6 +80,11 @@ class _Fringes(BaseModel):
                 f"offset A={self.offset} and amplitude B={self.amplitude} must keep A +- B in [0, 1]"
             )
         return self
+
+
+class _Fringes(Modulation):
+    steps: int = Field(4, ge=3, description="N, phase shifts per period")
+    direction: Direction = Field("u", description="fringes vary along u (columns), v (rows) or both")
 
     def _phase_images(self, axis: str, period: float, size) -> np.ndarray:
         phi = (2 * np.pi / period) * _coordinate(axis, size)

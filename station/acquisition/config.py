@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from drivers.frame_code import FrameCodeLayout
+from sim.render.fringe_patterns import Modulation
 from sim.validation import field_path
 
 
@@ -159,21 +160,12 @@ CameraConfig = Annotated[
 ]
 
 
-class PatternConfig(_Strict):
-    """Fourier single-pixel-imaging patterns (OPTICS.md section 5)."""
+class PatternConfig(Modulation):
+    """Fourier single-pixel-imaging patterns (OPTICS.md section 5): ``offset`` A and
+    ``amplitude`` B of ``A + B cos(...)`` (fractions of white, A +- B within [0, 1])."""
 
     period: int = Field(24, ge=4, description="pattern period P, LCD pixels")
     steps: Literal[3, 4] = Field(4, description="phase steps per frequency")
-    offset: float = Field(0.5, gt=0, lt=1, description="pattern mean a, fraction of white")
-    amplitude: float = Field(0.5, gt=0, le=0.5, description="pattern amplitude b, fraction of white")
-
-    @model_validator(mode="after")
-    def _in_range(self) -> PatternConfig:
-        if self.offset - self.amplitude < -1e-12 or self.offset + self.amplitude > 1 + 1e-12:
-            raise ValueError(
-                f"offset +- amplitude must stay within [0, 1], got {self.offset} +- {self.amplitude}"
-            )
-        return self
 
 
 class FrameCheckConfig(_Strict):

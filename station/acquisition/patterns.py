@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from sim.render.fringe_patterns import PatternDescriptor
+from sim.render.fringe_patterns import Modulation, PatternDescriptor
 
 PLAN_FORMAT = "station-pattern-plan"
 PLAN_VERSION = 1
@@ -42,30 +42,13 @@ def half_plane_frequencies(period: int) -> tuple[np.ndarray, np.ndarray]:
     return kl[flat < partner], kl[flat == partner]
 
 
-class _PatternSet(BaseModel):
-    """A validated, immutable pattern-set description (round-trips through JSON)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class FourierPatternSet(_PatternSet):
-    """Periodic Fourier patterns ``L = a + b cos(2 pi (k x + l y) / P + phi_m)``."""
+class FourierPatternSet(Modulation):
+    """Periodic Fourier patterns ``L = A + B cos(2 pi (k x + l y) / P + phi_m)`` (relative
+    luminance; ``offset`` A and ``amplitude`` B as the projector's fringes, ``Modulation``)."""
 
     kind: Literal["fourier"] = "fourier"
     period: int = Field(24, ge=4, le=256, description="period P of the patterns, LCD pixels")
     steps: int = Field(4, ge=3, le=16, description="phase steps n, phi_m = 2 pi m / n")
-    offset: float = Field(0.5, ge=0, le=1, description="a: mean relative luminance")
-    amplitude: float = Field(0.5, gt=0, le=0.5, description="b: relative luminance amplitude")
-
-    @model_validator(mode="after")
-    def _in_range(self) -> FourierPatternSet:
-        lo, hi = self.offset - self.amplitude, self.offset + self.amplitude
-        if lo < -1e-12 or hi > 1 + 1e-12:
-            raise ValueError(
-                f"offset +- amplitude must stay in [0, 1], got offset={self.offset}, "
-                f"amplitude={self.amplitude}"
-            )
-        return self
 
     @property
     def frequencies(self) -> tuple[np.ndarray, np.ndarray]:
@@ -103,7 +86,7 @@ class FourierPatternSet(_PatternSet):
         return self.steps * len(reg) + 2 * len(sc)
 
 
-class LocalisationPatternSet(_PatternSet):
+class LocalisationPatternSet(BaseModel):
     """Gray code plus phase shifting along both LCD axes, with a white and a black frame.
 
     Gray code bit patterns (0 or 1) split each axis into half-period stripes of ``period / 2``
@@ -111,6 +94,7 @@ class LocalisationPatternSet(_PatternSet):
     bit first. Phase patterns: ``0.5 + 0.5 cos(2 pi x / period - 2 pi i / steps)``.
     """
 
+    model_config = ConfigDict(extra="forbid", frozen=True)
     kind: Literal["localisation"] = "localisation"
     period: int = Field(48, ge=4, le=4096, description="phase-shift period Q, LCD pixels (even)")
     steps: int = Field(4, ge=3, le=16, description="phase steps per axis")

@@ -178,7 +178,7 @@ def test_bad_definitions_name_the_field():
         FourierPatternSet(period=3)
     with pytest.raises(ValidationError, match="steps"):
         FourierPatternSet(steps=2)
-    with pytest.raises(ValidationError, match=r"offset \+- amplitude"):
+    with pytest.raises(ValidationError, match=r"offset A=0.7 and amplitude B=0.5 must keep A \+- B in \[0, 1\]"):
         FourierPatternSet(offset=0.7, amplitude=0.5)
     with pytest.raises(ValidationError, match="localisation period must be even"):
         LocalisationPatternSet(period=15)
