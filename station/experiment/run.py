@@ -385,9 +385,10 @@ def world_cad_mesh(mesh, pos: Position):
 
 @dataclass
 class Scan:
-    """One scanner's result at one position: cloud (n, 3) mm, camera 0's images, seconds."""
+    """One scanner's result at one position: cloud (``PointCloud``, mm), camera 0's images,
+    seconds."""
 
-    points: np.ndarray
+    cloud: object
     images: np.ndarray
     render_s: float
 
@@ -408,7 +409,7 @@ def scan_position(pos: Position, cfg: ExperimentConfig, rig, lenses: dict[str, t
         t0 = time.perf_counter()
         images = s.render()
         dt = time.perf_counter() - t0
-        out[name] = Scan(s.scan(images).points, images.cameras[0].images, dt)
+        out[name] = Scan(s.scan(images), images.cameras[0].images, dt)
     return out
 
 
@@ -416,19 +417,23 @@ def compare_position(pos: Position, cfg: ExperimentConfig, scans: dict[str, Scan
                      cad_path: Path | None, cad_mesh) -> dict:
     """The numbers of one position: per model the size error (sphere, ball bar) or the
     distances to the CAD mesh, and each virtual cloud against the real one, unaligned and
-    after ICP (mm)."""
-    from sim.metrology.compare import compare_clouds, mesh_signed_distance
+    after ICP (mm). Cloud against cloud is by pixel correspondence
+    (``sim.metrology.compare.compare_by_pixel``: the same rig pixel in both clouds, away from
+    the silhouettes; ICP aligns the whole clouds); ``*_nn_mm`` are the nearest-surface
+    distances of every point (``compare_clouds``), which sparse clouds' differing rims bias."""
+    from sim.metrology.compare import compare_by_pixel, compare_clouds, mesh_signed_distance
     from sim.metrology.measure import distance_stats
 
     scene = scene_of(pos, cfg, cad_path)
-    real = scans["real"].points
+    real = scans["real"].cloud
     row = {"name": pos.name, "kind": pos.kind, "defocus": pos.defocus,
            "defocus_mm": round(pos.depth_mm - cfg.focus_distance_mm, 3),
            "centre_mm": list(pos.centre_mm), "models": {}}
     maps = {}
     world_mesh = world_cad_mesh(cad_mesh, pos) if pos.kind == "cad" else None
     for name in MODELS:
-        pts = scans[name].points
+        cloud = scans[name].cloud
+        pts = cloud.points
         m: dict = {"points": int(len(pts)), "render_s": scans[name].render_s}
         if pos.kind == "cad":
             d = mesh_signed_distance(pts, world_mesh)
@@ -437,10 +442,13 @@ def compare_position(pos: Position, cfg: ExperimentConfig, scans: dict[str, Scan
         else:
             m.update(size_error_mm(pts, pos, scene))
         if name != "real":
-            c = compare_clouds(pts, real, align=False)
-            a = compare_clouds(pts, real, align=True)
-            m.update(mean_mm=c.mean, rmse_mm=c.rmse, mean_icp_mm=a.mean, rmse_icp_mm=a.rmse)
-            maps[name] = (pts, c.distances)
+            nn = compare_clouds(pts, real.points, align=False)
+            tf = compare_clouds(pts, real.points, align=True).transform
+            c = compare_by_pixel(cloud, real)
+            a = compare_by_pixel(cloud, real, transform=tf)
+            m.update(mean_mm=c.mean, rmse_mm=c.rmse, mean_icp_mm=a.mean, rmse_icp_mm=a.rmse,
+                     mean_nn_mm=nn.mean, rmse_nn_mm=nn.rmse, pixels_compared=int(c.index.size))
+            maps[name] = (pts[c.index], c.distances)
         row["models"][name] = m
     return row, maps
 
