@@ -90,6 +90,10 @@ class ExperimentConfig(BaseModel):
     lens_grid_step: int = Field(4, ge=1, description="measured-lens node spacing, px")
     seed: int = Field(0, description="fake camera noise seed")
     # the scanners
+    lens_smoothing_nodes: float = Field(2.0, ge=0, description="the measured lenses' samples "
+                                        "averaged over neighbouring nodes (Gaussian sigma, node "
+                                        "spacings; sim.optics.measured_lens.smoothed_lens): "
+                                        "removes node-to-node measurement noise; 0: off")
     real_samples: int = Field(512, ge=1, description="pupil samples of the real scanner's "
                               "lenses (soft clipping edge: converged within ~2 um RMSE)")
     gaussian_samples: int | None = Field(None, ge=1, description="aperture samples of the "
@@ -261,10 +265,12 @@ def measure_cameras(cfg: ExperimentConfig, rig, out: Path, progress: bool, log: 
 # --- the scanners -----------------------------------------------------------------------------
 
 def scanner_lenses(cfg: ExperimentConfig, measured: list) -> dict[str, tuple]:
-    """Per scanner the lens of each camera."""
+    """Per scanner the lens of each camera (the measured lenses smoothed over
+    ``lens_smoothing_nodes``, for "ltc" and the Gaussian's moments)."""
     from sim.optics.lens import PinholeLens
-    from sim.optics.measured_lens import gaussian_equivalent
+    from sim.optics.measured_lens import gaussian_equivalent, smoothed_lens
 
+    measured = [smoothed_lens(m, cfg.lens_smoothing_nodes) for m in measured]
     return {"real": tuple(truth_lens(cfg, i, cfg.real_samples) for i in range(2)),
             "ltc": tuple(measured),
             "gaussian": tuple(gaussian_equivalent(m, cfg.gaussian_samples) for m in measured),

@@ -36,3 +36,24 @@ def test_pinhole_against_pinhole_with_another_noise_seed_is_zero_on_average():
     assert c.rmse < nn.rmse  # the rims' differing points no longer count
     # every compared point is a pixel both clouds measured, away from the silhouette
     assert c.index.max() < len(b.points) and n <= len(a.points) - 50
+
+
+def test_smoothing_a_measured_lens_removes_node_noise_and_keeps_the_field():
+    from sim.optics.measured_lens import MeasuredLens, smoothed_lens
+
+    rng = np.random.default_rng(3)
+    gv, gu, k = 12, 16, 8
+    nu, nv = np.arange(gu) * 4.0, np.arange(gv) * 4.0
+    base = np.linspace(-3, 3, k)
+    field = 0.02 * nu[None, :, None] + 0.01 * nv[:, None, None]  # slow shift with the field, mm
+    truth_x = base[None, None] + field + 0 * nv[:, None, None]
+    noisy = truth_x + rng.normal(0, 0.3, truth_x.shape)
+    w = np.full((gv, gu, k), 1 / k)
+    lens = MeasuredLens(800.0, np.zeros(3), (64, 48), nu, nv, noisy, np.zeros_like(noisy), w,
+                        np.ones((gv, gu)), "bilinear")
+    assert smoothed_lens(lens, 0) is lens
+    s = smoothed_lens(lens, 2)
+    inner = (slice(3, -3), slice(3, -3))
+    err = lambda a: np.sqrt(np.mean((a[inner] - truth_x[inner]) ** 2))
+    assert err(s.aperture_x_mm) < 0.3 * err(noisy)  # noise averaged over ~25 nodes
+    np.testing.assert_allclose(s.weights.sum(axis=2), 1.0)
