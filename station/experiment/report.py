@@ -162,7 +162,9 @@ def tables(rows: list[dict]) -> list[str]:
     """Markdown: Table 4 (distances), Table 5 (sphere fits), Table 6 (ball-bar lengths)."""
     out = ["### Table 4: virtual against real, point distances (um)", "",
            "Mean / RMSE of the signed distances of each virtual cloud to the real one, "
-           "unaligned, then after ICP.", "",
+           "unaligned, then after ICP; by pixel correspondence (the same camera pixel in "
+           "both clouds, along the real surface's normal, pixels within 1 px of a silhouette "
+           "left out: `sim.metrology.compare.compare_by_pixel`).", "",
            "| position | defocus, mm | " + " | ".join(
                f"{LABELS[n]} | {LABELS[n]} (ICP)" for n in VIRTUAL) + " |",
            "|" + "---|" * (2 + 2 * len(VIRTUAL))]

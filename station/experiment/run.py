@@ -6,14 +6,16 @@ a faithful virtual scanner.
    differ); the station sequence (``station.sequence.run_sequence``: check, alignment report,
    acquisition at six depths, LTC reconstruction, lens derivation with figures) measures it.
 2. **Scanners** on the same rig and calibration: ``real`` (the ground-truth lenses, sampled
-   densely enough that their own sampling noise is negligible), ``ltc`` (the measured lenses),
+   densely enough that their own sampling noise is negligible), ``ltc`` (the measured lenses,
+   smoothed over ``lens_smoothing_nodes`` neighbouring nodes against the station's
+   node-to-node noise),
    ``gaussian`` (OPTICS.md section 7: the measured lens's focus distance, Gaussian aperture
    weights with the second moment of the measured LTC at the optical centre, the same for
    every pixel) and ``pinhole``.
 3. **Objects**: the 50.8007 mm sphere at 4 slight and 4 large defocus positions, the
    209.8219 mm ball bar at 2 + 2, and one CAD part (steps, holes, a freeform face).
 4. **Comparison**: each virtual cloud against the real one (mean and RMSE of the signed
-   distances, unaligned and after ICP), the sphere diameter or ball-bar length against
+   distances by pixel correspondence, unaligned and after ICP), the sphere diameter or ball-bar length against
    nominal for every scanner, and every scanner's cloud of the CAD part against the CAD mesh.
 5. **Report**: ``report.md`` with PNG figures and ``results.json`` with every number.
 
