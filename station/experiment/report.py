@@ -224,7 +224,8 @@ def write_report(results: dict, cfg: ExperimentConfig, rig, measured, models: di
             for i, s in enumerate(cfg.lenses)) + ".",
         f"Scanners: real = the ground-truth lenses with {cfg.real_samples} pupil samples; "
         f"ltc = the measured lenses (K = {measured[0].samples} per node every "
-        f"{cfg.lens_grid_step} px, bilinear); Gaussian = OPTICS.md section 7, sigma " + ", ".join(
+        f"{cfg.lens_grid_step} px, bilinear, smoothed over {cfg.lens_smoothing_nodes:g} nodes); "
+        f"Gaussian = OPTICS.md section 7, sigma " + ", ".join(
             f"{g.sigma_mm:.3f}" for g in models["gaussian"]) + " mm, "
         f"{models['gaussian'][0].samples} samples; pinhole.",
     ]
