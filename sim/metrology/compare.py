@@ -186,6 +186,59 @@ def compare_clouds(
     return CloudComparison(d, float(d.mean()), float(np.sqrt(np.mean(d * d))), tf, n_it)
 
 
+@dataclass(frozen=True)
+class PixelComparison:
+    """Per-pixel distances (n,) mm of a cloud to a reference cloud from the same rig pixels,
+    their mean and RMSE, the compared points' indices (n,) in the measured cloud and the
+    pixels each cloud has that the other lacks (``unmatched``: measured, reference)."""
+
+    distances: np.ndarray
+    mean: float
+    rmse: float
+    index: np.ndarray
+    unmatched: tuple[int, int]
+
+
+def compare_by_pixel(measured, reference, transform: RigidTransform | None = None,
+                     edge_px: int = 1) -> PixelComparison:
+    """Distances between two clouds of the same rig (``PointCloud``-like: ``points``,
+    ``normals`` facing the reference camera, ``fields`` with ``camera``, ``u``, ``v``) by
+    pixel correspondence: for every reference pixel that both clouds measured,
+    ``(p_measured - p_reference) . n_reference`` (positive: the measured point lies outside,
+    towards the camera). Both points lie on the same camera ray, so the distance does not
+    depend on how densely or where else either cloud has points. Pixels within ``edge_px``
+    of a pixel without a reference point (silhouettes, holes) or without a finite reference
+    normal are left out. ``transform``: applied to the measured points first (after ICP)."""
+    keys = []
+    for c in (measured, reference):
+        f = c.fields
+        keys.append(np.stack([f["camera"], f["v"], f["u"]], axis=1).astype(np.int64))
+    km, kr = keys
+    hi = np.maximum(km.max(axis=0), kr.max(axis=0)) + 1 + 2 * edge_px
+    flat = [np.ravel_multi_index((k + [0, edge_px, edge_px]).T, hi) for k in keys]
+    _, im, ir = np.intersect1d(flat[0], flat[1], return_indices=True)
+    unmatched = (len(km) - len(im), len(kr) - len(ir))
+    nrm = np.asarray(reference.normals, dtype=np.float64)
+    ok = np.isfinite(nrm[ir]).all(axis=1)
+    if edge_px > 0:
+        from scipy.ndimage import binary_erosion
+
+        have = np.zeros(hi, dtype=bool)
+        have.ravel()[flat[1]] = True
+        inner = np.stack([binary_erosion(g, np.ones((2 * edge_px + 1,) * 2)) for g in have])
+        ok &= inner.ravel()[flat[1][ir]]
+    im, ir = im[ok], ir[ok]
+    pm = np.asarray(measured.points, dtype=np.float64)[im]
+    if transform is not None:
+        pm = transform.apply(pm)
+    d = np.sum((pm - np.asarray(reference.points, dtype=np.float64)[ir]) * nrm[ir], axis=1)
+    if d.size == 0:
+        raise ValueError("compare_by_pixel: the clouds share no reference pixel away from "
+                         "the silhouettes")
+    return PixelComparison(d, float(d.mean()), float(np.sqrt(np.mean(d * d))), im,
+                           unmatched)
+
+
 def mesh_signed_distance(points: np.ndarray, mesh: trimesh.Trimesh) -> np.ndarray:
     """Signed distance (n,) mm of points to a triangle mesh, positive outside.
 

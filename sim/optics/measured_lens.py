@@ -238,6 +238,30 @@ def gaussian_equivalent(lens: MeasuredLens, samples: int | None = None) -> Gauss
                         samples=samples or lens.samples)
 
 
+def smoothed_lens(lens: MeasuredLens, sigma_nodes: float) -> MeasuredLens:
+    """The lens with its per-node samples averaged over neighbouring nodes (a Gaussian of
+    ``sigma_nodes`` node spacings, edges held): sample k is the same part of the aperture at
+    every node, so this removes the station's node-to-node measurement noise (sample
+    positions, weights, transmittance) while keeping the slow field dependence (vignetting).
+    Weights are renormalised per node. ``sigma_nodes = 0``: the lens itself."""
+    if sigma_nodes < 0:
+        raise ValueError(f"smoothed_lens: sigma_nodes must be >= 0, got {sigma_nodes}")
+    if sigma_nodes == 0:
+        return lens
+    from dataclasses import replace
+
+    from scipy.ndimage import gaussian_filter
+
+    def f(a: np.ndarray) -> np.ndarray:
+        return gaussian_filter(a, (sigma_nodes, sigma_nodes) + (0,) * (a.ndim - 2),
+                               mode="nearest")
+
+    w = f(lens.weights)
+    return replace(lens, aperture_x_mm=f(lens.aperture_x_mm),
+                   aperture_y_mm=f(lens.aperture_y_mm), weights=w / w.sum(axis=2, keepdims=True),
+                   transmittance=f(lens.transmittance))
+
+
 def _bracket(nodes: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Index of the node at or left of x (clamped) and the fraction towards the next."""
     if len(nodes) == 1:

@@ -162,7 +162,9 @@ def tables(rows: list[dict]) -> list[str]:
     """Markdown: Table 4 (distances), Table 5 (sphere fits), Table 6 (ball-bar lengths)."""
     out = ["### Table 4: virtual against real, point distances (um)", "",
            "Mean / RMSE of the signed distances of each virtual cloud to the real one, "
-           "unaligned, then after ICP.", "",
+           "unaligned, then after ICP; by pixel correspondence (the same camera pixel in "
+           "both clouds, along the real surface's normal, pixels within 1 px of a silhouette "
+           "left out: `sim.metrology.compare.compare_by_pixel`).", "",
            "| position | defocus, mm | " + " | ".join(
                f"{LABELS[n]} | {LABELS[n]} (ICP)" for n in VIRTUAL) + " |",
            "|" + "---|" * (2 + 2 * len(VIRTUAL))]
@@ -222,7 +224,8 @@ def write_report(results: dict, cfg: ExperimentConfig, rig, measured, models: di
             for i, s in enumerate(cfg.lenses)) + ".",
         f"Scanners: real = the ground-truth lenses with {cfg.real_samples} pupil samples; "
         f"ltc = the measured lenses (K = {measured[0].samples} per node every "
-        f"{cfg.lens_grid_step} px, bilinear); Gaussian = OPTICS.md section 7, sigma " + ", ".join(
+        f"{cfg.lens_grid_step} px, bilinear, smoothed over {cfg.lens_smoothing_nodes:g} nodes); "
+        f"Gaussian = OPTICS.md section 7, sigma " + ", ".join(
             f"{g.sigma_mm:.3f}" for g in models["gaussian"]) + " mm, "
         f"{models['gaussian'][0].samples} samples; pinhole.",
     ]

@@ -6,14 +6,16 @@ a faithful virtual scanner.
    differ); the station sequence (``station.sequence.run_sequence``: check, alignment report,
    acquisition at six depths, LTC reconstruction, lens derivation with figures) measures it.
 2. **Scanners** on the same rig and calibration: ``real`` (the ground-truth lenses, sampled
-   densely enough that their own sampling noise is negligible), ``ltc`` (the measured lenses),
+   densely enough that their own sampling noise is negligible), ``ltc`` (the measured lenses,
+   smoothed over ``lens_smoothing_nodes`` neighbouring nodes against the station's
+   node-to-node noise),
    ``gaussian`` (OPTICS.md section 7: the measured lens's focus distance, Gaussian aperture
    weights with the second moment of the measured LTC at the optical centre, the same for
    every pixel) and ``pinhole``.
 3. **Objects**: the 50.8007 mm sphere at 4 slight and 4 large defocus positions, the
    209.8219 mm ball bar at 2 + 2, and one CAD part (steps, holes, a freeform face).
 4. **Comparison**: each virtual cloud against the real one (mean and RMSE of the signed
-   distances, unaligned and after ICP), the sphere diameter or ball-bar length against
+   distances by pixel correspondence, unaligned and after ICP), the sphere diameter or ball-bar length against
    nominal for every scanner, and every scanner's cloud of the CAD part against the CAD mesh.
 5. **Report**: ``report.md`` with PNG figures and ``results.json`` with every number.
 
@@ -90,6 +92,10 @@ class ExperimentConfig(BaseModel):
     lens_grid_step: int = Field(4, ge=1, description="measured-lens node spacing, px")
     seed: int = Field(0, description="fake camera noise seed")
     # the scanners
+    lens_smoothing_nodes: float = Field(2.0, ge=0, description="the measured lenses' samples "
+                                        "averaged over neighbouring nodes (Gaussian sigma, node "
+                                        "spacings; sim.optics.measured_lens.smoothed_lens): "
+                                        "removes node-to-node measurement noise; 0: off")
     real_samples: int = Field(512, ge=1, description="pupil samples of the real scanner's "
                               "lenses (soft clipping edge: converged within ~2 um RMSE)")
     gaussian_samples: int | None = Field(None, ge=1, description="aperture samples of the "
@@ -261,10 +267,12 @@ def measure_cameras(cfg: ExperimentConfig, rig, out: Path, progress: bool, log: 
 # --- the scanners -----------------------------------------------------------------------------
 
 def scanner_lenses(cfg: ExperimentConfig, measured: list) -> dict[str, tuple]:
-    """Per scanner the lens of each camera."""
+    """Per scanner the lens of each camera (the measured lenses smoothed over
+    ``lens_smoothing_nodes``, for "ltc" and the Gaussian's moments)."""
     from sim.optics.lens import PinholeLens
-    from sim.optics.measured_lens import gaussian_equivalent
+    from sim.optics.measured_lens import gaussian_equivalent, smoothed_lens
 
+    measured = [smoothed_lens(m, cfg.lens_smoothing_nodes) for m in measured]
     return {"real": tuple(truth_lens(cfg, i, cfg.real_samples) for i in range(2)),
             "ltc": tuple(measured),
             "gaussian": tuple(gaussian_equivalent(m, cfg.gaussian_samples) for m in measured),
@@ -385,9 +393,10 @@ def world_cad_mesh(mesh, pos: Position):
 
 @dataclass
 class Scan:
-    """One scanner's result at one position: cloud (n, 3) mm, camera 0's images, seconds."""
+    """One scanner's result at one position: cloud (``PointCloud``, mm), camera 0's images,
+    seconds."""
 
-    points: np.ndarray
+    cloud: object
     images: np.ndarray
     render_s: float
 
@@ -408,7 +417,7 @@ def scan_position(pos: Position, cfg: ExperimentConfig, rig, lenses: dict[str, t
         t0 = time.perf_counter()
         images = s.render()
         dt = time.perf_counter() - t0
-        out[name] = Scan(s.scan(images).points, images.cameras[0].images, dt)
+        out[name] = Scan(s.scan(images), images.cameras[0].images, dt)
     return out
 
 
@@ -416,19 +425,23 @@ def compare_position(pos: Position, cfg: ExperimentConfig, scans: dict[str, Scan
                      cad_path: Path | None, cad_mesh) -> dict:
     """The numbers of one position: per model the size error (sphere, ball bar) or the
     distances to the CAD mesh, and each virtual cloud against the real one, unaligned and
-    after ICP (mm)."""
-    from sim.metrology.compare import compare_clouds, mesh_signed_distance
+    after ICP (mm). Cloud against cloud is by pixel correspondence
+    (``sim.metrology.compare.compare_by_pixel``: the same rig pixel in both clouds, away from
+    the silhouettes; ICP aligns the whole clouds); ``*_nn_mm`` are the nearest-surface
+    distances of every point (``compare_clouds``), which sparse clouds' differing rims bias."""
+    from sim.metrology.compare import compare_by_pixel, compare_clouds, mesh_signed_distance
     from sim.metrology.measure import distance_stats
 
     scene = scene_of(pos, cfg, cad_path)
-    real = scans["real"].points
+    real = scans["real"].cloud
     row = {"name": pos.name, "kind": pos.kind, "defocus": pos.defocus,
            "defocus_mm": round(pos.depth_mm - cfg.focus_distance_mm, 3),
            "centre_mm": list(pos.centre_mm), "models": {}}
     maps = {}
     world_mesh = world_cad_mesh(cad_mesh, pos) if pos.kind == "cad" else None
     for name in MODELS:
-        pts = scans[name].points
+        cloud = scans[name].cloud
+        pts = cloud.points
         m: dict = {"points": int(len(pts)), "render_s": scans[name].render_s}
         if pos.kind == "cad":
             d = mesh_signed_distance(pts, world_mesh)
@@ -437,10 +450,13 @@ def compare_position(pos: Position, cfg: ExperimentConfig, scans: dict[str, Scan
         else:
             m.update(size_error_mm(pts, pos, scene))
         if name != "real":
-            c = compare_clouds(pts, real, align=False)
-            a = compare_clouds(pts, real, align=True)
-            m.update(mean_mm=c.mean, rmse_mm=c.rmse, mean_icp_mm=a.mean, rmse_icp_mm=a.rmse)
-            maps[name] = (pts, c.distances)
+            nn = compare_clouds(pts, real.points, align=False)
+            tf = compare_clouds(pts, real.points, align=True).transform
+            c = compare_by_pixel(cloud, real)
+            a = compare_by_pixel(cloud, real, transform=tf)
+            m.update(mean_mm=c.mean, rmse_mm=c.rmse, mean_icp_mm=a.mean, rmse_icp_mm=a.rmse,
+                     mean_nn_mm=nn.mean, rmse_nn_mm=nn.rmse, pixels_compared=int(c.index.size))
+            maps[name] = (pts[c.index], c.distances)
         row["models"][name] = m
     return row, maps
 
