@@ -35,6 +35,7 @@ built under a temporary name beside ``path`` and renamed into place when complet
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import datetime as _dt
 import functools
@@ -43,13 +44,12 @@ import os
 import platform
 import shutil
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from importlib import metadata as _metadata
 from pathlib import Path
 
 import google_crc32c
-import numba as nb
 import numpy as np
 import pydantic
 import zarr
@@ -184,20 +184,46 @@ def _write(path: Path, fd: int, parts: list, offset: int | None = None) -> None:
         raise
 
 
-def _create(path: Path, parts: list) -> None:
-    """Write a new file atomically: ``parts`` under a temporary name beside ``path``, renamed
-    to ``path`` when complete (the temporary file is removed on failure)."""
+@contextlib.contextmanager
+def _new_file(path: Path) -> Iterator[int]:
+    """A new file written atomically: yields the descriptor of a temporary file beside
+    ``path``, renamed to ``path`` when the block completes (removed if it raises)."""
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.partial")
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         try:
-            _write(path, fd, parts)
+            yield fd
         finally:
             os.close(fd)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _create(path: Path, parts: list) -> None:
+    """Write a new file of ``parts`` atomically (:func:`_new_file`)."""
+    with _new_file(path) as fd:
+        _write(path, fd, parts)
+
+
+def _start_writeback(fd: int, offset: int, nbytes: int) -> None:
+    """Ask the kernel to start writing a file's byte range to disk now, without waiting
+    (Linux ``sync_file_range(SYNC_FILE_RANGE_WRITE)``; elsewhere nothing): the disk writes a
+    shard while the rest of it is encoded, so the barrier after it has little left to wait
+    for. Durability still comes from the barrier only."""
+    fn = _sync_file_range()
+    if fn is not None:
+        fn(fd, offset, nbytes, 2)  # SYNC_FILE_RANGE_WRITE; a failure only loses the head start
+
+
+@functools.cache
+def _sync_file_range() -> object:
+    fn = getattr(_libc(), "sync_file_range", None)
+    if fn is not None:
+        fn.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint]
+        fn.restype = ctypes.c_int
+    return fn
 
 
 def _crc(data: bytes | np.ndarray) -> int:
@@ -218,17 +244,23 @@ def _frame_crc(image: np.ndarray) -> int:
     return _crc(_readonly(np.ascontiguousarray(image, image.dtype.newbyteorder("<"))))
 
 
-@nb.njit(nogil=True, cache=True)
 def _pixel_stats(image: np.ndarray, full: int) -> tuple[int, int]:
-    """(pixels >= ``full``, largest pixel value) of an image, in one pass without the GIL."""
-    flat = image.ravel()
-    saturated = 0
-    top = flat.dtype.type(0)
-    for k in range(flat.size):
-        v = flat[k]
-        saturated += np.int64(v >= full)
-        top = max(top, v)
-    return saturated, int(top)
+    """(pixels >= ``full``, largest pixel value) of an image: one pass (numpy's vectorised
+    max) unless the image reaches ``full``; only then are the saturated pixels counted."""
+    top = int(image.max()) if image.size else 0
+    return (int(np.count_nonzero(image >= full)) if top >= full else 0), top
+
+
+@dataclass(frozen=True)
+class FrameShard:
+    """What :meth:`ShardCodec.encode` makes of a frame: ``chunks`` (the shard without its
+    index, uint8, a reused buffer), the frame's ``crc32c`` (:func:`_frame_crc`), the count of
+    pixels at or above full scale (``saturated``) and the largest pixel value (``top``)."""
+
+    chunks: np.ndarray
+    crc32c: int
+    saturated: int
+    top: int
 
 
 class ShardCodec:
@@ -262,28 +294,37 @@ class ShardCodec:
         self._crcs = self._buf.reshape(n, self.chunk_bytes)[:, self.data_bytes :].view("<u4")
         self._strip = np.zeros((t, self.nc * t), self.dtype)
 
-    def encode(self, image: np.ndarray) -> np.ndarray:
-        """The chunks of one frame's shard (rows, cols), uint8, without the index (append
-        ``self.index``). The buffer is reused: valid until the next call, one thread at once.
-        One copy of the pixels (chunk row by chunk row, straight into shard order; edge chunk
-        rows through a zero-padded strip) and one crc32c per chunk on the buffer in place."""
+    def encode(self, image: np.ndarray, full: int,
+               sink: Callable[[np.ndarray], None] | None = None) -> FrameShard:
+        """One frame's shard chunks and what the store records of the frame, in one pass over
+        its pixels, chunk row by chunk row (each block of ``tile`` camera rows is read while it
+        is in the CPU cache): the frame's crc32c continued over the block, the saturation count
+        and maximum, one copy into shard order (edge chunk rows through a zero-padded strip),
+        then each chunk's crc32c on the buffer in place; ``sink`` (if given) gets each finished
+        chunk row's bytes, in order. The buffer is reused: valid until the next call, one
+        thread at once."""
         if self._buf is None:
             self._allocate()
         t, nc, w = self.t, self.nc, self.w
+        img = _readonly(np.ascontiguousarray(image, self.dtype))  # no copy for camera frames
         aligned = w == nc * t
+        crc, saturated, top = 0, 0, 0
         for r in range(self.nr):
-            rows = image[r * t : (r + 1) * t]
+            rows = img[r * t : (r + 1) * t]
+            crc = google_crc32c.extend(crc, rows)
+            n_sat, row_top = _pixel_stats(rows, full)
+            saturated, top = saturated + n_sat, max(top, row_top)
             if aligned and len(rows) == t:
                 self._pix[r] = rows.reshape(t, nc, t).transpose(1, 0, 2)
             else:  # padding (fill value 0): columns >= w stay 0, rows past the frame zeroed
                 self._strip[: len(rows), :w] = rows
                 self._strip[len(rows) :] = 0
                 self._pix[r] = self._strip.reshape(t, nc, t).transpose(1, 0, 2)
-        k = 0
-        for view in self._chunk_views:
-            self._crcs[k] = _crc(view)
-            k += 1
-        return self._buf.reshape(-1)
+            self._crcs[r * nc : (r + 1) * nc, 0] = [
+                _crc(v) for v in self._chunk_views[r * nc : (r + 1) * nc]]
+            if sink is not None:
+                sink(self._buf[r].reshape(-1))
+        return FrameShard(self._buf.reshape(-1), crc, saturated, top)
 
     def decode_chunks(self, raw: bytes, n_chunks: int) -> tuple[np.ndarray, int]:
         """(chunks (n, t, t), index of the first chunk failing its crc32c or -1)."""
@@ -541,16 +582,23 @@ class RunStore:
                                 f"{meta.stage_target_mm} mm, but depth {depth} is "
                                 f"{self.depths_mm[depth]} mm (attribute 'depths_mm')")
         full = 2**self.bit_depth - 1
-        saturated, top = _pixel_stats(img, full)
-        if top > full:
-            raise RunStoreError(f"{self.path}: frame ({depth}, {pattern}) has values above "
-                                f"{full}, the camera's {self.bit_depth}-bit full scale")
-        shard = self.codec.encode(img)
         final = self._shard_path(depth, pattern)
         final.parent.mkdir(parents=True, exist_ok=True)
-        _create(final, [shard, self.codec.index])
-        values = {**meta.model_dump(), "saturated_px": saturated,
-                  "frame_crc32c": _frame_crc(img)}
+        with _new_file(final) as fd:
+            written = [0]
+
+            def sink(part: np.ndarray) -> None:  # each chunk row as soon as it is encoded
+                _write(final, fd, [part])
+                _start_writeback(fd, written[0], part.nbytes)
+                written[0] += part.nbytes
+
+            enc = self.codec.encode(img, full, sink)
+            if enc.top > full:
+                raise RunStoreError(f"{self.path}: frame ({depth}, {pattern}) has values above "
+                                    f"{full}, the camera's {self.bit_depth}-bit full scale")
+            _write(final, fd, [self.codec.index])
+        values = {**meta.model_dump(), "saturated_px": enc.saturated,
+                  "frame_crc32c": enc.crc32c}
         written = [self._set_small(name, depth, pattern, values[name]) for name in self._meta]
         # the frame and its metadata reach the disk before the done flag can
         _barrier(self.path, [final, *written])
