@@ -14,7 +14,15 @@ bytes. Candidates:
 - ``zarr-k8``: shards of 8 frames x whole frame, inner chunks 8 x 64 x 64 (zstd), written 8
   frames at a time (per frame: total / 8).
 
-Run: ``python benchmarks/run_store_io.py [--frames 6] [--dir /tmp] [--zarr]``. ``--zarr``
+Capture loop (``--capture``): the acquisition's loop shape with zero-latency fakes at full
+size: per frame an optional camera wait (``--frame-ms``, sleeping, GIL free), an optional
+stretch of pure-Python work holding the GIL (``--gil-ms``, standing for the loop's own Python),
+a copy of a ready frame (the camera driver's buffer copy), and ``FrameWriter.submit`` of
+``RunStore.write_frame`` (queue of 4), against the same loop whose writer does nothing. Prints
+frames/s with and without storage, and the loop's GIL work per frame with and without (if the
+writer held the GIL, that work would stretch).
+
+Run: ``python benchmarks/run_store_io.py [--frames 6] [--dir /tmp] [--zarr] [--capture]``. ``--zarr``
 adds the zarr candidates (slow: seconds per frame); without it only ``raw`` and ``store`` run.
 Prints a table; the numbers and the decision are in benchmarks/README.md.
 """
@@ -130,13 +138,104 @@ def zarr_case(root: Path, imgs: list[np.ndarray], name: str) -> tuple[float, flo
     return write, read, du(root / f"{name}.zarr" / "frames")
 
 
+def python_work(ms: float) -> None:
+    """Pure-Python work holding the GIL for about ``ms`` milliseconds (calibrated once)."""
+    n = int(ms * _LOOPS_PER_MS)
+    x = 0
+    for i in range(n):
+        x += i * i
+
+
+def _calibrate() -> float:
+    t0 = time.perf_counter()
+    x = 0
+    for i in range(2_000_000):
+        x += i * i
+    return 2_000_000 / ((time.perf_counter() - t0) * 1e3)
+
+
+_LOOPS_PER_MS = 0.0
+
+
+def capture_case(root: Path, imgs: list[np.ndarray], bits: int, n: int, store: str,
+                 frame_ms: float, gil_ms: float) -> tuple[float, float]:
+    """(frames/s of the loop, mean seconds of its GIL work per frame); the writer writes
+    through the run store (``store``), appends the bytes to one file with an fsync per frame
+    (``raw``) or does nothing (``none``)."""
+    from station.acquisition.acquire import FrameWriter
+
+    plan = StationPatternPlan.for_lcd((64, 48), 4, 4)
+    depths = -(-(n + 1) // len(plan))
+    s = RunStore.create(root / f"cap-{store}.zarr", config={}, plan=plan,
+                        depths_mm=[0.0] * depths, camera_size=(W, H), bit_depth=bits,
+                        lcd_size=(64, 48), lcd_pitch_mm=0.2715, tile_px=T)
+    meta = FrameMeta(stage_target_mm=0.0, stage_measured_mm=0.0, swap_index=0, swap_time_s=0,
+                     camera_timestamp_s=0, frame_id=0, exposure_ms=1.0)
+    s.write_frame(depths - 1, len(plan) - 1, imgs[0], meta)  # warm-up, untimed
+    raw = open(root / "capture-raw.bin", "wb")  # noqa: SIM115 - closed below
+
+    def raw_write(_d: int, _p: int, frame: np.ndarray, _m: FrameMeta) -> None:
+        raw.write(frame.data)
+        raw.flush()
+        os.fsync(raw.fileno())
+
+    write = {"store": s.write_frame, "raw": raw_write, "none": lambda *_: None}[store]
+    writer = FrameWriter(s)
+    gil = 0.0
+    t0 = time.perf_counter()
+    for k in range(n):
+        if frame_ms:
+            time.sleep(frame_ms / 1e3)
+        g0 = time.perf_counter()
+        python_work(gil_ms)
+        gil += time.perf_counter() - g0
+        frame = imgs[k % len(imgs)].copy()
+        writer.submit(f"frame {k}", write, *divmod(k, len(plan)), frame, meta)
+    writer.close()
+    fps = n / (time.perf_counter() - t0)
+    raw.close()
+    return fps, gil / n
+
+
+def capture_main(args: argparse.Namespace) -> None:
+    global _LOOPS_PER_MS
+    _LOOPS_PER_MS = _calibrate()
+    for bits in (12, 8):
+        imgs = frames(3, bits)
+        print(f"\ncapture loop, {bits}-bit frames ({imgs[0].dtype}), {args.frames} frames, "
+              f"camera wait {args.frame_ms} ms, GIL work {args.gil_ms} ms; median of "
+              f"{args.repeats}")
+        rows: dict[str, list[tuple[float, float]]] = {"none": [], "raw": [], "store": []}
+        for _ in range(args.repeats):
+            root = Path(tempfile.mkdtemp(prefix="run_store_io-", dir=args.dir))
+            try:
+                for store in rows:
+                    rows[store].append(capture_case(root, imgs, bits, args.frames, store,
+                                                    args.frame_ms, args.gil_ms))
+            finally:
+                shutil.rmtree(root, ignore_errors=True)
+        fps = {k: statistics.median(x[0] for x in v) for k, v in rows.items()}
+        gil = {k: statistics.median(x[1] for x in v) for k, v in rows.items()}
+        for name, label in (("none", "without storage"), ("raw", "raw file + fsync"),
+                            ("store", "run store")):
+            print(f"{label:<16} {fps[name]:7.1f} frames/s ({1 - fps[name] / fps['none']:6.1%} "
+                  f"below without), GIL work {gil[name] * 1e3:6.1f} ms/frame")
+        print(f"run store / raw  {fps['store'] / fps['raw']:7.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--dir", type=Path, default=None)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--zarr", action="store_true", help="also the zarr candidates (slow)")
+    ap.add_argument("--capture", action="store_true", help="the capture loop instead")
+    ap.add_argument("--frame-ms", type=float, default=0.0, help="camera wait per frame, ms")
+    ap.add_argument("--gil-ms", type=float, default=0.0, help="GIL-holding work per frame, ms")
     args = ap.parse_args()
+    if args.capture:
+        capture_main(args)
+        return
     for bits in (12, 8):
         imgs = frames(args.frames, bits)
         nbytes = imgs[0].nbytes
