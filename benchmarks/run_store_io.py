@@ -2,9 +2,10 @@
 
 Writes a few full-size camera frames (4096 x 2168, 12-bit in uint16 and 8-bit in uint8, a
 blurred fringe with shot and read noise) in each candidate layout, with a raw sequential file
-write of the same bytes (fsync per frame) as the reference in the same run, then reads one
-row of 64 x 64 tiles of every frame (what reconstruction reads) against a raw read of the same
-bytes. Candidates:
+write of the same bytes (the frame's buffer appended, fsync per frame) as the reference in
+the same run, paired frame by frame with the run store's writes (alternating which goes
+first, per-frame medians), then reads one row of 64 x 64 tiles of every frame (what
+reconstruction reads) against a raw read of the same bytes. Candidates:
 
 - ``store``: the run store as built (format 2): per-frame shard of 64 x 64 uncompressed chunks
   with crc32c, written and read by the store itself (includes metadata, done flag, syncfs).
@@ -66,16 +67,6 @@ def du(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
-def raw_write(path: Path, imgs: list[np.ndarray]) -> float:
-    t0 = time.perf_counter()
-    with open(path, "wb") as f:
-        for img in imgs:
-            f.write(img.tobytes())
-            f.flush()
-            os.fsync(f.fileno())
-    return (time.perf_counter() - t0) / len(imgs)
-
-
 def raw_read_rows(path: Path, n: int, dtype: np.dtype) -> float:
     """Read rows 0..T of every frame from the raw file (the same bytes a tile row holds)."""
     row_bytes = W * dtype.itemsize
@@ -87,7 +78,11 @@ def raw_read_rows(path: Path, n: int, dtype: np.dtype) -> float:
     return time.perf_counter() - t0
 
 
-def store_case(root: Path, imgs: list[np.ndarray], bits: int) -> tuple[float, float, int]:
+def store_case(root: Path, imgs: list[np.ndarray], bits: int
+               ) -> tuple[tuple[float, float, int], tuple[float, float, int]]:
+    """The run store and the raw reference, paired: each frame is written to the raw file
+    (append, fsync) and to the store (``write_frame``), in alternating order, so load on a
+    shared machine hits both alike; per-frame medians. Returns (raw row, store row)."""
     n = len(imgs)
     plan = StationPatternPlan.for_lcd((64, 48), 4, 4)
     assert len(plan) > n
@@ -96,12 +91,22 @@ def store_case(root: Path, imgs: list[np.ndarray], bits: int) -> tuple[float, fl
                         lcd_pitch_mm=0.2715, tile_px=T)
     meta = FrameMeta(stage_target_mm=0.0, stage_measured_mm=0.0, swap_index=0, swap_time_s=0,
                      camera_timestamp_s=0, frame_id=0, exposure_ms=1.0)
-    s.write_frame(0, n, imgs[0], meta)  # warm-up, untimed (loads the compiled pixel check)
-    t0 = time.perf_counter()
-    for p, img in enumerate(imgs):
-        s.write_frame(0, p, img, meta)
+    s.write_frame(0, n, imgs[0], meta)  # warm-up, untimed
+    raw_t, store_t = [], []
+    with open(root / "raw.bin", "wb") as raw:
+        for p, img in enumerate(imgs):
+            for what in ("raw", "store")[:: 1 if p % 2 else -1]:
+                t0 = time.perf_counter()
+                if what == "raw":
+                    raw.write(img.data)
+                    raw.flush()
+                    os.fsync(raw.fileno())
+                    raw_t.append(time.perf_counter() - t0)
+                else:
+                    s.write_frame(0, p, img, meta)
+                    store_t.append(time.perf_counter() - t0)
     s.flush()
-    write = (time.perf_counter() - t0) / n
+    raw_read = raw_read_rows(root / "raw.bin", n, imgs[0].dtype)
     class FirstFrames(RunStore):  # the store seen through its first n patterns
         n_patterns = property(lambda self: n)
 
@@ -110,7 +115,9 @@ def store_case(root: Path, imgs: list[np.ndarray], bits: int) -> tuple[float, fl
     tile = part._read_tile(0, 0, 0, T, W, check_index=True)  # noqa: SLF001
     read = time.perf_counter() - t0
     assert np.array_equal(tile.frames[-1], imgs[-1][:T])
-    return write, read, du(root / "store.zarr" / "frames") * n // (n + 1)  # n + warm-up
+    size = du(root / "store.zarr" / "frames") * n // (n + 1)  # n frames + the warm-up
+    return ((statistics.median(raw_t), raw_read, n * imgs[0].nbytes),
+            (statistics.median(store_t), read, size))
 
 
 def zarr_case(root: Path, imgs: list[np.ndarray], name: str) -> tuple[float, float, int]:
@@ -243,10 +250,9 @@ def main() -> None:
         for _ in range(args.repeats):
             root = Path(tempfile.mkdtemp(prefix="run_store_io-", dir=args.dir))
             try:
-                w = raw_write(root / "raw.bin", imgs)
-                r = raw_read_rows(root / "raw.bin", len(imgs), imgs[0].dtype)
-                rows.setdefault("raw", []).append((w, r, len(imgs) * nbytes))
-                rows.setdefault("store", []).append(store_case(root, imgs, bits))
+                raw_row, store_row = store_case(root, imgs, bits)
+                rows.setdefault("raw", []).append(raw_row)
+                rows.setdefault("store", []).append(store_row)
                 for name in ("zarr-zstd", "zarr-lz4", "zarr-none", "zarr-k8") * args.zarr:
                     rows.setdefault(name, []).append(zarr_case(root, imgs, name))
             finally:
@@ -254,7 +260,8 @@ def main() -> None:
         raw_w = statistics.median(x[0] for x in rows["raw"])
         raw_r = statistics.median(x[1] for x in rows["raw"])
         print(f"\n{bits}-bit frames ({imgs[0].dtype}, {nbytes / 1e6:.1f} MB each), "
-              f"{args.frames} frames, median of {args.repeats}")
+              f"{args.frames} frames (raw and store paired, median per frame), median of "
+              f"{args.repeats} repeats")
         print(f"{'layout':<10} {'write s/frame':>14} {'MB/s':>8} {'vs raw':>7} "
               f"{'tile-row read s':>16} {'vs raw':>7} {'size ratio':>10}")
         for name, xs in rows.items():
