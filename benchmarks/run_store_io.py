@@ -2,9 +2,10 @@
 
 Writes a few full-size camera frames (4096 x 2168, 12-bit in uint16 and 8-bit in uint8, a
 blurred fringe with shot and read noise) in each candidate layout, with a raw sequential file
-write of the same bytes (fsync per frame) as the reference in the same run, then reads one
-row of 64 x 64 tiles of every frame (what reconstruction reads) against a raw read of the same
-bytes. Candidates:
+write of the same bytes (the frame's buffer appended, fsync per frame) as the reference in
+the same run, paired frame by frame with the run store's writes (alternating which goes
+first, per-frame medians), then reads one row of 64 x 64 tiles of every frame (what
+reconstruction reads) against a raw read of the same bytes. Candidates:
 
 - ``store``: the run store as built (format 2): per-frame shard of 64 x 64 uncompressed chunks
   with crc32c, written and read by the store itself (includes metadata, done flag, syncfs).
@@ -14,8 +15,17 @@ bytes. Candidates:
 - ``zarr-k8``: shards of 8 frames x whole frame, inner chunks 8 x 64 x 64 (zstd), written 8
   frames at a time (per frame: total / 8).
 
-Run: ``python benchmarks/run_store_io.py [--frames 6] [--dir /tmp]``. Prints a table; the
-numbers and the decision are in benchmarks/README.md.
+Capture loop (``--capture``): the acquisition's loop shape with zero-latency fakes at full
+size: per frame an optional camera wait (``--frame-ms``, sleeping, GIL free), an optional
+stretch of pure-Python work holding the GIL (``--gil-ms``, standing for the loop's own Python),
+a copy of a ready frame (the camera driver's buffer copy), and ``FrameWriter.submit`` of
+``RunStore.write_frame`` (queue of 4), against the same loop whose writer does nothing. Prints
+frames/s with and without storage, and the loop's GIL work per frame with and without (if the
+writer held the GIL, that work would stretch).
+
+Run: ``python benchmarks/run_store_io.py [--frames 6] [--dir /tmp] [--zarr] [--capture]``. ``--zarr``
+adds the zarr candidates (slow: seconds per frame); without it only ``raw`` and ``store`` run.
+Prints a table; the numbers and the decision are in benchmarks/README.md.
 """
 
 from __future__ import annotations
@@ -57,16 +67,6 @@ def du(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
-def raw_write(path: Path, imgs: list[np.ndarray]) -> float:
-    t0 = time.perf_counter()
-    with open(path, "wb") as f:
-        for img in imgs:
-            f.write(img.tobytes())
-            f.flush()
-            os.fsync(f.fileno())
-    return (time.perf_counter() - t0) / len(imgs)
-
-
 def raw_read_rows(path: Path, n: int, dtype: np.dtype) -> float:
     """Read rows 0..T of every frame from the raw file (the same bytes a tile row holds)."""
     row_bytes = W * dtype.itemsize
@@ -78,20 +78,35 @@ def raw_read_rows(path: Path, n: int, dtype: np.dtype) -> float:
     return time.perf_counter() - t0
 
 
-def store_case(root: Path, imgs: list[np.ndarray], bits: int) -> tuple[float, float, int]:
+def store_case(root: Path, imgs: list[np.ndarray], bits: int
+               ) -> tuple[tuple[float, float, int], tuple[float, float, int]]:
+    """The run store and the raw reference, paired: each frame is written to the raw file
+    (append, fsync) and to the store (``write_frame``), in alternating order, so load on a
+    shared machine hits both alike; per-frame medians. Returns (raw row, store row)."""
     n = len(imgs)
     plan = StationPatternPlan.for_lcd((64, 48), 4, 4)
-    assert len(plan) >= n
+    assert len(plan) > n
     s = RunStore.create(root / "store.zarr", config={}, plan=plan, depths_mm=[0.0],
                         camera_size=(W, H), bit_depth=bits, lcd_size=(64, 48),
                         lcd_pitch_mm=0.2715, tile_px=T)
     meta = FrameMeta(stage_target_mm=0.0, stage_measured_mm=0.0, swap_index=0, swap_time_s=0,
                      camera_timestamp_s=0, frame_id=0, exposure_ms=1.0)
-    t0 = time.perf_counter()
-    for p, img in enumerate(imgs):
-        s.write_frame(0, p, img, meta)
+    s.write_frame(0, n, imgs[0], meta)  # warm-up, untimed
+    raw_t, store_t = [], []
+    with open(root / "raw.bin", "wb") as raw:
+        for p, img in enumerate(imgs):
+            for what in ("raw", "store")[:: 1 if p % 2 else -1]:
+                t0 = time.perf_counter()
+                if what == "raw":
+                    raw.write(img.data)
+                    raw.flush()
+                    os.fsync(raw.fileno())
+                    raw_t.append(time.perf_counter() - t0)
+                else:
+                    s.write_frame(0, p, img, meta)
+                    store_t.append(time.perf_counter() - t0)
     s.flush()
-    write = (time.perf_counter() - t0) / n
+    raw_read = raw_read_rows(root / "raw.bin", n, imgs[0].dtype)
     class FirstFrames(RunStore):  # the store seen through its first n patterns
         n_patterns = property(lambda self: n)
 
@@ -100,7 +115,9 @@ def store_case(root: Path, imgs: list[np.ndarray], bits: int) -> tuple[float, fl
     tile = part._read_tile(0, 0, 0, T, W, check_index=True)  # noqa: SLF001
     read = time.perf_counter() - t0
     assert np.array_equal(tile.frames[-1], imgs[-1][:T])
-    return write, read, du(root / "store.zarr" / "frames")
+    size = du(root / "store.zarr" / "frames") * n // (n + 1)  # n frames + the warm-up
+    return ((statistics.median(raw_t), raw_read, n * imgs[0].nbytes),
+            (statistics.median(store_t), read, size))
 
 
 def zarr_case(root: Path, imgs: list[np.ndarray], name: str) -> tuple[float, float, int]:
@@ -128,12 +145,104 @@ def zarr_case(root: Path, imgs: list[np.ndarray], name: str) -> tuple[float, flo
     return write, read, du(root / f"{name}.zarr" / "frames")
 
 
+def python_work(ms: float) -> None:
+    """Pure-Python work holding the GIL for about ``ms`` milliseconds (calibrated once)."""
+    n = int(ms * _LOOPS_PER_MS)
+    x = 0
+    for i in range(n):
+        x += i * i
+
+
+def _calibrate() -> float:
+    t0 = time.perf_counter()
+    x = 0
+    for i in range(2_000_000):
+        x += i * i
+    return 2_000_000 / ((time.perf_counter() - t0) * 1e3)
+
+
+_LOOPS_PER_MS = 0.0
+
+
+def capture_case(root: Path, imgs: list[np.ndarray], bits: int, n: int, store: str,
+                 frame_ms: float, gil_ms: float) -> tuple[float, float]:
+    """(frames/s of the loop, mean seconds of its GIL work per frame); the writer writes
+    through the run store (``store``), appends the bytes to one file with an fsync per frame
+    (``raw``) or does nothing (``none``)."""
+    from station.acquisition.acquire import FrameWriter
+
+    plan = StationPatternPlan.for_lcd((64, 48), 4, 4)
+    depths = -(-(n + 1) // len(plan))
+    s = RunStore.create(root / f"cap-{store}.zarr", config={}, plan=plan,
+                        depths_mm=[0.0] * depths, camera_size=(W, H), bit_depth=bits,
+                        lcd_size=(64, 48), lcd_pitch_mm=0.2715, tile_px=T)
+    meta = FrameMeta(stage_target_mm=0.0, stage_measured_mm=0.0, swap_index=0, swap_time_s=0,
+                     camera_timestamp_s=0, frame_id=0, exposure_ms=1.0)
+    s.write_frame(depths - 1, len(plan) - 1, imgs[0], meta)  # warm-up, untimed
+    raw = open(root / "capture-raw.bin", "wb")  # noqa: SIM115 - closed below
+
+    def raw_write(_d: int, _p: int, frame: np.ndarray, _m: FrameMeta) -> None:
+        raw.write(frame.data)
+        raw.flush()
+        os.fsync(raw.fileno())
+
+    write = {"store": s.write_frame, "raw": raw_write, "none": lambda *_: None}[store]
+    writer = FrameWriter(s)
+    gil = 0.0
+    t0 = time.perf_counter()
+    for k in range(n):
+        if frame_ms:
+            time.sleep(frame_ms / 1e3)
+        g0 = time.perf_counter()
+        python_work(gil_ms)
+        gil += time.perf_counter() - g0
+        frame = imgs[k % len(imgs)].copy()
+        writer.submit(f"frame {k}", write, *divmod(k, len(plan)), frame, meta)
+    writer.close()
+    fps = n / (time.perf_counter() - t0)
+    raw.close()
+    return fps, gil / n
+
+
+def capture_main(args: argparse.Namespace) -> None:
+    global _LOOPS_PER_MS
+    _LOOPS_PER_MS = _calibrate()
+    for bits in (12, 8):
+        imgs = frames(3, bits)
+        print(f"\ncapture loop, {bits}-bit frames ({imgs[0].dtype}), {args.frames} frames, "
+              f"camera wait {args.frame_ms} ms, GIL work {args.gil_ms} ms; median of "
+              f"{args.repeats}")
+        rows: dict[str, list[tuple[float, float]]] = {"none": [], "raw": [], "store": []}
+        for _ in range(args.repeats):
+            root = Path(tempfile.mkdtemp(prefix="run_store_io-", dir=args.dir))
+            try:
+                for store in rows:
+                    rows[store].append(capture_case(root, imgs, bits, args.frames, store,
+                                                    args.frame_ms, args.gil_ms))
+            finally:
+                shutil.rmtree(root, ignore_errors=True)
+        fps = {k: statistics.median(x[0] for x in v) for k, v in rows.items()}
+        gil = {k: statistics.median(x[1] for x in v) for k, v in rows.items()}
+        for name, label in (("none", "without storage"), ("raw", "raw file + fsync"),
+                            ("store", "run store")):
+            print(f"{label:<16} {fps[name]:7.1f} frames/s ({1 - fps[name] / fps['none']:6.1%} "
+                  f"below without), GIL work {gil[name] * 1e3:6.1f} ms/frame")
+        print(f"run store / raw  {fps['store'] / fps['raw']:7.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--dir", type=Path, default=None)
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--zarr", action="store_true", help="also the zarr candidates (slow)")
+    ap.add_argument("--capture", action="store_true", help="the capture loop instead")
+    ap.add_argument("--frame-ms", type=float, default=0.0, help="camera wait per frame, ms")
+    ap.add_argument("--gil-ms", type=float, default=0.0, help="GIL-holding work per frame, ms")
     args = ap.parse_args()
+    if args.capture:
+        capture_main(args)
+        return
     for bits in (12, 8):
         imgs = frames(args.frames, bits)
         nbytes = imgs[0].nbytes
@@ -141,18 +250,18 @@ def main() -> None:
         for _ in range(args.repeats):
             root = Path(tempfile.mkdtemp(prefix="run_store_io-", dir=args.dir))
             try:
-                w = raw_write(root / "raw.bin", imgs)
-                r = raw_read_rows(root / "raw.bin", len(imgs), imgs[0].dtype)
-                rows.setdefault("raw", []).append((w, r, len(imgs) * nbytes))
-                rows.setdefault("store", []).append(store_case(root, imgs, bits))
-                for name in ("zarr-zstd", "zarr-lz4", "zarr-none", "zarr-k8"):
+                raw_row, store_row = store_case(root, imgs, bits)
+                rows.setdefault("raw", []).append(raw_row)
+                rows.setdefault("store", []).append(store_row)
+                for name in ("zarr-zstd", "zarr-lz4", "zarr-none", "zarr-k8") * args.zarr:
                     rows.setdefault(name, []).append(zarr_case(root, imgs, name))
             finally:
                 shutil.rmtree(root, ignore_errors=True)
         raw_w = statistics.median(x[0] for x in rows["raw"])
         raw_r = statistics.median(x[1] for x in rows["raw"])
         print(f"\n{bits}-bit frames ({imgs[0].dtype}, {nbytes / 1e6:.1f} MB each), "
-              f"{args.frames} frames, median of {args.repeats}")
+              f"{args.frames} frames (raw and store paired, median per frame), median of "
+              f"{args.repeats} repeats")
         print(f"{'layout':<10} {'write s/frame':>14} {'MB/s':>8} {'vs raw':>7} "
               f"{'tile-row read s':>16} {'vs raw':>7} {'size ratio':>10}")
         for name, xs in rows.items():

@@ -7,9 +7,10 @@ Layout, ``format_version`` 2 (HARDWARE.md "Acquisition runs", issues 3 and 13; d
 * ``frames[depth, pattern, row, col]`` in the camera's dtype (uint8 up to 8 bits, else
   uint16). One frame is one stored object, a zarr shard of ``tile_px`` x ``tile_px`` inner
   chunks, uncompressed (``bytes`` little-endian) each followed by its ``crc32c``; the shard's
-  index (``bytes`` + ``crc32c``) is at its end. The store writes the shard itself (the same bytes
-  zarr writes, in milliseconds instead of seconds) and reads tiles from it directly, verifying
-  each chunk's crc32c; any zarr v3 reader reads the array too. Chosen by measurement
+  index (``bytes`` + ``crc32c``) is at its end. The store writes the shard itself (each chunk
+  the bytes zarr writes, chunks in row-major order where zarr 3.1 uses Morton order; in
+  milliseconds instead of seconds) and reads tiles from it directly, verifying each chunk's
+  crc32c; any zarr v3 reader reads the array too. Chosen by measurement
   (``benchmarks/run_store_io.py``, numbers in ``benchmarks/README.md``).
 * ``done[depth, pattern]`` bool: True only after the frame and its metadata were written and
   flushed to disk (fsync). A frame whose flag is False is not trusted (readers refuse it).
@@ -34,7 +35,7 @@ built under a temporary name beside ``path`` and renamed into place when complet
 
 from __future__ import annotations
 
-import asyncio
+import contextlib
 import ctypes
 import datetime as _dt
 import functools
@@ -43,7 +44,7 @@ import os
 import platform
 import shutil
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from importlib import metadata as _metadata
 from pathlib import Path
@@ -54,7 +55,7 @@ import pydantic
 import zarr
 from pydantic import BaseModel, ConfigDict, Field
 from zarr.codecs import BytesCodec, Crc32cCodec
-from zarr.core.sync import sync as zarr_sync
+from zarr.codecs.bytes import Endian
 
 from station.acquisition.patterns import StationPatternPlan, apply_lut
 from station.acquisition.store_attrs import RunStoreAttrs, check_attrs, open_zarr_group
@@ -167,13 +168,99 @@ def _libc() -> object:
         return None
 
 
-def _crc(data: bytes) -> int:
+def _write(path: Path, fd: int, parts: list, offset: int | None = None) -> None:
+    """Write every buffer of ``parts`` to the open file ``fd`` (``path``), at its position or
+    at byte ``offset``; an OSError names ``path``. Every byte the store writes itself
+    (shards, per-frame records) goes through here."""
+    try:
+        for part in (memoryview(p).cast("B") for p in parts):
+            while part:
+                n = os.write(fd, part) if offset is None else os.pwrite(fd, part, offset)
+                part = part[n:]
+                offset = None if offset is None else offset + n
+    except OSError as exc:
+        if exc.filename is None:
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
+        raise
+
+
+@contextlib.contextmanager
+def _new_file(path: Path) -> Iterator[int]:
+    """A new file written atomically: yields the descriptor of a temporary file beside
+    ``path``, renamed to ``path`` when the block completes (removed if it raises)."""
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.partial")
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        try:
+            yield fd
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _create(path: Path, parts: list) -> None:
+    """Write a new file of ``parts`` atomically (:func:`_new_file`)."""
+    with _new_file(path) as fd:
+        _write(path, fd, parts)
+
+
+def _start_writeback(fd: int, offset: int, nbytes: int) -> None:
+    """Ask the kernel to start writing a file's byte range to disk now, without waiting
+    (Linux ``sync_file_range(SYNC_FILE_RANGE_WRITE)``; elsewhere nothing): the disk writes a
+    shard while the rest of it is encoded, so the barrier after it has little left to wait
+    for. Durability still comes from the barrier only."""
+    fn = _sync_file_range()
+    if fn is not None:
+        fn(fd, offset, nbytes, 2)  # SYNC_FILE_RANGE_WRITE; a failure only loses the head start
+
+
+@functools.cache
+def _sync_file_range() -> object:
+    fn = getattr(_libc(), "sync_file_range", None)
+    if fn is not None:
+        fn.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint]
+        fn.restype = ctypes.c_int
+    return fn
+
+
+def _crc(data: bytes | np.ndarray) -> int:
+    """crc32c of bytes or of a read-only C-contiguous array's memory (no copy)."""
     return google_crc32c.value(data)
 
 
+def _readonly(a: np.ndarray) -> np.ndarray:
+    """A read-only view of ``a`` (what ``google_crc32c`` takes without a copy)."""
+    v = a.view()
+    v.flags.writeable = False
+    return v
+
+
 def _frame_crc(image: np.ndarray) -> int:
-    """crc32c of a frame's pixels, (rows, cols) in C order, little-endian."""
-    return _crc(np.ascontiguousarray(image, image.dtype.newbyteorder("<")).tobytes())
+    """crc32c of a frame's pixels, (rows, cols) in C order, little-endian; computed on the
+    frame's own memory when it is C-contiguous and little-endian (else on a copy)."""
+    return _crc(_readonly(np.ascontiguousarray(image, image.dtype.newbyteorder("<"))))
+
+
+def _pixel_stats(image: np.ndarray, full: int) -> tuple[int, int]:
+    """(pixels >= ``full``, largest pixel value) of an image: one pass (numpy's vectorised
+    max) unless the image reaches ``full``; only then are the saturated pixels counted."""
+    top = int(image.max()) if image.size else 0
+    return (int(np.count_nonzero(image >= full)) if top >= full else 0), top
+
+
+@dataclass(frozen=True)
+class FrameShard:
+    """What :meth:`ShardCodec.encode` makes of a frame: ``chunks`` (the shard without its
+    index, uint8, a reused buffer), the frame's ``crc32c`` (:func:`_frame_crc`), the count of
+    pixels at or above full scale (``saturated``) and the largest pixel value (``top``)."""
+
+    chunks: np.ndarray
+    crc32c: int
+    saturated: int
+    top: int
 
 
 class ShardCodec:
@@ -192,26 +279,53 @@ class ShardCodec:
         index = np.stack([offsets, np.full(n, self.chunk_bytes, "<u8")], axis=1).tobytes()
         self.index = index + np.uint32(_crc(index)).astype("<u4").tobytes()
         self.size = n * self.chunk_bytes + len(self.index)
+        self._buf: np.ndarray | None = None
 
-    def encode(self, image: np.ndarray) -> np.ndarray:
-        """The chunks of one frame's shard (rows, cols), uint8, without the index (append
-        ``self.index``). The buffer is reused: valid until the next call, one thread at once."""
-        t = self.t
-        if not hasattr(self, "_buf"):  # allocated once: no page faults per frame
-            self._buf = np.zeros((self.nr, self.nc, self.chunk_bytes), np.uint8)
-            self._padded = np.zeros((self.nr * t, self.nc * t), self.dtype)
-        buf = self._buf
-        pix = buf[:, :, : self.data_bytes].view(self.dtype).reshape(self.nr, self.nc, t, t)
-        if image.shape == (self.nr * t, self.nc * t):
-            pix[...] = image.reshape(self.nr, t, self.nc, t).transpose(0, 2, 1, 3)
-        else:  # edge chunks padded with the fill value 0 (the padding stays 0)
-            self._padded[: self.h, : self.w] = image
-            pix[...] = self._padded.reshape(self.nr, t, self.nc, t).transpose(0, 2, 1, 3)
-        flat = buf.reshape(-1, self.chunk_bytes)
-        crcs = np.fromiter((_crc(row[: self.data_bytes].tobytes()) for row in flat),
-                           np.uint32, len(flat))
-        flat[:, self.data_bytes :] = crcs.astype("<u4").view(np.uint8).reshape(-1, 4)
-        return buf.reshape(-1)
+    def _allocate(self) -> None:
+        """The shard buffer (allocated once, so no page faults per frame), its pixels seen as
+        (chunk rows, chunk cols, tile, tile), read-only views of each chunk's pixel bytes for
+        the crc32c, and a zeroed strip for chunk rows with edge padding."""
+        t, n = self.t, self.nr * self.nc
+        self._buf = np.zeros((self.nr, self.nc, self.chunk_bytes), np.uint8)
+        self._pix = self._buf[:, :, : self.data_bytes].view(self.dtype).reshape(
+            self.nr, self.nc, t, t)
+        flat = _readonly(self._buf).reshape(n, self.chunk_bytes)
+        self._chunk_views = [flat[i, : self.data_bytes] for i in range(n)]
+        self._crcs = self._buf.reshape(n, self.chunk_bytes)[:, self.data_bytes :].view("<u4")
+        self._strip = np.zeros((t, self.nc * t), self.dtype)
+
+    def encode(self, image: np.ndarray, full: int,
+               sink: Callable[[np.ndarray], None] | None = None) -> FrameShard:
+        """One frame's shard chunks and what the store records of the frame, in one pass over
+        its pixels, chunk row by chunk row (each block of ``tile`` camera rows is read while it
+        is in the CPU cache): the frame's crc32c continued over the block, the saturation count
+        and maximum, one copy into shard order (edge chunk rows through a zero-padded strip),
+        then each chunk's crc32c on the buffer in place; ``sink`` (if given) gets each finished
+        chunk row's bytes, in order. The buffer is reused: valid until the next call, one
+        thread at once."""
+        if self._buf is None:
+            self._allocate()
+        t, nc, w = self.t, self.nc, self.w
+        img = _readonly(np.ascontiguousarray(image, self.dtype))  # no copy for camera frames
+        aligned = w == nc * t
+        crc, saturated, top = 0, 0, 0
+        crc32c = google_crc32c.value  # looked up once: 2,176 calls per full-size frame
+        for r in range(self.nr):
+            rows = img[r * t : (r + 1) * t]
+            crc = google_crc32c.extend(crc, rows)
+            n_sat, row_top = _pixel_stats(rows, full)
+            saturated, top = saturated + n_sat, max(top, row_top)
+            if aligned and len(rows) == t:
+                self._pix[r] = rows.reshape(t, nc, t).transpose(1, 0, 2)
+            else:  # padding (fill value 0): columns >= w stay 0, rows past the frame zeroed
+                self._strip[: len(rows), :w] = rows
+                self._strip[len(rows) :] = 0
+                self._pix[r] = self._strip.reshape(t, nc, t).transpose(1, 0, 2)
+            self._crcs[r * nc : (r + 1) * nc, 0] = [
+                crc32c(v) for v in self._chunk_views[r * nc : (r + 1) * nc]]
+            if sink is not None:
+                sink(self._buf[r].reshape(-1))
+        return FrameShard(self._buf.reshape(-1), crc, saturated, top)
 
     def decode_chunks(self, raw: bytes, n_chunks: int) -> tuple[np.ndarray, int]:
         """(chunks (n, t, t), index of the first chunk failing its crc32c or -1)."""
@@ -242,6 +356,8 @@ class RunStore:
         self._frames = group["frames"]
         self._done = group["done"]
         self._meta = {name: group[name] for name in META_ARRAYS}
+        self._small_kinds = {name: (np.dtype(group[name].dtype).newbyteorder("<"),
+                                    group[name].fill_value) for name in ("done", *META_ARRAYS)}
         w, h = self.camera_size
         self.codec = ShardCodec(h, w, self.tile_px, self._frames.dtype)
         self._unflushed: Path | None = None
@@ -467,37 +583,60 @@ class RunStore:
                                 f"{meta.stage_target_mm} mm, but depth {depth} is "
                                 f"{self.depths_mm[depth]} mm (attribute 'depths_mm')")
         full = 2**self.bit_depth - 1
-        if img.size and int(img.max()) > full:
-            raise RunStoreError(f"{self.path}: frame ({depth}, {pattern}) has values above "
-                                f"{full}, the camera's {self.bit_depth}-bit full scale")
-        shard = self.codec.encode(img)
         final = self._shard_path(depth, pattern)
         final.parent.mkdir(parents=True, exist_ok=True)
-        tmp = final.with_name(f".{final.name}.{uuid.uuid4().hex[:12]}.partial")
-        try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-            try:
-                for part in (memoryview(shard), memoryview(self.codec.index)):
-                    while part:
-                        part = part[os.write(fd, part):]
-            finally:
-                os.close(fd)
-            os.replace(tmp, final)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-        values = {**meta.model_dump(), "saturated_px": int(np.count_nonzero(img >= full)),
-                  "frame_crc32c": _frame_crc(img)}
+        with _new_file(final) as fd:
+            written = [0]
 
-        async def write_meta() -> None:  # one batch: the fields are independent chunks
-            await asyncio.gather(*(arr.async_array.setitem((depth, pattern), values[name])
-                                   for name, arr in self._meta.items()))
+            def sink(part: np.ndarray) -> None:  # each chunk row as soon as it is encoded
+                _write(final, fd, [part])
+                _start_writeback(fd, written[0], part.nbytes)
+                written[0] += part.nbytes
 
-        zarr_sync(write_meta())
+            enc = self.codec.encode(img, full, sink)
+            if enc.top > full:
+                raise RunStoreError(f"{self.path}: frame ({depth}, {pattern}) has values above "
+                                    f"{full}, the camera's {self.bit_depth}-bit full scale")
+            _write(final, fd, [self.codec.index])
+        values = {**meta.model_dump(), "saturated_px": enc.saturated,
+                  "frame_crc32c": enc.crc32c}
+        written = [self._set_small(name, depth, pattern, values[name]) for name in self._meta]
         # the frame and its metadata reach the disk before the done flag can
-        _barrier(self.path, [final, *(self._small_chunk(name, depth) for name in self._meta)])
-        self._done[depth, pattern] = True
-        self._unflushed = self._small_chunk("done", depth)
+        _barrier(self.path, [final, *written])
+        self._mark_done(depth, pattern)
+
+    def _mark_done(self, depth: int, pattern: int) -> None:
+        """Set a frame's done flag (durable at the next barrier: :meth:`flush` or a write)."""
+        self._unflushed = self._set_small("done", depth, pattern, True)
+
+    def _set_small(self, name: str, depth: int, pattern: int, value: object) -> Path:
+        """Set ``name[depth, pattern]`` of a per-frame array in its chunk (one per depth,
+        uncompressed little-endian, the bytes zarr writes); returns the chunk's path. An
+        existing chunk is updated in place: one aligned write of the one element (1 or 8
+        bytes, within one disk sector, so the other frames' elements are never touched; a
+        rename over the file costs about 1 ms on ext4). A missing chunk is created whole (fill
+        values and this element) under a temporary name and renamed into place."""
+        path = self._small_chunk(name, depth)
+        dtype, fill = self._small_kinds[name]
+        n = self.n_patterns
+        element = np.asarray(value, dtype).tobytes()
+        try:
+            fd = os.open(path, os.O_WRONLY)
+        except FileNotFoundError:
+            chunk = np.full(n, fill, dtype)
+            chunk[pattern] = value
+            path.parent.mkdir(parents=True, exist_ok=True)
+            _create(path, [chunk])
+            return path
+        try:
+            size = os.fstat(fd).st_size
+            if size != n * dtype.itemsize:
+                raise RunStoreError(f"{self.path}: chunk {name}/c/{depth}/0 has {size} bytes, "
+                                    f"expected {n * dtype.itemsize}; the run store is damaged")
+            _write(path, fd, [element], pattern * dtype.itemsize)
+        finally:
+            os.close(fd)
+        return path
 
     def flush(self) -> None:
         """Make the done flags written so far durable (else the next frame's write does; a
@@ -700,6 +839,16 @@ def _cross_check(path: Path, g: zarr.Group, plan: StationPatternPlan) -> None:
             and len(frames.compressors) == 1 and isinstance(frames.compressors[0], Crc32cCodec)):
         raise RunStoreError(f"{path}: array 'frames' has codecs {frames.compressors}, expected "
                             "uncompressed chunks with crc32c (run-store format 2)")
+    n = len(plan)
+    for name in ("done", *META_ARRAYS):  # the store rewrites these chunks itself
+        arr = g[name]
+        if tuple(arr.chunks) != (1, n) or arr.filters != () or arr.compressors != () or \
+                not isinstance(arr.serializer, BytesCodec) or \
+                arr.serializer.endian not in (None, Endian.little):
+            raise RunStoreError(f"{path}: array '{name}' has chunks {arr.chunks} and codecs "
+                                f"{arr.serializer}, {arr.compressors}; expected one "
+                                f"uncompressed little-endian chunk of {n} per depth "
+                                "(run-store format 2)")
     if not plan.localisation.covers(a["lcd_size"]):
         raise RunStoreError(f"{path}: attribute 'lcd_size' {a['lcd_size']} disagrees with the "
                             "pattern set (its Gray code does not cover it)")

@@ -15,6 +15,7 @@ import zarr
 import zarr.storage._local as zarr_local
 
 from drivers.interfaces import DeviceError
+from station.acquisition import run_store
 from station.acquisition.acquire import acquire
 from station.acquisition.backend import Hardware, open_fake_hardware
 from station.cli import main
@@ -68,24 +69,32 @@ def _size(path: Path) -> int:
 
 
 class FullDisk:
-    """Every zarr file write under ``root`` counts its bytes; once ``budget`` bytes are
-    written the disk is full: writes raise ``OSError(ENOSPC)`` naming the file, as the
-    kernel's would, until :meth:`free` (zarr writes every chunk and metadata file through
-    ``zarr.storage._local._put``, the one function patched)."""
+    """Every file write under ``root`` counts its bytes; once ``budget`` bytes are written the
+    disk is full: writes raise ``OSError(ENOSPC)`` naming the file, as the kernel's would,
+    until :meth:`free`. Patched: ``zarr.storage._local._put`` (every chunk and metadata file
+    zarr writes) and ``station.acquisition.run_store._write`` (every shard and per-frame
+    record the run store writes itself)."""
 
     def __init__(self, monkeypatch: pytest.MonkeyPatch, root: Path, budget: int) -> None:
         self.root, self.left, self.refused = str(root), budget, 0
-        self._put = zarr_local._put
+        self._put, self._write = zarr_local._put, run_store._write
         monkeypatch.setattr(zarr_local, "_put", self.put)
+        monkeypatch.setattr(run_store, "_write", self.write)
 
-    def put(self, path: Path, value, exclusive: bool = False) -> int:
+    def _spend(self, path: Path, n: int) -> None:
         if str(path).startswith(self.root):
-            n = len(value.as_buffer_like())
             if n > self.left:
                 self.refused += 1
                 raise OSError(errno.ENOSPC, "No space left on device", str(path))
             self.left -= n
+
+    def put(self, path: Path, value, exclusive: bool = False) -> int:
+        self._spend(path, len(value.as_buffer_like()))
         return self._put(path, value, exclusive)
+
+    def write(self, path: Path, fd: int, parts: list, offset: int | None = None) -> None:
+        self._spend(path, sum(memoryview(p).nbytes for p in parts))
+        self._write(path, fd, parts, offset)
 
     def free(self) -> None:
         self.left = 1 << 60
