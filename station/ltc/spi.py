@@ -26,6 +26,7 @@ import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
+import numba
 import numpy as np
 from tqdm import tqdm
 
@@ -76,20 +77,68 @@ class LtcBlock:
 
 def demodulate(frames: np.ndarray, plan: StationPatternPlan) -> np.ndarray:
     """Spectrum ``G[l, k]`` (n, P, P) complex128 in ADU from frames (patterns, n)."""
+    return _demodulate(frames, plan)[0]
+
+
+def _demodulate(frames: np.ndarray, plan: StationPatternPlan) -> tuple[np.ndarray, np.ndarray]:
+    """(spectrum (n, P, P) complex128, regular frequencies' frame means (m, n) float64) from
+    frames (patterns, n) of any real dtype, in one compiled pass over the frames:
+    ``G = 2 / (n b) sum_m D_m exp(2 pi j m / n)`` for regular frequencies (and their
+    conjugates at the mirrored ones), ``(D_+ - D_-) / 2 b`` for self-conjugate ones."""
     f = plan.fourier
     p, n_steps, b = f.period, f.steps, f.amplitude
     idx = plan.indices
     reg, sc = f.frequencies
-    d = np.asarray(frames, dtype=np.float64)
+    d = np.asarray(frames)
+    if d.dtype.kind not in "uif":
+        d = d.astype(np.float64)
     e = np.exp(2j * np.pi * np.arange(n_steps) / n_steps)
-    g_reg = (2.0 / (n_steps * b)) * np.einsum("fmp,m->pf", d[idx["regular"]], e)
-    sci = idx["self_conjugate"]
-    g_sc = (d[sci[:, 0]] - d[sci[:, 1]]).T / (2.0 * b)
-    spec = np.zeros((d.shape[1], p, p), dtype=np.complex128)
-    spec[:, reg[:, 1], reg[:, 0]] = g_reg
-    spec[:, (-reg[:, 1]) % p, (-reg[:, 0]) % p] = np.conj(g_reg)
-    spec[:, sc[:, 1], sc[:, 0]] = g_sc
-    return spec
+    k, l = reg[:, 0].astype(np.int64), reg[:, 1].astype(np.int64)
+    spec, means = _demodulate_kernel(
+        d, np.ascontiguousarray(idx["regular"], dtype=np.int64),
+        np.ascontiguousarray(idx["self_conjugate"], dtype=np.int64), e.real.copy(),
+        e.imag.copy(), l * p + k, ((-l) % p) * p + (-k) % p,
+        (sc[:, 1] * p + sc[:, 0]).astype(np.int64), p * p, 2.0 / (n_steps * b), 1.0 / (2.0 * b))
+    return spec.reshape(-1, p, p), means
+
+
+@numba.njit(cache=True, nogil=True)
+def _demodulate_kernel(d, reg_idx, sc_idx, e_re, e_im, here, mirror, sc_flat, pp, f_reg,
+                       f_sc):  # pragma: no cover - compiled
+    """See :func:`_demodulate`; d (patterns, n), pattern-major loops (rows contiguous)."""
+    n = d.shape[1]
+    m, steps = reg_idx.shape
+    spec = np.zeros((n, pp), dtype=np.complex128)
+    means = np.empty((m, n))
+    acc_r, acc_i, acc_s = np.empty(n), np.empty(n), np.empty(n)
+    for fi in range(m):
+        acc_r[:] = 0.0
+        acc_i[:] = 0.0
+        acc_s[:] = 0.0
+        for st in range(steps):
+            row = d[reg_idx[fi, st]]
+            er, ei = e_re[st], e_im[st]
+            for j in range(n):
+                v = np.float64(row[j])
+                acc_r[j] += v * er
+                acc_i[j] += v * ei
+                acc_s[j] += v
+        h, mi = here[fi], mirror[fi]
+        for j in range(n):
+            gr, gi = f_reg * acc_r[j], f_reg * acc_i[j]
+            spec[j, h] = complex(gr, gi)
+            spec[j, mi] = complex(gr, -gi)
+            means[fi, j] = acc_s[j] / steps
+    for si in range(sc_idx.shape[0]):
+        plus, minus, q = d[sc_idx[si, 0]], d[sc_idx[si, 1]], sc_flat[si]
+        for j in range(n):
+            spec[j, q] = (np.float64(plus[j]) - np.float64(minus[j])) * f_sc
+    return spec, means
+
+
+def _noise_from_means(means: np.ndarray, steps: int) -> np.ndarray:
+    """``sigma_D`` (n,) from the regular frequencies' frame means (m, n)."""
+    return np.sqrt(steps * means.var(axis=0, ddof=1))
 
 
 @dataclass(frozen=True)
@@ -132,23 +181,103 @@ def correct_levels(
     max_iterations: int = 8, rtol: float = 1e-7,
 ) -> np.ndarray:
     """Undo the shown levels' harmonics (see :class:`LevelHarmonics`) by a fixed-point
-    iteration on the regular coefficients; each iteration gains a factor
+    (Jacobi) iteration on the regular coefficients,
+    ``G <- (G' - sum_side gamma_h G(-h k, -h l)) / gamma_main``; each iteration gains a factor
     ``sum |gamma_side| / |gamma_main|`` (about 1e-2 for 8-bit rounding); stops when the update
-    is below ``rtol`` of every pixel's DC term. spectrum (n, P, P) complex as from
-    :func:`demodulate`; returns a corrected copy."""
+    is below ``rtol`` of every pixel's DC term (all pixels of the block iterate together).
+    spectrum (n, P, P) complex as from :func:`demodulate`; returns a corrected copy.
+    Compiled (:func:`_fixed_point`), with per-plan tables from :func:`_level_tables`."""
+    p = fourier.period
+    n = spectrum.shape[0]
+    spec = np.array(spectrum, dtype=np.complex128, order="C").reshape(n, p * p)
+    here, mirror, sc_flat, target, coef, main = _level_tables(fourier, harmonics)
+    spec[:, sc_flat] /= harmonics.gamma_sc
+    dc = np.abs(spec[:, 0])  # per pixel; dark pixels judged against a floor
+    scale = rtol * np.maximum(dc, 1e-3 * dc.max(initial=0.0) + 1e-300)
+    _fixed_point(spec, here, mirror, target, coef, main, scale,
+                 max_iterations if len(coef) else 0)
+    return spec.reshape(n, p, p)
+
+
+def _level_tables(fourier: FourierPatternSet, harmonics: LevelHarmonics):
+    """Flat indices for :func:`correct_levels`: regular frequencies ``l P + k`` (m,), their
+    mirrors (m,), self-conjugate ones (s,), side-harmonic targets (H', m) with their
+    coefficients (H',) complex, and the main coefficient."""
+    p, big = fourier.period, fourier.grid
+    reg, sc = fourier.frequencies
+    k, l = reg[:, 0].astype(np.int64), reg[:, 1].astype(np.int64)
+    here, mirror = l * p + k, ((-l) % p) * p + (-k) % p
+    sides = [(h, g) for h, g in zip(harmonics.h, harmonics.gamma)
+             if h != big - 1 and abs(g) > 1e-15]
+    target = np.array([((-h * l) % p) * p + (-h * k) % p for h, _ in sides],
+                      dtype=np.int64).reshape(len(sides), len(k))
+    coef = np.array([g for _, g in sides], dtype=np.complex128)
+    main = complex(harmonics.gamma[harmonics.h == big - 1][0])
+    return here, mirror, (sc[:, 1] * p + sc[:, 0]).astype(np.int64), target, coef, main
+
+
+@numba.njit(cache=True, nogil=True)
+def _fixed_point(spec, here, mirror, target, coef, main, scale, max_iterations):  # pragma: no cover - compiled
+    """In place on spec (n, P^2) complex128: the Jacobi iteration of :func:`correct_levels`
+    (every side term read from the previous estimate; the same operations in the same order
+    per coefficient as the former numpy version)."""
+    n, m, ns = spec.shape[0], here.shape[0], coef.shape[0]
+    measured = np.empty((n, m), dtype=np.complex128)
+    est = np.empty((n, m), dtype=np.complex128)
+    new = np.empty((n, m), dtype=np.complex128)
+    for j in range(n):
+        for i in range(m):
+            measured[j, i] = spec[j, here[i]]
+            est[j, i] = measured[j, i] / main  # as before: first estimate
+    inv = 1.0 / main
+    for _ in range(max_iterations):
+        done = True
+        for j in range(n):
+            row = spec[j]
+            lim = scale[j] * scale[j]
+            for i in range(m):
+                row[here[i]] = est[j, i]
+                row[mirror[i]] = np.conj(est[j, i])
+            for i in range(m):
+                ar, ai = measured[j, i].real, measured[j, i].imag
+                for s in range(ns):
+                    t, c = row[target[s, i]], coef[s]
+                    ar -= t.real * c.real - t.imag * c.imag
+                    ai -= t.real * c.imag + t.imag * c.real
+                vr = ar * inv.real - ai * inv.imag
+                vi = ar * inv.imag + ai * inv.real
+                dr, di = vr - est[j, i].real, vi - est[j, i].imag
+                if not dr * dr + di * di <= lim:
+                    done = False
+                new[j, i] = complex(vr, vi)
+        est, new = new, est
+        if done:
+            break
+    for j in range(n):
+        for i in range(m):
+            spec[j, here[i]] = est[j, i]
+            spec[j, mirror[i]] = np.conj(est[j, i])
+
+
+def _correct_levels_numpy(
+    spectrum: np.ndarray, fourier: FourierPatternSet, harmonics: LevelHarmonics,
+    max_iterations: int = 8, rtol: float = 1e-7,
+) -> np.ndarray:
+    """The former numpy :func:`correct_levels`, kept as the reference its compiled
+    replacement is tested against (tests/station/ltc)."""
     p, big = fourier.period, fourier.grid
     reg, sc = fourier.frequencies
     k, l = reg[:, 0], reg[:, 1]
     n = spectrum.shape[0]
     spec = np.ascontiguousarray(np.asarray(spectrum, dtype=np.complex128).reshape(n, p * p).T)
-    spec[sc[:, 1] * p + sc[:, 0]] /= harmonics.gamma_sc  # frequency-major: rows are cheap
+    spec[sc[:, 1] * p + sc[:, 0]] /= harmonics.gamma_sc
     main = harmonics.gamma[harmonics.h == big - 1][0]
     here, mirror = l * p + k, ((-l) % p) * p + (-k) % p
     side = [(((-h * l) % p) * p + (-h * k) % p, g)
             for h, g in zip(harmonics.h, harmonics.gamma) if h != big - 1 and abs(g) > 1e-15]
     measured = spec[here]
     est = measured / main
-    dc = np.abs(spec[0])  # per pixel; dark pixels judged against a floor
+    dc = np.abs(spec[0])
     scale = rtol * np.maximum(dc, 1e-3 * dc.max(initial=0.0) + 1e-300)
     acc, term = np.empty_like(measured), np.empty_like(measured)
     for _ in range(max_iterations if side else 0):
@@ -168,15 +297,17 @@ def correct_levels(
 
 
 def fold(spectrum: np.ndarray) -> np.ndarray:
-    """Folded LTC (n, P, P) float64 ``[y mod P, x mod P]`` from the spectrum (n, P, P)."""
-    return np.fft.ifft2(spectrum, axes=(-2, -1)).real
+    """Folded LTC (n, P, P) float64 ``[y mod P, x mod P]`` from the Hermitian spectrum
+    (n, P, P) (real inverse DFT of its non-negative-k half)."""
+    p = spectrum.shape[-1]
+    return np.fft.irfft2(spectrum[..., : p // 2 + 1], s=(p, p), axes=(-2, -1))
 
 
 def frame_noise(frames: np.ndarray, plan: StationPatternPlan) -> np.ndarray:
     """Per-pixel frame noise std ``sigma_D`` (n,) from the scatter of the regular
     frequencies' frame means (frames (patterns, n))."""
     means = np.asarray(frames, dtype=np.float64)[plan.indices["regular"]].mean(axis=1)
-    return np.sqrt(plan.fourier.steps * means.var(axis=0, ddof=1))
+    return _noise_from_means(means, plan.fourier.steps)
 
 
 def ltc_noise(sigma_frame: np.ndarray, gain: np.ndarray, fourier: FourierPatternSet) -> np.ndarray:
@@ -217,6 +348,31 @@ def unfold(folded: np.ndarray, origin: np.ndarray) -> np.ndarray:
     return folded[np.arange(n)[:, None, None], rows[:, :, None], cols[:, None, :]]
 
 
+@numba.njit(cache=True, nogil=True)
+def _window(folded, origin, gain, valid):  # pragma: no cover - compiled
+    """:func:`unfold` divided by the gain, NaN where not ``valid``, and the window's outer-ring
+    mass: folded (n, P, P), origin (n, 2) int64 (x, y), gain (n,), valid (n,) bool."""
+    n, p = folded.shape[0], folded.shape[-1]
+    ltc = np.empty((n, p, p))
+    ring = np.empty(n)
+    for j in range(n):
+        if not valid[j]:
+            ltc[j] = np.nan
+            ring[j] = np.nan
+            continue
+        ox, oy, g = origin[j, 0] % p, origin[j, 1] % p, gain[j]
+        edge = 0.0
+        for r in range(p):
+            src = folded[j, (oy + r) % p]
+            for c in range(p):
+                v = src[(ox + c) % p] / g
+                ltc[j, r, c] = v
+                if r == 0 or r == p - 1 or c == 0 or c == p - 1:
+                    edge += v
+        ring[j] = edge
+    return ltc, ring
+
+
 def reconstruct_frames(
     frames: np.ndarray, plan: StationPatternPlan, *, lut: np.ndarray | None = None,
     level_correction: bool = True, min_snr: float = 10.0, min_harmonic: float = 0.05,
@@ -229,25 +385,22 @@ def reconstruct_frames(
     A pixel is valid when its gain exceeds ``min_snr`` times the gain's noise and its
     localisation decoded. Pure function: the tiled :func:`reconstruct` calls it per block.
     """
-    d = np.asarray(frames, dtype=np.float64)
+    d = np.asarray(frames)
     if d.ndim != 2 or d.shape[0] != len(plan):
         raise ValueError(f"frames must be (patterns={len(plan)}, pixels), got {d.shape}")
     f = plan.fourier
-    spec = demodulate(d, plan)
+    spec, means = _demodulate(d, plan)
     if level_correction:
         spec = correct_levels(spec, f, level_harmonics(f, lut))
     gain = spec[:, 0, 0].real.copy()
-    sigma_d = frame_noise(d, plan)
+    sigma_d = _noise_from_means(means, f.steps)
     lmap = lcd_coordinates(d, plan)
     centre = refine_centre(spec, lmap.xy, min_harmonic)
     valid = (gain > 0) & (gain > min_snr * sigma_d / (np.sqrt(2.0) * f.amplitude))
     valid &= np.all(np.isfinite(centre), axis=1)
     origin = centred_origins(np.where(valid[:, None], centre, 0.0), f.period)
     origin[~valid] = 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ltc = unfold(fold(spec), origin) / gain[:, None, None]
-    ltc[~valid] = np.nan
-    ring = ltc.sum(axis=(1, 2)) - ltc[:, 1:-1, 1:-1].sum(axis=(1, 2))
+    ltc, ring = _window(fold(spec), origin.astype(np.int64), gain, valid)
     return LtcBlock(ltc=ltc, origin=origin, gain=gain, noise=ltc_noise(sigma_d, gain, f),
                     lcd_xy=lmap.xy, valid=valid, edge_mass=ring)
 
