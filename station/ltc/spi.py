@@ -24,6 +24,7 @@ from __future__ import annotations
 import datetime as _dt
 import time
 from dataclasses import dataclass, fields, replace
+from functools import lru_cache
 from pathlib import Path
 
 import numba
@@ -77,29 +78,40 @@ class LtcBlock:
 
 def demodulate(frames: np.ndarray, plan: StationPatternPlan) -> np.ndarray:
     """Spectrum ``G[l, k]`` (n, P, P) complex128 in ADU from frames (patterns, n)."""
-    return _demodulate(frames, plan)[0]
+    re, im, _ = _demodulate(frames, plan)
+    return _to_spectrum(re, im, plan.fourier.period)
 
 
-def _demodulate(frames: np.ndarray, plan: StationPatternPlan) -> tuple[np.ndarray, np.ndarray]:
-    """(spectrum (n, P, P) complex128, regular frequencies' frame means (m, n) float64) from
-    frames (patterns, n) of any real dtype, in one compiled pass over the frames:
+def _to_spectrum(re: np.ndarray, im: np.ndarray, p: int) -> np.ndarray:
+    """(n, P, P) complex128 from frequency-major planes re, im (P^2, n)."""
+    return (re + 1j * im).T.reshape(-1, p, p)
+
+
+def _to_planes(spectrum: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Frequency-major planes re, im (P^2, n) float64 of a spectrum (n, P, P)."""
+    flat = np.asarray(spectrum, dtype=np.complex128).reshape(len(spectrum), -1)
+    return np.ascontiguousarray(flat.real.T), np.ascontiguousarray(flat.imag.T)
+
+
+def _demodulate(frames: np.ndarray, plan: StationPatternPlan
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Spectrum as frequency-major planes (re, im: (P^2, n) float64, row ``l P + k``) and
+    the regular frequencies' frame means (m, n), from frames (patterns, n) of any real
+    dtype, in one compiled pass over the frames:
     ``G = 2 / (n b) sum_m D_m exp(2 pi j m / n)`` for regular frequencies (and their
     conjugates at the mirrored ones), ``(D_+ - D_-) / 2 b`` for self-conjugate ones."""
     f = plan.fourier
     p, n_steps, b = f.period, f.steps, f.amplitude
     idx = plan.indices
-    reg, sc = f.frequencies
     d = np.asarray(frames)
     if d.dtype.kind not in "uif":
         d = d.astype(np.float64)
     e = np.exp(2j * np.pi * np.arange(n_steps) / n_steps)
-    k, l = reg[:, 0].astype(np.int64), reg[:, 1].astype(np.int64)
-    spec, means = _demodulate_kernel(
+    t = _plan_tables(f)
+    return _demodulate_kernel(
         d, np.ascontiguousarray(idx["regular"], dtype=np.int64),
         np.ascontiguousarray(idx["self_conjugate"], dtype=np.int64), e.real.copy(),
-        e.imag.copy(), l * p + k, ((-l) % p) * p + (-k) % p,
-        (sc[:, 1] * p + sc[:, 0]).astype(np.int64), p * p, 2.0 / (n_steps * b), 1.0 / (2.0 * b))
-    return spec.reshape(-1, p, p), means
+        e.imag.copy(), t.here, t.mirror, t.sc, p * p, 2.0 / (n_steps * b), 1.0 / (2.0 * b))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -108,7 +120,8 @@ def _demodulate_kernel(d, reg_idx, sc_idx, e_re, e_im, here, mirror, sc_flat, pp
     """See :func:`_demodulate`; d (patterns, n), pattern-major loops (rows contiguous)."""
     n = d.shape[1]
     m, steps = reg_idx.shape
-    spec = np.zeros((n, pp), dtype=np.complex128)
+    re = np.zeros((pp, n))
+    im = np.zeros((pp, n))
     means = np.empty((m, n))
     acc_r, acc_i, acc_s = np.empty(n), np.empty(n), np.empty(n)
     for fi in range(m):
@@ -126,14 +139,16 @@ def _demodulate_kernel(d, reg_idx, sc_idx, e_re, e_im, here, mirror, sc_flat, pp
         h, mi = here[fi], mirror[fi]
         for j in range(n):
             gr, gi = f_reg * acc_r[j], f_reg * acc_i[j]
-            spec[j, h] = complex(gr, gi)
-            spec[j, mi] = complex(gr, -gi)
+            re[h, j] = gr
+            im[h, j] = gi
+            re[mi, j] = gr
+            im[mi, j] = -gi
             means[fi, j] = acc_s[j] / steps
     for si in range(sc_idx.shape[0]):
         plus, minus, q = d[sc_idx[si, 0]], d[sc_idx[si, 1]], sc_flat[si]
         for j in range(n):
-            spec[j, q] = (np.float64(plus[j]) - np.float64(minus[j])) * f_sc
-    return spec, means
+            re[q, j] = (np.float64(plus[j]) - np.float64(minus[j])) * f_sc
+    return re, im, means
 
 
 def _noise_from_means(means: np.ndarray, steps: int) -> np.ndarray:
@@ -185,115 +200,112 @@ def correct_levels(
     ``G <- (G' - sum_side gamma_h G(-h k, -h l)) / gamma_main``; each iteration gains a factor
     ``sum |gamma_side| / |gamma_main|`` (about 1e-2 for 8-bit rounding); stops when the update
     is below ``rtol`` of every pixel's DC term (all pixels of the block iterate together).
-    spectrum (n, P, P) complex as from :func:`demodulate`; returns a corrected copy.
-    Compiled (:func:`_fixed_point`), with per-plan tables from :func:`_level_tables`."""
-    p = fourier.period
-    n = spectrum.shape[0]
-    spec = np.array(spectrum, dtype=np.complex128, order="C").reshape(n, p * p)
-    here, mirror, sc_flat, target, coef, main = _level_tables(fourier, harmonics)
-    spec[:, sc_flat] /= harmonics.gamma_sc
-    dc = np.abs(spec[:, 0])  # per pixel; dark pixels judged against a floor
+    spectrum (n, P, P) complex as from :func:`demodulate`; returns a corrected copy."""
+    re, im = _to_planes(spectrum)
+    _correct_planes(re, im, fourier, harmonics, max_iterations, rtol)
+    return _to_spectrum(re, im, fourier.period)
+
+
+def _correct_planes(re: np.ndarray, im: np.ndarray, fourier: FourierPatternSet,
+                    harmonics: LevelHarmonics, max_iterations: int = 8,
+                    rtol: float = 1e-7) -> None:
+    """:func:`correct_levels` in place on frequency-major planes re, im (P^2, n)."""
+    t = _plan_tables(fourier)
+    big = fourier.grid
+    keep = [i for i, (h, g) in enumerate(zip(harmonics.h, harmonics.gamma))
+            if h != big - 1 and abs(g) > 1e-15]
+    target = np.ascontiguousarray(t.side_target[[int(harmonics.h[i]) for i in keep]])
+    coef = harmonics.gamma[keep].astype(np.complex128)
+    main = complex(harmonics.gamma[harmonics.h == big - 1][0])
+    re[t.sc] /= harmonics.gamma_sc
+    im[t.sc] /= harmonics.gamma_sc
+    dc = np.hypot(re[0], im[0])  # per pixel; dark pixels judged against a floor
     scale = rtol * np.maximum(dc, 1e-3 * dc.max(initial=0.0) + 1e-300)
-    _fixed_point(spec, here, mirror, target, coef, main, scale,
-                 max_iterations if len(coef) else 0)
-    return spec.reshape(n, p, p)
+    inv = 1.0 / main
+    _fixed_point(re, im, t.here, t.mirror, target, coef.real.copy(), coef.imag.copy(),
+                 inv.real, inv.imag, scale * scale, max_iterations if len(coef) else 0)
 
 
-def _level_tables(fourier: FourierPatternSet, harmonics: LevelHarmonics):
-    """Flat indices for :func:`correct_levels`: regular frequencies ``l P + k`` (m,), their
-    mirrors (m,), self-conjugate ones (s,), side-harmonic targets (H', m) with their
-    coefficients (H',) complex, and the main coefficient."""
+@dataclass(frozen=True)
+class _PlanTables:
+    """Flat frequency rows (``l P + k``) of a Fourier pattern set: regular ones (m,), their
+    mirrors (m,), self-conjugate ones (s,), and for every harmonic number h in [0, L) the
+    row ``(-h l mod P) P + (-h k mod P)`` each regular frequency's harmonic h reads (L, m)."""
+
+    here: np.ndarray
+    mirror: np.ndarray
+    sc: np.ndarray
+    side_target: np.ndarray
+
+
+@lru_cache(maxsize=16)
+def _plan_tables(fourier: FourierPatternSet) -> _PlanTables:
     p, big = fourier.period, fourier.grid
     reg, sc = fourier.frequencies
     k, l = reg[:, 0].astype(np.int64), reg[:, 1].astype(np.int64)
-    here, mirror = l * p + k, ((-l) % p) * p + (-k) % p
-    sides = [(h, g) for h, g in zip(harmonics.h, harmonics.gamma)
-             if h != big - 1 and abs(g) > 1e-15]
-    target = np.array([((-h * l) % p) * p + (-h * k) % p for h, _ in sides],
-                      dtype=np.int64).reshape(len(sides), len(k))
-    coef = np.array([g for _, g in sides], dtype=np.complex128)
-    main = complex(harmonics.gamma[harmonics.h == big - 1][0])
-    return here, mirror, (sc[:, 1] * p + sc[:, 0]).astype(np.int64), target, coef, main
+    h = np.arange(big, dtype=np.int64)[:, None]
+    tables = _PlanTables(
+        here=l * p + k, mirror=((-l) % p) * p + (-k) % p,
+        sc=(sc[:, 1] * p + sc[:, 0]).astype(np.int64),
+        side_target=((-h * l) % p) * p + (-h * k) % p)
+    for a in (tables.here, tables.mirror, tables.sc, tables.side_target):
+        a.flags.writeable = False
+    return tables
 
 
 @numba.njit(cache=True, nogil=True)
-def _fixed_point(spec, here, mirror, target, coef, main, scale, max_iterations):  # pragma: no cover - compiled
-    """In place on spec (n, P^2) complex128: the Jacobi iteration of :func:`correct_levels`
-    (every side term read from the previous estimate; the same operations in the same order
-    per coefficient as the former numpy version)."""
-    n, m, ns = spec.shape[0], here.shape[0], coef.shape[0]
-    measured = np.empty((n, m), dtype=np.complex128)
-    est = np.empty((n, m), dtype=np.complex128)
-    new = np.empty((n, m), dtype=np.complex128)
-    for j in range(n):
-        for i in range(m):
-            measured[j, i] = spec[j, here[i]]
-            est[j, i] = measured[j, i] / main  # as before: first estimate
-    inv = 1.0 / main
-    for _ in range(max_iterations):
-        done = True
+def _fixed_point(re, im, here, mirror, target, c_re, c_im, inv_re, inv_im, lim,
+                 max_iterations):  # pragma: no cover - compiled
+    """In place on planes re, im (P^2, n): the Jacobi iteration of :func:`correct_levels`
+    (every side term read from the previous estimate), loops over pixels innermost."""
+    n, m, ns = re.shape[1], here.shape[0], c_re.shape[0]
+    meas_r, meas_i = np.empty((m, n)), np.empty((m, n))
+    est_r, est_i = np.empty((m, n)), np.empty((m, n))
+    new_r, new_i = np.empty((m, n)), np.empty((m, n))
+    acc_r, acc_i = np.empty(n), np.empty(n)
+    for i in range(m):
         for j in range(n):
-            row = spec[j]
-            lim = scale[j] * scale[j]
-            for i in range(m):
-                row[here[i]] = est[j, i]
-                row[mirror[i]] = np.conj(est[j, i])
-            for i in range(m):
-                ar, ai = measured[j, i].real, measured[j, i].imag
-                for s in range(ns):
-                    t, c = row[target[s, i]], coef[s]
-                    ar -= t.real * c.real - t.imag * c.imag
-                    ai -= t.real * c.imag + t.imag * c.real
-                vr = ar * inv.real - ai * inv.imag
-                vi = ar * inv.imag + ai * inv.real
-                dr, di = vr - est[j, i].real, vi - est[j, i].imag
-                if not dr * dr + di * di <= lim:
-                    done = False
-                new[j, i] = complex(vr, vi)
-        est, new = new, est
-        if done:
-            break
-    for j in range(n):
+            ar, ai = re[here[i], j], im[here[i], j]
+            meas_r[i, j], meas_i[i, j] = ar, ai
+            est_r[i, j] = ar * inv_re - ai * inv_im
+            est_i[i, j] = ar * inv_im + ai * inv_re
+    for _ in range(max_iterations):
         for i in range(m):
-            spec[j, here[i]] = est[j, i]
-            spec[j, mirror[i]] = np.conj(est[j, i])
-
-
-def _correct_levels_numpy(
-    spectrum: np.ndarray, fourier: FourierPatternSet, harmonics: LevelHarmonics,
-    max_iterations: int = 8, rtol: float = 1e-7,
-) -> np.ndarray:
-    """The former numpy :func:`correct_levels`, kept as the reference its compiled
-    replacement is tested against (tests/station/ltc)."""
-    p, big = fourier.period, fourier.grid
-    reg, sc = fourier.frequencies
-    k, l = reg[:, 0], reg[:, 1]
-    n = spectrum.shape[0]
-    spec = np.ascontiguousarray(np.asarray(spectrum, dtype=np.complex128).reshape(n, p * p).T)
-    spec[sc[:, 1] * p + sc[:, 0]] /= harmonics.gamma_sc
-    main = harmonics.gamma[harmonics.h == big - 1][0]
-    here, mirror = l * p + k, ((-l) % p) * p + (-k) % p
-    side = [(((-h * l) % p) * p + (-h * k) % p, g)
-            for h, g in zip(harmonics.h, harmonics.gamma) if h != big - 1 and abs(g) > 1e-15]
-    measured = spec[here]
-    est = measured / main
-    dc = np.abs(spec[0])
-    scale = rtol * np.maximum(dc, 1e-3 * dc.max(initial=0.0) + 1e-300)
-    acc, term = np.empty_like(measured), np.empty_like(measured)
-    for _ in range(max_iterations if side else 0):
-        spec[here], spec[mirror] = est, np.conj(est)
-        acc[...] = measured
-        for target, g in side:
-            np.take(spec, target, axis=0, out=term)
-            term *= g
-            acc -= term
-        new = acc / main
-        done = bool(np.all(np.abs(new - est).max(axis=0, initial=0.0) <= scale))
-        est = new
-        if done:
+            h, mi = here[i], mirror[i]
+            for j in range(n):
+                re[h, j] = est_r[i, j]
+                im[h, j] = est_i[i, j]
+                re[mi, j] = est_r[i, j]
+                im[mi, j] = -est_i[i, j]
+        converged = 0
+        for i in range(m):
+            for j in range(n):
+                acc_r[j] = meas_r[i, j]
+                acc_i[j] = meas_i[i, j]
+            for s in range(ns):
+                t, cr, ci = target[s, i], c_re[s], c_im[s]
+                for j in range(n):
+                    tr, ti = re[t, j], im[t, j]
+                    acc_r[j] -= tr * cr - ti * ci
+                    acc_i[j] -= tr * ci + ti * cr
+            for j in range(n):
+                vr = acc_r[j] * inv_re - acc_i[j] * inv_im
+                vi = acc_r[j] * inv_im + acc_i[j] * inv_re
+                dr, di = vr - est_r[i, j], vi - est_i[i, j]
+                converged += dr * dr + di * di <= lim[j]
+                new_r[i, j] = vr
+                new_i[i, j] = vi
+        est_r, new_r = new_r, est_r
+        est_i, new_i = new_i, est_i
+        if converged == m * n:
             break
-    spec[here], spec[mirror] = est, np.conj(est)
-    return np.ascontiguousarray(spec.T).reshape(n, p, p)
+    for i in range(m):
+        h, mi = here[i], mirror[i]
+        for j in range(n):
+            re[h, j] = est_r[i, j]
+            im[h, j] = est_i[i, j]
+            re[mi, j] = est_r[i, j]
+            im[mi, j] = -est_i[i, j]
 
 
 def fold(spectrum: np.ndarray) -> np.ndarray:
@@ -325,10 +337,16 @@ def refine_centre(
     """Centre (n, 2) LCD (x, y): the first-harmonic circular mean of each LTC at period P,
     in the period nearest the coarse centre (n, 2); the coarse centre where
     ``|G(1, 0)| / G(0, 0)`` (or the y twin) is below ``min_harmonic``."""
-    p = spectrum.shape[-1]
-    g0 = spectrum[:, 0, 0].real
+    return _refine(spectrum[:, 0, 0].real, spectrum[:, 0, 1], spectrum[:, 1, 0],
+                   spectrum.shape[-1], coarse_xy, min_harmonic)
+
+
+def _refine(g0: np.ndarray, g_x: np.ndarray, g_y: np.ndarray, p: int, coarse_xy: np.ndarray,
+            min_harmonic: float) -> np.ndarray:
+    """:func:`refine_centre` from the DC term g0 (n,) and the first harmonics G(1, 0) along
+    x and y (n,) complex."""
     out = np.array(coarse_xy, dtype=np.float64, copy=True)
-    for axis, g1 in enumerate((spectrum[:, 0, 1], spectrum[:, 1, 0])):
+    for axis, g1 in enumerate((g_x, g_y)):
         xp = np.mod(-np.angle(g1) * p / (2 * np.pi), p)
         c = out[:, axis]
         fine = xp + p * np.round((c - xp) / p)
@@ -389,18 +407,24 @@ def reconstruct_frames(
     if d.ndim != 2 or d.shape[0] != len(plan):
         raise ValueError(f"frames must be (patterns={len(plan)}, pixels), got {d.shape}")
     f = plan.fourier
-    spec, means = _demodulate(d, plan)
+    p = f.period
+    re, im, means = _demodulate(d, plan)
     if level_correction:
-        spec = correct_levels(spec, f, level_harmonics(f, lut))
-    gain = spec[:, 0, 0].real.copy()
+        _correct_planes(re, im, f, level_harmonics(f, lut))
+    gain = re[0].copy()
     sigma_d = _noise_from_means(means, f.steps)
     lmap = lcd_coordinates(d, plan)
-    centre = refine_centre(spec, lmap.xy, min_harmonic)
+    centre = _refine(gain, re[1] + 1j * im[1], re[p] + 1j * im[p], p, lmap.xy, min_harmonic)
     valid = (gain > 0) & (gain > min_snr * sigma_d / (np.sqrt(2.0) * f.amplitude))
     valid &= np.all(np.isfinite(centre), axis=1)
     origin = centred_origins(np.where(valid[:, None], centre, 0.0), f.period)
     origin[~valid] = 0
-    ltc, ring = _window(fold(spec), origin.astype(np.int64), gain, valid)
+    q = p // 2 + 1  # the non-negative k half is all the real inverse DFT reads
+    half = np.empty((re.shape[1], p, q), dtype=np.complex128)
+    half.real = re.reshape(p, p, -1)[:, :q].transpose(2, 0, 1)
+    half.imag = im.reshape(p, p, -1)[:, :q].transpose(2, 0, 1)
+    folded = np.fft.irfft2(half, s=(p, p), axes=(-2, -1))
+    ltc, ring = _window(folded, origin.astype(np.int64), gain, valid)
     return LtcBlock(ltc=ltc, origin=origin, gain=gain, noise=ltc_noise(sigma_d, gain, f),
                     lcd_xy=lmap.xy, valid=valid, edge_mass=ring)
 
