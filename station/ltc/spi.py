@@ -439,11 +439,16 @@ def reconstruct_tile(
     (``station.ltc.store.TILE_STATS``). Pure: every engine computes tiles with it."""
     _, th, tw = frames.shape
     flat = frames.reshape(len(plan), th * tw)
-    parts = [reconstruct_frames(flat[:, i : i + PIXELS_PER_BLOCK], plan, lut=lut,
-                                min_snr=min_snr)
-             for i in range(0, th * tw, PIXELS_PER_BLOCK)]
-    blk = LtcBlock(*(np.concatenate([getattr(q, fld.name) for q in parts])
-                     for fld in fields(LtcBlock)))
+    out: dict[str, np.ndarray] = {}
+    for i in range(0, th * tw, PIXELS_PER_BLOCK):
+        part = reconstruct_frames(flat[:, i : i + PIXELS_PER_BLOCK], plan, lut=lut,
+                                  min_snr=min_snr)
+        for fld in fields(LtcBlock):
+            v = getattr(part, fld.name)
+            if fld.name not in out:
+                out[fld.name] = np.empty((th * tw,) + v.shape[1:], dtype=v.dtype)
+            out[fld.name][i : i + len(v)] = v
+    blk = LtcBlock(**out)
     blk = _exclude(blk, np.asarray(code_mask, dtype=bool).ravel())
     v = blk.valid
     stats = np.full(len(TILE_STATS), np.nan)
