@@ -100,7 +100,9 @@ def stage(name: str, out: Path, rows: int, workers: int | None) -> dict:
 
         write_true_store(cfg, out / "lens_ltc.zarr")
         t = time.perf_counter()
-        r = derive_lens(out / "lens_ltc.zarr", progress=False)
+        # two depths cannot fit the focus: give the bench's (from its pupil, the centre)
+        r = derive_lens(out / "lens_ltc.zarr", progress=False,
+                        focus_distance_mm=_bench(cfg).config.focus_distance_mm)
         res["lens_seconds"] = time.perf_counter() - t
         res["lens_pixels_usable"] = r.summary()["pixels_usable"]
     res[f"{name}_peak_mb"] = peak_mb()
@@ -204,8 +206,10 @@ def main() -> None:
         out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
         if out.returncode:
             sys.exit(f"stage {name} failed:\n{out.stderr[-3000:]}")
-        res.update(json.loads(out.stdout.strip().splitlines()[-1]))
-        print(f"{name}: {time.perf_counter() - t:.1f} s", file=sys.stderr)
+        part = json.loads(out.stdout.strip().splitlines()[-1])
+        res.update(part)
+        print(f"{name}: {time.perf_counter() - t:.1f} s {json.dumps(part)}", file=sys.stderr,
+              flush=True)
     scale = FULL_H / a.rows
     res["storage_cost_fraction"] = 1 - res["capture_fps_with_storage"] / res[
         "capture_fps_no_storage"]

@@ -299,7 +299,8 @@ def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,
     if bad.any():
         near = ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)
         flat = (near[0] * len(nu) + near[1]).ravel()
-        x, wk = x[flat], wk[flat]
+        fill = np.flatnonzero(bad.ravel())  # in place: the sources are good nodes
+        x[fill], wk[fill] = x[flat[fill]], wk[flat[fill]]
     gain = np.where(geom.centroids.valid, _gain(volume), np.nan)
     tg = np.nanmedian(np.where(np.isfinite(gain).any(axis=0), gain, 0.0), axis=0)
     tg = np.nan_to_num(tg)

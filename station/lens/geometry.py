@@ -28,11 +28,17 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from station.lens.centre import OpticalCentre, intersect_rays, pinhole_centre
 from station.lens.centroids import Centroids, compute_centroids
-from station.lens.rays import PrincipalRays, RayFitError, fit_principal_rays
+from station.lens.rays import (
+    PrincipalRays,
+    RayFitError,
+    concatenate_rays,
+    fit_principal_rays,
+)
 from station.ltc.store import LtcVolume
 
 LCD_BIN_VAR = 1.0 / 12.0  # variance of an LCD pixel box, pitch^2
 TRACE_REL_FLOOR = 0.01  # relative error floor of an LTC second moment in the focus fit
+RAY_FIT_PIXELS = 1 << 18  # pixels per block of the principal-ray fit (temporaries ~ 1 kB each)
 
 
 class LensFitError(ValueError):
@@ -176,10 +182,20 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
                            "(store attribute camera_matrix, or --rig)")
     c = compute_centroids(volume, progress=progress)
     d = len(c.depths_mm)
-    pts = c.points_mm().reshape(d, -1, 3)
-    rays = fit_principal_rays(pts, c.std_mm().reshape(d, -1, 2), c.valid.reshape(d, -1),
-                              min_depths=min(cfg.min_depths, d), outlier_sigma=cfg.outlier_sigma,
-                              max_outliers=cfg.max_outliers, floor_mm=cfg.ray_floor_mm)
+    n = c.status[0].size
+    parts = []  # per pixel, so fitted in blocks: temporaries do not grow with the sensor
+    for a in range(0, n, RAY_FIT_PIXELS):
+        sl = slice(a, min(n, a + RAY_FIT_PIXELS))
+        xy = c.xy_lcd_px.reshape(d, n, 2)[:, sl] * c.pitch_mm
+        z = np.broadcast_to(c.depths_mm.reshape(d, 1, 1), xy.shape[:2] + (1,))
+        parts.append(fit_principal_rays(
+            np.concatenate([xy, z], axis=-1),
+            c.std_lcd_px.reshape(d, n, 2)[:, sl] * c.pitch_mm,
+            c.valid.reshape(d, n)[:, sl], min_depths=min(cfg.min_depths, d),
+            outlier_sigma=cfg.outlier_sigma, max_outliers=cfg.max_outliers,
+            floor_mm=cfg.ray_floor_mm))
+    rays = concatenate_rays(parts)
+    del parts
     usable = rays.usable
     notes: list[str] = []
     try:

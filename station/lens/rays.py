@@ -18,7 +18,7 @@ Flags (bitmask per pixel; a flagged pixel is never used silently):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -89,6 +89,16 @@ def _line_fit(z: np.ndarray, xy: np.ndarray, w: np.ndarray):
     szz_safe = np.where(szz > 0, szz, 1.0)
     s = (w[..., None] * dz[..., None] * (xyw - c)).sum(axis=0) / szz_safe[:, None]
     return z_ref, c, s, 1.0 / safe, 1.0 / szz_safe
+
+
+def concatenate_rays(parts: list[PrincipalRays]) -> PrincipalRays:
+    """The rays of consecutive pixel blocks as one :class:`PrincipalRays` (pixel axis: 0 of
+    the per-pixel arrays, 1 of the (D, N, ...) ones)."""
+    per_depth = {"residual", "used", "weight"}
+    return PrincipalRays(**{
+        f.name: np.concatenate([getattr(q, f.name) for q in parts],
+                               axis=1 if f.name in per_depth else 0)
+        for f in fields(PrincipalRays)})
 
 
 def fit_principal_rays(

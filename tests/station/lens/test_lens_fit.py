@@ -410,3 +410,20 @@ def test_samples_match_moments_and_keep_their_order_canonical():
     b, wb = canonical_order(y[:, perm], w[:, perm])  # the same set in another order
     np.testing.assert_allclose(a, b, atol=1e-12)
     np.testing.assert_allclose(wa, wb, atol=1e-15)
+
+
+def test_ray_fit_in_pixel_blocks_equals_one_block(bench, truth, monkeypatch):
+    """The principal rays are fitted per pixel, so fitting them in blocks (memory bounded
+    whatever the sensor) changes nothing, bit for bit."""
+    import dataclasses
+
+    from station.lens import geometry
+
+    vol = make_volume(bench, truth, seed=11)
+    whole = geometry.fit_geometry(vol)
+    monkeypatch.setattr(geometry, "RAY_FIT_PIXELS", 37)
+    blocks = geometry.fit_geometry(vol)
+    for f in dataclasses.fields(whole.rays):
+        np.testing.assert_array_equal(getattr(blocks.rays, f.name), getattr(whole.rays, f.name),
+                                      err_msg=f.name)
+    np.testing.assert_array_equal(blocks.centre.position, whole.centre.position)

@@ -215,6 +215,93 @@ def test_level_model_refuses_a_lut_that_flattens_the_patterns():
         reconstruct_frames(np.ones((len(plan), 2)), plan, lut=flat)
 
 
+def _reference_reconstruction(frames, plan, lut=None, min_snr=10.0, min_harmonic=0.05):
+    """The numpy formulas the compiled reconstruction replaced (einsum demodulation, the
+    Jacobi level correction on whole frequency rows, complex inverse FFT, fancy-index
+    unfolding): ltc, origin, gain, noise, edge mass."""
+    from station.ltc.spi import level_harmonics, ltc_noise, refine_centre
+    from station.ltc.store import centred_origins
+
+    f = plan.fourier
+    p, n_steps, b = f.period, f.steps, f.amplitude
+    idx, (reg, sc) = plan.indices, f.frequencies
+    d = np.asarray(frames, dtype=np.float64)
+    e = np.exp(2j * np.pi * np.arange(n_steps) / n_steps)
+    g_reg = (2.0 / (n_steps * b)) * np.einsum("fmp,m->pf", d[idx["regular"]], e)
+    sci = idx["self_conjugate"]
+    spec = np.zeros((d.shape[1], p, p), dtype=np.complex128)
+    spec[:, reg[:, 1], reg[:, 0]] = g_reg
+    spec[:, (-reg[:, 1]) % p, (-reg[:, 0]) % p] = np.conj(g_reg)
+    spec[:, sc[:, 1], sc[:, 0]] = (d[sci[:, 0]] - d[sci[:, 1]]).T / (2.0 * b)
+    # level correction, frequency-major
+    hm, big, n = level_harmonics(f, lut), f.grid, d.shape[1]
+    k, l = reg[:, 0], reg[:, 1]
+    s = np.ascontiguousarray(spec.reshape(n, p * p).T)
+    s[sc[:, 1] * p + sc[:, 0]] /= hm.gamma_sc
+    main = hm.gamma[hm.h == big - 1][0]
+    here, mirror = l * p + k, ((-l) % p) * p + (-k) % p
+    side = [(((-h * l) % p) * p + (-h * k) % p, g)
+            for h, g in zip(hm.h, hm.gamma) if h != big - 1 and abs(g) > 1e-15]
+    measured = s[here]
+    est = measured / main
+    dc = np.abs(s[0])
+    scale = 1e-7 * np.maximum(dc, 1e-3 * dc.max(initial=0.0) + 1e-300)
+    for _ in range(8 if side else 0):
+        s[here], s[mirror] = est, np.conj(est)
+        acc = measured.copy()
+        for target, g in side:
+            acc -= s[target] * g
+        new = acc / main
+        done = bool(np.all(np.abs(new - est).max(axis=0, initial=0.0) <= scale))
+        est = new
+        if done:
+            break
+    s[here], s[mirror] = est, np.conj(est)
+    spec = np.ascontiguousarray(s.T).reshape(n, p, p)
+    gain = spec[:, 0, 0].real.copy()
+    means = d[idx["regular"]].mean(axis=1)
+    sigma_d = np.sqrt(n_steps * means.var(axis=0, ddof=1))
+    centre = refine_centre(spec, lcd_coordinates(d, plan).xy, min_harmonic)
+    valid = (gain > 0) & (gain > min_snr * sigma_d / (np.sqrt(2.0) * b))
+    valid &= np.all(np.isfinite(centre), axis=1)
+    origin = centred_origins(np.where(valid[:, None], centre, 0.0), p)
+    origin[~valid] = 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ltc = unfold(np.fft.ifft2(spec, axes=(-2, -1)).real, origin) / gain[:, None, None]
+    ltc[~valid] = np.nan
+    ring = ltc.sum(axis=(1, 2)) - ltc[:, 1:-1, 1:-1].sum(axis=(1, 2))
+    return ltc, origin, gain, ltc_noise(sigma_d, gain, f), ring, valid
+
+
+@pytest.mark.parametrize("p, steps, lut", [(24, 4, None), (8, 3, GAMMA_LUT), (6, 3, None)])
+def test_compiled_reconstruction_equals_the_numpy_formulas(p, steps, lut):
+    """Random LTCs (random support and weights, folded when wider than P) plus noise, 12-bit
+    frames: the compiled path gives the reference formulas' results to float64 rounding."""
+    lcd = (96, 72)
+    plan = StationPatternPlan.for_lcd(lcd, p, steps)
+    rng = np.random.default_rng(p + steps)
+    n = 40
+    centres = np.column_stack([rng.uniform(15, 80, n), rng.uniform(15, 57, n)])
+    h = _point_ltcs(plan, centres, 1.5, lcd, half_width=4.5)
+    h *= rng.uniform(0.5, 1.5, h.shape)
+    h /= h.sum(axis=(1, 2), keepdims=True)
+    exact = _exact_frames(plan, h, lcd, gain=rng.uniform(300, 3500, n), lut=lut)
+    frames = np.clip(np.rint(exact + rng.normal(0, 4, exact.shape)), 0, 4095).astype(np.uint16)
+    want_ltc, want_origin, want_gain, want_noise, want_ring, want_valid = \
+        _reference_reconstruction(frames, plan, lut)
+    blk = reconstruct_frames(frames, plan, lut=lut)
+    assert want_valid.sum() > n // 2
+    np.testing.assert_array_equal(blk.valid, want_valid)
+    np.testing.assert_array_equal(blk.origin, want_origin)
+    np.testing.assert_allclose(blk.gain, want_gain, rtol=1e-12)
+    np.testing.assert_allclose(blk.noise, want_noise, rtol=1e-12)
+    v = want_valid
+    scale = np.abs(want_ltc[v]).max()
+    np.testing.assert_allclose(blk.ltc[v], want_ltc[v], rtol=0, atol=1e-12 * scale)
+    assert np.isnan(blk.ltc[~v]).all()
+    np.testing.assert_allclose(blk.edge_mass[v], want_ring[v], rtol=0, atol=1e-12 * scale)
+
+
 def test_spectrum_is_hermitian_and_folds_wide_ltc():
     lcd = (64, 48)
     p = 8
