@@ -155,21 +155,17 @@ def phase_rms_rad(ours: np.ndarray, theirs: np.ndarray, mask: np.ndarray) -> flo
 
 
 def machine() -> str:
-    """CPU, cores, memory, OS and the versions that matter, in one line."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu)
-    except OSError:
-        pass
-    mem_gb = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
-    vers = [f"Python {platform.python_version()}"]
+    """CPU, cores, memory, OS (``station.experiment.run.machine``) and the renderers' versions,
+    in one line."""
+    from station.experiment.run import machine as base
+
+    vers = []
     for mod in ("embreex", "mitsuba", "drjit"):
         try:
             vers.append(f"{mod} {__import__(mod).__version__}")
         except ImportError:
             pass
-    return f"{cpu}, {os.cpu_count()} cores, {mem_gb:.0f} GiB, {platform.system()} {platform.release()}; " + ", ".join(vers)
+    return base() + ("; " + ", ".join(vers) if vers else "")
 
 
 def replace_subsection(path: Path, section: str, heading: str, text: str) -> None:

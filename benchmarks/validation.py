@@ -54,6 +54,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from sim.metrology.compare import compare_clouds
 from sim.render.fringe_patterns import PhaseShiftSet
 from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens, sunflower_disk
+from station.experiment.run import machine  # noqa: E402 - one description of the machine
 from sim.optics.measured_lens import (MeasuredLens, centre_moments, gaussian_equivalent, load_lens,
                                       save_lens)
 from sim.metrology.spheres import fit_sphere
@@ -368,20 +369,6 @@ def tables(rows: list[dict]) -> str:
                          f"{_um(r[n]['diameter_error_mm'])} / "
                          f"{r[n]['centre_vs_real_mm'] * 1e3:.1f}" for n in LENSES) + " |")
     return "\n".join(lines)
-
-
-def machine() -> str:
-    """CPU, cores, memory, OS and Python in one line."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")),
-                       cpu)
-    except OSError:
-        pass
-    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
-    return (f"{cpu}, {os.cpu_count()} cores, {mem:.0f} GiB, {platform.system()} "
-            f"{platform.release()}, Python {platform.python_version()}")
 
 
 def figure(rows: list[dict], cfg: ValidationConfig, lenses: dict[str, LensModel], rig: Rig,

@@ -255,6 +255,19 @@ def _plan_tables(fourier: FourierPatternSet) -> _PlanTables:
 
 
 @numba.njit(cache=True, nogil=True)
+def _put_estimates(re, im, est_r, est_i, here, mirror):  # pragma: no cover - compiled
+    """Write the estimates (m, n) of the regular frequencies into planes re, im (P^2, n) at
+    ``here`` and their conjugates at ``mirror``."""
+    for i in range(here.shape[0]):
+        h, mi = here[i], mirror[i]
+        for j in range(re.shape[1]):
+            re[h, j] = est_r[i, j]
+            im[h, j] = est_i[i, j]
+            re[mi, j] = est_r[i, j]
+            im[mi, j] = -est_i[i, j]
+
+
+@numba.njit(cache=True, nogil=True)
 def _fixed_point(re, im, here, mirror, target, c_re, c_im, inv_re, inv_im, lim,
                  max_iterations):  # pragma: no cover - compiled
     """In place on planes re, im (P^2, n): the Jacobi iteration of :func:`correct_levels`
@@ -271,13 +284,7 @@ def _fixed_point(re, im, here, mirror, target, c_re, c_im, inv_re, inv_im, lim,
             est_r[i, j] = ar * inv_re - ai * inv_im
             est_i[i, j] = ar * inv_im + ai * inv_re
     for _ in range(max_iterations):
-        for i in range(m):
-            h, mi = here[i], mirror[i]
-            for j in range(n):
-                re[h, j] = est_r[i, j]
-                im[h, j] = est_i[i, j]
-                re[mi, j] = est_r[i, j]
-                im[mi, j] = -est_i[i, j]
+        _put_estimates(re, im, est_r, est_i, here, mirror)
         converged = 0
         for i in range(m):
             for j in range(n):
@@ -300,13 +307,7 @@ def _fixed_point(re, im, here, mirror, target, c_re, c_im, inv_re, inv_im, lim,
         est_i, new_i = new_i, est_i
         if converged == m * n:
             break
-    for i in range(m):
-        h, mi = here[i], mirror[i]
-        for j in range(n):
-            re[h, j] = est_r[i, j]
-            im[h, j] = est_i[i, j]
-            re[mi, j] = est_r[i, j]
-            im[mi, j] = -est_i[i, j]
+    _put_estimates(re, im, est_r, est_i, here, mirror)
 
 
 def fold(spectrum: np.ndarray) -> np.ndarray:
