@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import time
 
 from fakes.zaber.device import FakeZaberDevice
@@ -16,6 +17,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--position", type=int, default=0, help="power-up position, microsteps")
     parser.add_argument("--checksums", action="store_true", help="replies carry :CC checksums")
     args = parser.parse_args(argv)
+    # Ctrl-C (SIGINT) stops the server even when the parent started us with SIGINT ignored
+    # (a background job, or a test process whose worker pools set it so)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     device = FakeZaberDevice(
         address=args.address,
         limit_max=args.limit_max,
