@@ -20,6 +20,7 @@ docs/formats.md describes every layout.
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import cv2

@@ -302,9 +302,7 @@ class Acquisition:
                                self.store.log_retries, d, p, reasons)
 
     def _show(self, image: np.ndarray) -> ShownFrame:
-        shown = self.hw.display.show(image)
-        self.config.display.wait_settled(shown.swap_time)
-        return shown
+        return self.hw.show_settled(image, self.config.display.settled_s)
 
     def _capture(self, shown: ShownFrame) -> tuple[Frame | None, tuple[str, str] | None]:
         """One capture: (frame, None) when it is fresh (taken after ``shown`` went on screen,

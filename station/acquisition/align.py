@@ -140,9 +140,9 @@ def tilt_from_axis(vanishing_px: np.ndarray, principal_px: np.ndarray,
 def measure_depth(hw: Hardware, config: StationConfig, shift_px: int) -> dict:
     """LCD centre image point, Jacobian and magnification at the current stage position."""
     size = hw.display.size
+
     def capture(img: np.ndarray) -> np.ndarray:
-        shown = hw.display.show(img)
-        config.display.wait_settled(shown.swap_time)
+        shown = hw.show_settled(img, config.display.settled_s)
         return capture_after(hw, shown.swap_time, config).astype(np.float64)
 
     background = capture(np.zeros(size[::-1], np.uint8))

@@ -8,6 +8,7 @@ The only station module allowed to import ``fakes`` (import-linter enforces it).
 from __future__ import annotations
 
 import contextlib
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -15,7 +16,7 @@ from typing import Iterator
 import numpy as np
 
 from drivers.frame_code import FrameCodeLayout
-from drivers.interfaces import Camera, PatternDisplay, Stage
+from drivers.interfaces import Camera, PatternDisplay, ShownFrame, Stage
 from station.acquisition.config import (
     ConfigError,
     GenICamCameraConfig,
@@ -31,6 +32,13 @@ class Hardware:
     stage: Stage
     display: PatternDisplay
     camera: Camera
+
+    def show_settled(self, image: np.ndarray, settled_s: float) -> ShownFrame:
+        """Show ``image`` and return once the LCD shows it steadily: ``settled_s`` after the
+        swap (``DisplayConfig.settled_s``); the camera may be triggered then."""
+        shown = self.display.show(image)
+        time.sleep(max(0.0, shown.swap_time + settled_s - time.monotonic()))
+        return shown
 
 
 def load_lut(path: str | Path) -> np.ndarray:

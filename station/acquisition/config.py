@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 
 import tomllib
 from importlib import resources
@@ -69,10 +68,6 @@ class DisplayConfig(_Strict):
         """Seconds from a frame's swap until the LCD shows it steadily: the latency, then the
         settle time; the camera is triggered no earlier."""
         return self.latency_frames / self.refresh_hz + self.settle_ms / 1000.0
-
-    def wait_settled(self, swap_time: float) -> None:
-        """Sleep until ``swap_time`` (time.monotonic, s) + :attr:`settled_s`."""
-        time.sleep(max(0.0, swap_time + self.settled_s - time.monotonic()))
 
 
 CameraMatrix = tuple[tuple[float, float, float], tuple[float, float, float],

@@ -107,8 +107,7 @@ def capture_levels(hw: Hardware, levels: np.ndarray, config: StationConfig) -> n
     w, h = hw.display.size
     frames = []
     for g in levels:
-        shown = hw.display.show(np.full((h, w), int(g), np.uint8))
-        config.display.wait_settled(shown.swap_time)
+        shown = hw.show_settled(np.full((h, w), int(g), np.uint8), config.display.settled_s)
         frames.append(capture_after(hw, shown.swap_time, config))
     return np.stack(frames)
 
