@@ -220,17 +220,14 @@ def describe_image(image: np.ndarray, period: int) -> tuple[str, Any]:
     if img.ndim == 3:
         img = img[..., 0]
     h, w = img.shape
-    lum = img.astype(np.float64) / 255.0
     p = period
-    if h >= p and w >= p:
-        tile = img[:p, :p]
-        reps = np.tile(tile, (-(-h // p), -(-w // p)))[:h, :w]
-        if np.array_equal(reps, img):
-            return "tile", lum[:p, :p]
-    if (img == img[:1]).all():
-        return "stripes", ("x", lum[0])
-    if (img == img[:, :1]).all():
-        return "stripes", ("y", lum[:, 0])
+    if h >= p and w >= p and np.array_equal(img[p:], img[:-p]) and np.array_equal(
+            img[:, p:], img[:, :-p]):  # shifts by one period, no full-size float copy
+        return "tile", img[:p, :p] / 255.0
+    if np.array_equal(img[1:], img[:-1]):
+        return "stripes", ("x", img[0] / 255.0)
+    if np.array_equal(img[:, 1:], img[:, :-1]):
+        return "stripes", ("y", img[:, 0] / 255.0)
     raise ValueError("synthetic bench: the shown image is neither P-periodic nor stripes; "
                      "it renders the station's patterns only (set [frame_check] enabled = "
                      "false)")
