@@ -25,7 +25,8 @@ DFT ``C[l, k]`` is ``T sum C[l, k] exp(2 pi i f.mu - 2 pi^2 f S f) sinc(f_x) sin
 8-bit rounding harmonics, ~1e-5) are left out, as is aliasing (``exp(-pi^2 sigma^2 / 2)``,
 < 1e-3 for sigma >= 1.2 px). Stripe patterns (Gray code, phase shifts: every row or every
 column equal) go through the Gaussian marginal along their axis, from tables of the profile
-blurred at ``SIGMA_LEVELS`` widths. Noise: Gaussian with the shot-noise variance plus read
+blurred at ``SIGMA_LEVELS`` widths, interpolated
+bilinearly in width and position. Noise: Gaussian with the shot-noise variance plus read
 noise, seeded per scene (the image shown and the stage reading), so a resumed run captures
 the same frames.
 """
@@ -101,6 +102,7 @@ class SyntheticBench:
         w, h = config.camera_size
         self.rows = rows or (0, h)  # camera rows rendered (a crop of the full sensor)
         self._cache: dict[float, dict[str, np.ndarray]] = {}
+        self._transfer: dict[tuple, tuple[dict, np.ndarray, np.ndarray]] = {}
 
     @property
     def focal_px(self) -> float:
@@ -185,20 +187,30 @@ class SyntheticBench:
             out += (2.0 if conj else 1.0) * self._harmonic(coef[l, k], kr, lr, p, f)
         return out * f["t"]
 
-    @staticmethod
-    def _harmonic(c: complex, k: int, l: int, p: int, f: dict) -> np.ndarray:
-        """Re(c H(k/P, l/P)) / T per pixel, float32."""
-        fx, fy = k / p, l / p
-        var = fx * fx * f["sxx"] + 2 * fx * fy * f["sxy"] + fy * fy * f["syy"]
-        amp = np.exp(np.float32(-2 * np.pi**2) * var) * np.float32(np.sinc(fx) * np.sinc(fy))
-        mi, mf = f["mu_int"], f["mu_frac"]
-        cyc = ((k * mi[0] + l * mi[1]) % p).astype(np.float32)
-        cyc += np.float32(k) * mf[0] + np.float32(l) * mf[1]
-        ph = cyc * np.float32(2 * np.pi / p) + np.float32(np.angle(c))
-        return np.float32(abs(c)) * amp * np.cos(ph)
+    def _harmonic(self, c: complex, k: int, l: int, p: int, f: dict) -> np.ndarray:
+        """Re(c H(k/P, l/P)) / T per pixel, float32. H per pixel (its real and imaginary
+        parts) is kept for the last few frequencies, so the phase steps of one pattern cost
+        two multiply-adds per pixel instead of an exp and a cos."""
+        key = (k, l, p)
+        if key not in self._transfer or self._transfer[key][0] is not f:
+            self._transfer.pop(key, None)
+            if len(self._transfer) >= 4:
+                self._transfer.pop(next(iter(self._transfer)))
+            fx, fy = k / p, l / p
+            var = fx * fx * f["sxx"] + 2 * fx * fy * f["sxy"] + fy * fy * f["syy"]
+            amp = np.exp(np.float32(-2 * np.pi**2) * var)
+            amp *= np.float32(np.sinc(fx) * np.sinc(fy))
+            mi, mf = f["mu_int"], f["mu_frac"]
+            ph = ((k * mi[0] + l * mi[1]) % p).astype(np.float32)
+            ph += np.float32(k) * mf[0] + np.float32(l) * mf[1]
+            ph *= np.float32(2 * np.pi / p)
+            self._transfer[key] = (f, amp * np.cos(ph), amp * np.sin(ph))
+        _, re, im = self._transfer[key]
+        a = np.angle(c)
+        return np.float32(abs(c) * np.cos(a)) * re - np.float32(abs(c) * np.sin(a)) * im
 
     def _stripe_response(self, profile: np.ndarray, f: dict, axis: int) -> np.ndarray:
-        var = (f["sxx"] if axis == 0 else f["syy"]) + np.float32(1 / 12)
+        var = f["sxx"] if axis == 0 else f["syy"]  # the fine profile holds the pixel boxes
         sig = np.sqrt(var)
         lo, hi = float(sig.min()), float(sig.max())
         levels = np.linspace(lo, hi if hi > lo else lo + 1e-3, SIGMA_LEVELS)
@@ -206,9 +218,16 @@ class SyntheticBench:
         table = np.stack([ndimage.gaussian_filter1d(fine, s * PROFILE_SUB, mode="nearest")
                           for s in levels]).astype(np.float32)
         mu = f["mu_int"][axis] + f["mu_frac"][axis]
-        xi = np.clip(np.rint((mu + 0.5) * PROFILE_SUB - 0.5), 0, len(fine) - 1).astype(np.int64)
-        si = np.rint((sig - levels[0]) / (levels[1] - levels[0])).astype(np.int64)
-        return table[np.clip(si, 0, SIGMA_LEVELS - 1), xi] * f["t"]
+        # bilinear in (sigma, position): sample j of the fine profile sits at LCD x
+        # (j + 1/2) / PROFILE_SUB - 1/2
+        x = np.clip((mu + 0.5) * PROFILE_SUB - 0.5, 0, len(fine) - 1)
+        s = np.clip((sig - levels[0]) / (levels[1] - levels[0]), 0, SIGMA_LEVELS - 1)
+        x0 = np.minimum(x.astype(np.int64), len(fine) - 2)
+        s0 = np.minimum(s.astype(np.int64), SIGMA_LEVELS - 2)
+        fx, fs = (x - x0).astype(np.float32), (s - s0).astype(np.float32)
+        lo_s = table[s0, x0] * (1 - fx) + table[s0, x0 + 1] * fx
+        hi_s = table[s0 + 1, x0] * (1 - fx) + table[s0 + 1, x0 + 1] * fx
+        return (lo_s * (1 - fs) + hi_s * fs) * f["t"]
 
 
 def describe_image(image: np.ndarray, period: int) -> tuple[str, Any]:
