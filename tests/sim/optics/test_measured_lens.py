@@ -207,3 +207,26 @@ def test_metadata_is_json(tmp_path):
     path = save_lens(tmp_path / "lens.npz", make_lens(metadata={"a": [1, 2], "b": None}))
     with np.load(path, allow_pickle=False) as z:
         assert json.loads(str(z["metadata_json"])) == {"a": [1, 2], "b": None}
+
+
+def test_gaussian_baseline_takes_the_second_moment_at_the_optical_centre():
+    """OPTICS.md section 7: four samples at +-a on each axis have per-axis variance a^2 / 2;
+    the Gaussian equivalent has that sigma and the lens's focus distance."""
+    from sim.optics.measured_lens import centre_moments, gaussian_equivalent
+
+    a, k = 3.0, 4
+    lens = MeasuredLens(focus_distance_mm=500.0, optical_centre_mm=np.zeros(3), camera_size=(9, 7),
+                        node_u=np.array([0.0]), node_v=np.array([0.0]),
+                        aperture_x_mm=np.reshape([a, -a, 0, 0], (1, 1, k)),
+                        aperture_y_mm=np.reshape([0, 0, a, -a], (1, 1, k)),
+                        weights=np.full((1, 1, k), 1 / k), transmittance=np.ones((1, 1)),
+                        camera_matrix=np.array([[50.0, 0, 4.0], [0, 50.0, 3.0], [0, 0, 1]]))
+    mean, cov = centre_moments(lens)
+    np.testing.assert_allclose(mean, 0, atol=1e-12)
+    np.testing.assert_allclose(cov, np.diag([a * a / 2, a * a / 2]), atol=1e-12)
+    g = gaussian_equivalent(lens)
+    assert g.sigma_mm == pytest.approx(a / np.sqrt(2))
+    assert (g.focus_distance_mm, g.samples) == (500.0, 4)
+    b = g.bundle(np.zeros((1, 2)))
+    w, xy = b.weights[0], b.origins[0, :, :2]
+    assert np.mean(w @ xy**2) == pytest.approx(a * a / 2, rel=1e-9)  # per-axis variance
