@@ -192,39 +192,89 @@ def level_harmonics(fourier: FourierPatternSet, lut: np.ndarray | None = None) -
     return LevelHarmonics(h=h, gamma=gamma, gamma_sc=gamma_sc)
 
 
-def correct_levels(
-    spectrum: np.ndarray, fourier: FourierPatternSet, harmonics: LevelHarmonics,
-    max_iterations: int = 8, rtol: float = 1e-7,
-) -> np.ndarray:
-    """Undo the shown levels' harmonics (see :class:`LevelHarmonics`) by a fixed-point
-    (Jacobi) iteration on the regular coefficients,
-    ``G <- (G' - sum_side gamma_h G(-h k, -h l)) / gamma_main``; each iteration gains a factor
-    ``sum |gamma_side| / |gamma_main|`` (about 1e-2 for 8-bit rounding); stops when the update
-    is below ``rtol`` of every pixel's DC term (all pixels of the block iterate together).
-    spectrum (n, P, P) complex as from :func:`demodulate`; returns a corrected copy."""
+def correct_levels(spectrum: np.ndarray, fourier: FourierPatternSet,
+                   harmonics: LevelHarmonics) -> np.ndarray:
+    """Undo the shown levels' harmonics (see :class:`LevelHarmonics`): solve, per pixel, the
+    linear equations ``G'(k, l) = gamma_main G(k, l) + sum_side gamma_h G(-h k, -h l)`` of the
+    regular coefficients (self-conjugate ones divided by ``gamma_sc``; ``G(-v) = conj G(v)``)
+    exactly. The solution is one fixed real-linear map of the measured coefficients, the same
+    for every pixel; it is computed once per pattern set and LUT (:func:`_level_inverse`) and
+    is sparse (a coefficient depends only on the frequencies ``c (k, l)`` for the products c of
+    the side harmonics' multipliers), so applying it costs a few multiply-adds per
+    coefficient. spectrum (n, P, P) complex as from :func:`demodulate`; returns a corrected
+    copy."""
     re, im = _to_planes(spectrum)
-    _correct_planes(re, im, fourier, harmonics, max_iterations, rtol)
+    _correct_planes(re, im, fourier, harmonics)
     return _to_spectrum(re, im, fourier.period)
 
 
 def _correct_planes(re: np.ndarray, im: np.ndarray, fourier: FourierPatternSet,
-                    harmonics: LevelHarmonics, max_iterations: int = 8,
-                    rtol: float = 1e-7) -> None:
+                    harmonics: LevelHarmonics) -> None:
     """:func:`correct_levels` in place on frequency-major planes re, im (P^2, n)."""
     t = _plan_tables(fourier)
-    big = fourier.grid
-    keep = [i for i, (h, g) in enumerate(zip(harmonics.h, harmonics.gamma))
-            if h != big - 1 and abs(g) > 1e-15]
-    target = np.ascontiguousarray(t.side_target[[int(harmonics.h[i]) for i in keep]])
-    coef = harmonics.gamma[keep].astype(np.complex128)
-    main = complex(harmonics.gamma[harmonics.h == big - 1][0])
+    op = _level_inverse(fourier, harmonics.h.tobytes(), harmonics.gamma.tobytes(),
+                        harmonics.gamma_sc)
     re[t.sc] /= harmonics.gamma_sc
     im[t.sc] /= harmonics.gamma_sc
-    dc = np.hypot(re[0], im[0])  # per pixel; dark pixels judged against a floor
-    scale = rtol * np.maximum(dc, 1e-3 * dc.max(initial=0.0) + 1e-300)
-    inv = 1.0 / main
-    _fixed_point(re, im, t.here, t.mirror, target, coef.real.copy(), coef.imag.copy(),
-                 inv.real, inv.imag, scale * scale, max_iterations if len(coef) else 0)
+    _apply_level_inverse(re, im, op.start, op.source, op.weight, t.here, t.mirror)
+
+
+@dataclass(frozen=True)
+class _LevelInverse:
+    """The exact level correction as a sparse real matrix (CSR): output row ``r`` (< m: the
+    real part of regular frequency r's estimate, else the imaginary part of ``r - m``) is
+    ``sum weight[q] x[source[q]]`` over ``q in start[r] : start[r + 1]``, where ``x[s]`` is
+    row s of the re plane (s < P^2) or row ``s - P^2`` of the im plane (after the
+    self-conjugate rows were divided by ``gamma_sc``)."""
+
+    start: np.ndarray
+    source: np.ndarray
+    weight: np.ndarray
+
+
+@lru_cache(maxsize=16)
+def _level_inverse(fourier: FourierPatternSet, h_bytes: bytes, gamma_bytes: bytes,
+                   gamma_sc: float) -> _LevelInverse:
+    """:class:`_LevelInverse` for a pattern set and its level harmonics (as bytes, hashable).
+    The map is real-linear, so its column for each plane row (a unit input there, zero
+    elsewhere) is the correction of that input: computed for all 2 P^2 unit inputs at once by
+    the Jacobi (fixed-point) iteration ``u <- (G' - sum_side gamma_h G(-h k, -h l)) /
+    gamma_main`` until it no longer changes in float64 (each step gains a factor
+    ``sum |gamma_side| / |gamma_main|`` < 0.5, checked by :func:`level_harmonics`), with
+    element-wise numpy only, so every process and machine with this numpy gets the same
+    weights bit for bit (a LAPACK inverse may vary with its thread count). Weights below
+    1e-17 of a row's largest are dropped (they change no result above float64 rounding)."""
+    t = _plan_tables(fourier)
+    h = np.frombuffer(h_bytes, dtype=np.int64)
+    gamma = np.frombuffer(gamma_bytes, dtype=np.complex128)
+    big, pp, m = fourier.grid, fourier.period ** 2, len(t.here)
+    side = [(t.side_target[int(hh)], complex(g)) for hh, g in zip(h, gamma)
+            if hh != big - 1 and abs(g) > 1e-15]
+    main = complex(gamma[h == big - 1][0])
+    x = np.zeros((pp, 2 * pp), np.complex128)  # plane rows x unit inputs (re plane, im plane)
+    x[np.arange(pp), np.arange(pp)] = 1.0
+    x[np.arange(pp), pp + np.arange(pp)] = 1j
+    measured = x[t.here]
+    est = measured / main
+    for _ in range(200 if side else 0):
+        x[t.here], x[t.mirror] = est, np.conj(est)
+        acc = measured.copy()
+        for target, g in side:
+            acc -= x[target] * g
+        new = acc / main
+        change = np.abs(new - est).max()
+        est = new
+        if change <= 1e-18:  # inputs are 1: below float64 rounding of every weight that stays
+            break
+    full = np.concatenate([est.real, est.imag])  # (2m, 2 P^2)
+    full[np.abs(full) < 1e-17 * np.abs(full).max(axis=1, keepdims=True)] = 0.0
+    nz = full != 0
+    op = _LevelInverse(
+        start=np.concatenate([[0], np.cumsum(nz.sum(axis=1))]).astype(np.int64),
+        source=np.nonzero(nz)[1].astype(np.int64), weight=full[nz].astype(np.float64))
+    for arr in (op.start, op.source, op.weight):
+        arr.flags.writeable = False
+    return op
 
 
 @dataclass(frozen=True)
@@ -255,59 +305,27 @@ def _plan_tables(fourier: FourierPatternSet) -> _PlanTables:
 
 
 @numba.njit(cache=True, nogil=True)
-def _put_estimates(re, im, est_r, est_i, here, mirror):  # pragma: no cover - compiled
-    """Write the estimates (m, n) of the regular frequencies into planes re, im (P^2, n) at
-    ``here`` and their conjugates at ``mirror``."""
-    for i in range(here.shape[0]):
-        h, mi = here[i], mirror[i]
-        for j in range(re.shape[1]):
-            re[h, j] = est_r[i, j]
-            im[h, j] = est_i[i, j]
-            re[mi, j] = est_r[i, j]
-            im[mi, j] = -est_i[i, j]
-
-
-@numba.njit(cache=True, nogil=True)
-def _fixed_point(re, im, here, mirror, target, c_re, c_im, inv_re, inv_im, lim,
-                 max_iterations):  # pragma: no cover - compiled
-    """In place on planes re, im (P^2, n): the Jacobi iteration of :func:`correct_levels`
-    (every side term read from the previous estimate), loops over pixels innermost."""
-    n, m, ns = re.shape[1], here.shape[0], c_re.shape[0]
-    meas_r, meas_i = np.empty((m, n)), np.empty((m, n))
-    est_r, est_i = np.empty((m, n)), np.empty((m, n))
-    new_r, new_i = np.empty((m, n)), np.empty((m, n))
-    acc_r, acc_i = np.empty(n), np.empty(n)
+def _apply_level_inverse(re, im, start, source, weight, here,
+                         mirror):  # pragma: no cover - compiled
+    """In place on planes re, im (P^2, n): the regular rows ``here`` (and their conjugates
+    at ``mirror``) replaced by the sparse map of :class:`_LevelInverse` of the planes."""
+    pp, n = re.shape
+    m = here.shape[0]
+    out = np.zeros((2 * m, n))
+    for r in range(2 * m):
+        o = out[r]
+        for q in range(start[r], start[r + 1]):
+            s, w = source[q], weight[q]
+            x = re[s] if s < pp else im[s - pp]
+            for j in range(n):
+                o[j] += w * x[j]
     for i in range(m):
+        h, mi = here[i], mirror[i]
         for j in range(n):
-            ar, ai = re[here[i], j], im[here[i], j]
-            meas_r[i, j], meas_i[i, j] = ar, ai
-            est_r[i, j] = ar * inv_re - ai * inv_im
-            est_i[i, j] = ar * inv_im + ai * inv_re
-    for _ in range(max_iterations):
-        _put_estimates(re, im, est_r, est_i, here, mirror)
-        converged = 0
-        for i in range(m):
-            for j in range(n):
-                acc_r[j] = meas_r[i, j]
-                acc_i[j] = meas_i[i, j]
-            for s in range(ns):
-                t, cr, ci = target[s, i], c_re[s], c_im[s]
-                for j in range(n):
-                    tr, ti = re[t, j], im[t, j]
-                    acc_r[j] -= tr * cr - ti * ci
-                    acc_i[j] -= tr * ci + ti * cr
-            for j in range(n):
-                vr = acc_r[j] * inv_re - acc_i[j] * inv_im
-                vi = acc_r[j] * inv_im + acc_i[j] * inv_re
-                dr, di = vr - est_r[i, j], vi - est_i[i, j]
-                converged += dr * dr + di * di <= lim[j]
-                new_r[i, j] = vr
-                new_i[i, j] = vi
-        est_r, new_r = new_r, est_r
-        est_i, new_i = new_i, est_i
-        if converged == m * n:
-            break
-    _put_estimates(re, im, est_r, est_i, here, mirror)
+            re[h, j] = out[i, j]
+            im[h, j] = out[m + i, j]
+            re[mi, j] = out[i, j]
+            im[mi, j] = -out[m + i, j]
 
 
 def fold(spectrum: np.ndarray) -> np.ndarray:
