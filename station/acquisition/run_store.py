@@ -756,6 +756,71 @@ class RunStore:
             out[p] = band[row0 - cr0 * t : r1 - cr0 * t, col0 - cc0 * t : c1 - cc0 * t]
         return Tile(depth, row0, col0, out)
 
+    def read_tile_row(self, depth: int, row0: int, col0: int, n_tiles: int,
+                      check_index: bool = False, out: np.ndarray | None = None) -> list[Tile]:
+        """``n_tiles`` tiles of the store's chunk grid (``tile_px``, clipped at the sensor's
+        edge) side by side from camera row ``row0`` and column ``col0`` (multiples of
+        ``tile_px``): all frames of ``depth`` over each, every chunk checked against its
+        crc32c (``check_index``: each shard's index too). Per frame one open and one
+        ``preadv`` that puts each chunk's pixels straight into its tile (a chunk of the shard
+        is a tile of the frame) and its crc32c beside: no copy in user space. ``out``: a
+        buffer of at least (k, patterns, tile_px, tile_px) in the camera's dtype to reuse
+        (default: a new one); the tiles' ``frames`` are views of it, contiguous (patterns,
+        rows, cols) except at the sensor's edge. The depth must be complete (the caller
+        checks)."""
+        self._check_index(depth, 0)
+        c, t = self.codec, self.codec.t
+        if row0 % t or col0 % t or not (0 <= row0 < c.h and 0 <= col0 < c.w) or n_tiles < 1:
+            raise RunStoreError(f"{self.path}: tile row at ({row0}, {col0}) x {n_tiles} is not "
+                                f"on the {t}-pixel chunk grid of the camera's {c.w} x {c.h} "
+                                "pixels")
+        cr, cc0 = row0 // t, col0 // t
+        k, n = min(n_tiles, c.nc - cc0), self.n_patterns
+        shape = (k, n, t, t)
+        if out is None:
+            out = np.empty(shape, self.dtype)
+        elif out.dtype != self.dtype or not out.flags.c_contiguous or out.size < np.prod(shape):
+            raise RunStoreError(f"{self.path}: tile buffer of {out.dtype} {out.shape} cannot "
+                                f"hold {shape} {self.dtype}")
+        out = out.reshape(-1)[: int(np.prod(shape))].reshape(shape)
+        dest = out.view(np.uint8).reshape(k, n, c.data_bytes)
+        check = _readonly(dest)
+        crcs = np.empty((k, _CRC_BYTES), np.uint8)  # the frame's chunks' stored crc32c
+        stored = crcs.view("<u4")[:, 0]
+        offset = (cr * c.nc + cc0) * c.chunk_bytes
+        nbytes = k * c.chunk_bytes
+        crc32c = google_crc32c.value
+        folder = str(self._shard_path(depth, 0).parents[2])  # frames/c/<depth>
+        for p in range(n):
+            parts = [x for i in range(k) for x in (dest[i, p], crcs[i])]
+            path = f"{folder}/{p}/0/0"
+            try:
+                fd = os.open(path, os.O_RDONLY)
+            except FileNotFoundError:
+                self._corrupt(depth, p, "is missing")
+            try:
+                size = os.fstat(fd).st_size
+                if size != c.size:
+                    self._corrupt(depth, p, f"is truncated or resized ({size} bytes, expected "
+                                            f"{c.size})")
+                if check_index and os.pread(fd, len(c.index), c.size - len(c.index)) != c.index:
+                    self._corrupt(depth, p, "has a damaged shard index")
+                if os.preadv(fd, parts, offset) != nbytes:
+                    self._corrupt(depth, p, "is truncated")
+            finally:
+                os.close(fd)
+            for i in range(k):  # while the frame's chunks are in the CPU cache
+                if crc32c(check[i, p]) != stored[i]:
+                    self._corrupt(depth, p, f"fails the crc32c of chunk {(cr, cc0 + i)} "
+                                            f"(camera rows {row0}.., columns {(cc0 + i) * t}..)")
+        th = min(t, c.h - row0)
+        tiles = []
+        for i in range(k):
+            tw = min(t, c.w - (cc0 + i) * t)
+            f = out[i] if (th, tw) == (t, t) else np.ascontiguousarray(out[i, :, :th, :tw])
+            tiles.append(Tile(depth, row0, (cc0 + i) * t, f))
+        return tiles
+
     def iter_tiles(self, depth: int, tile_px: int | None = None,
                    block_bytes: int = 256 * 2**20) -> Iterator[Tile]:
         """All frames of ``depth`` over square tiles in row-major order (edge tiles smaller),
@@ -773,6 +838,12 @@ class RunStore:
         w, h = self.camera_size
         per_tile = self.n_patterns * t * t * self.dtype.itemsize
         cols = t * max(1, block_bytes // max(per_tile, 1))
+        if t == self.tile_px:  # the store's own chunks: each read straight into its tile
+            for r0 in range(0, h, t):
+                for b0 in range(0, w, cols):
+                    yield from self.read_tile_row(depth, r0, b0, cols // t,
+                                                  check_index=r0 == 0 and b0 == 0)
+            return
         for r0 in range(0, h, t):
             for b0 in range(0, w, cols):
                 block = self._read_tile(depth, r0, b0, t, cols, check_index=r0 == 0 and b0 == 0)

@@ -78,11 +78,16 @@ def create_ltc_store(
     # about as much as the tile's reconstruction (benchmarks/README.md, issue 13)
     g.create_array("ltc", shape=(d, h, w, period, period), chunks=t + (period, period),
                    dtype="float32", fill_value=np.nan, compressors=None)
-    g.create_array("origin", shape=(d, h, w, 2), chunks=t + (2,), dtype="int32", fill_value=0)
-    g.create_array("gain", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan)
-    g.create_array("noise", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan)
+    # the per-pixel scalars too (1 % of the store): every tile's chunks are then written as
+    # plain files (``_write_raw_chunk``), 20 ms less per tile than four zarr writes
+    g.create_array("origin", shape=(d, h, w, 2), chunks=t + (2,), dtype="int32", fill_value=0,
+                   compressors=None)
+    g.create_array("gain", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan,
+                   compressors=None)
+    g.create_array("noise", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan,
+                   compressors=None)
     g.create_array("lcd_xy", shape=(d, h, w, 2), chunks=t + (2,), dtype="float32",
-                   fill_value=np.nan)
+                   fill_value=np.nan, compressors=None)
     tiles = (-(-h // t[1]), -(-w // t[2]))
     # completion records: small, one chunk per depth, rewritten whole (atomically) per tile
     g.create_array("tile_done", shape=(d,) + tiles, chunks=(1,) + tiles, dtype="bool",
@@ -185,7 +190,53 @@ def write_ltc_tile(
                                 f"expected one of {ARRAYS + OPTIONAL_ARRAYS}")
         arr = group[name]
         v = np.asarray(value)
-        arr[depth, row0 : row0 + v.shape[0], col0 : col0 + v.shape[1]] = v.astype(arr.dtype)
+        if not _write_raw_chunk(group, arr, depth, row0, col0, v):
+            arr[depth, row0 : row0 + v.shape[0], col0 : col0 + v.shape[1]] = v.astype(arr.dtype)
+
+
+def _write_raw_chunk(group: zarr.Group, arr: zarr.Array, depth: int, row0: int, col0: int,
+                     v: np.ndarray) -> bool:
+    """Write ``v`` as the one whole chunk ``arr[depth, row0:, col0:]`` it covers, as the file
+    zarr would write (uncompressed little-endian bytes, edge chunks padded with the fill value,
+    written to a temporary name and renamed), when the array is stored that way on a local
+    folder and ``v`` is exactly one chunk (clipped at the sensor's edge); else False. 3x
+    faster than zarr's write path for the ``ltc`` array (9.4 MB per 64 x 64 tile at P = 24)."""
+    from zarr.codecs import BytesCodec
+    from zarr.codecs.bytes import Endian
+    from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
+    from zarr.storage import LocalStore
+
+    chunks, shape = tuple(arr.chunks), tuple(arr.shape)
+    enc = arr.metadata.chunk_key_encoding
+    if not (isinstance(group.store, LocalStore) and arr.compressors == () and arr.filters == ()
+            and isinstance(arr.serializer, BytesCodec)
+            and arr.serializer.endian in (None, Endian.little)
+            and isinstance(enc, DefaultChunkKeyEncoding) and enc.separator == "/"):
+        return False
+    th, tw = v.shape[:2]
+    ch, cw = chunks[1], chunks[2]
+    if chunks[0] != 1 or chunks[3:] != shape[3:] or v.shape[2:] != shape[3:] or \
+            row0 % ch or col0 % cw or th != min(ch, shape[1] - row0) or \
+            tw != min(cw, shape[2] - col0):
+        return False
+    dtype = np.dtype(arr.dtype).newbyteorder("<")
+    if (th, tw) == (ch, cw):
+        data = np.ascontiguousarray(v, dtype)
+    else:
+        data = np.full(chunks[1:], arr.fill_value, dtype)
+        data[:th, :tw] = v
+    key = [depth, row0 // ch, col0 // cw] + [0] * (len(shape) - 3)
+    path = Path(group.store.root) / arr.path / "c" / "/".join(str(k) for k in key)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(memoryview(data).cast("B"))
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return True
 
 
 def windows_from_sparse(
