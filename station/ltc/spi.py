@@ -22,7 +22,9 @@ propagates to one normalised LTC weight as
 from __future__ import annotations
 
 import datetime as _dt
+import threading
 import time
+import uuid
 from dataclasses import dataclass, fields, replace
 from functools import lru_cache
 from pathlib import Path
@@ -40,7 +42,7 @@ from station.ltc.store import (
     create_ltc_store,
     incomplete_depths,
     mark_depth_complete,
-    mark_tile_done,
+    mark_tiles_done,
     open_ltc_store,
     write_ltc_tile,
 )
@@ -190,6 +192,12 @@ def level_harmonics(fourier: FourierPatternSet, lut: np.ndarray | None = None) -
             f"self-conjugate gain {gamma_sc:.3f}, both ~1 expected): check the LUT and the "
             "pattern offset/amplitude")
     return LevelHarmonics(h=h, gamma=gamma, gamma_sc=gamma_sc)
+
+
+@lru_cache(maxsize=16)
+def _level_harmonics_cached(fourier: FourierPatternSet, lut: bytes | None) -> LevelHarmonics:
+    """:func:`level_harmonics` once per pattern set and LUT (float64 bytes) in a process."""
+    return level_harmonics(fourier, None if lut is None else np.frombuffer(lut, np.float64))
 
 
 def correct_levels(spectrum: np.ndarray, fourier: FourierPatternSet,
@@ -426,15 +434,25 @@ def reconstruct_frames(
     d = np.asarray(frames)
     if d.ndim != 2 or d.shape[0] != len(plan):
         raise ValueError(f"frames must be (patterns={len(plan)}, pixels), got {d.shape}")
+    harmonics = level_harmonics(plan.fourier, lut) if level_correction else None
+    return _reconstruct_block(d, plan, harmonics, lcd_coordinates(d, plan).xy, min_snr,
+                              min_harmonic)
+
+
+def _reconstruct_block(d: np.ndarray, plan: StationPatternPlan,
+                       harmonics: LevelHarmonics | None, lcd_xy: np.ndarray, min_snr: float,
+                       min_harmonic: float) -> LtcBlock:
+    """:func:`reconstruct_frames` of frames d (patterns, n) given the level harmonics (None:
+    no level correction) and the decoded localisation ``lcd_xy`` (n, 2), both per pixel
+    independent of the block, so a tile computes them once."""
     f = plan.fourier
     p = f.period
     re, im, means = _demodulate(d, plan)
-    if level_correction:
-        _correct_planes(re, im, f, level_harmonics(f, lut))
+    if harmonics is not None:
+        _correct_planes(re, im, f, harmonics)
     gain = re[0].copy()
     sigma_d = _noise_from_means(means, f.steps)
-    lmap = lcd_coordinates(d, plan)
-    centre = _refine(gain, re[1] + 1j * im[1], re[p] + 1j * im[p], p, lmap.xy, min_harmonic)
+    centre = _refine(gain, re[1] + 1j * im[1], re[p] + 1j * im[p], p, lcd_xy, min_harmonic)
     valid = (gain > 0) & (gain > min_snr * sigma_d / (np.sqrt(2.0) * f.amplitude))
     valid &= np.all(np.isfinite(centre), axis=1)
     origin = centred_origins(np.where(valid[:, None], centre, 0.0), f.period)
@@ -446,7 +464,7 @@ def reconstruct_frames(
     folded = np.fft.irfft2(half, s=(p, p), axes=(-2, -1))
     ltc, ring = _window(folded, origin.astype(np.int64), gain, valid)
     return LtcBlock(ltc=ltc, origin=origin, gain=gain, noise=ltc_noise(sigma_d, gain, f),
-                    lcd_xy=lmap.xy, valid=valid, edge_mass=ring)
+                    lcd_xy=lcd_xy, valid=valid, edge_mass=ring)
 
 
 def reconstruct_tile(
@@ -458,10 +476,13 @@ def reconstruct_tile(
     (``station.ltc.store.TILE_STATS``). Pure: every engine computes tiles with it."""
     _, th, tw = frames.shape
     flat = frames.reshape(len(plan), th * tw)
+    harmonics = _level_harmonics_cached(plan.fourier, None if lut is None else
+                                        np.asarray(lut, np.float64).tobytes())
+    lcd_xy = lcd_coordinates(flat, plan).xy
     out: dict[str, np.ndarray] = {}
     for i in range(0, th * tw, PIXELS_PER_BLOCK):
-        part = reconstruct_frames(flat[:, i : i + PIXELS_PER_BLOCK], plan, lut=lut,
-                                  min_snr=min_snr)
+        part = _reconstruct_block(flat[:, i : i + PIXELS_PER_BLOCK], plan, harmonics,
+                                  lcd_xy[i : i + PIXELS_PER_BLOCK], min_snr, 0.05)
         for fld in fields(LtcBlock):
             v = getattr(part, fld.name)
             if fld.name not in out:
@@ -479,25 +500,55 @@ def reconstruct_tile(
     return blk, stats
 
 
+BAND_BYTES = 64 * 2**20  # frames a worker reads at once (one band of tiles side by side)
+
 _OPEN_STORES: dict[str, object] = {}  # per worker process: LTC stores opened for writing
+_RUN_STORES: dict[str, tuple[str, RunStore]] = {}  # per worker process: run path -> (token, store)
+_BUFFERS = threading.local()  # per worker thread: the band buffer, reused from band to band
 
 
-def _tile_job(frames: np.ndarray, plan: StationPatternPlan, lut: np.ndarray | None,
-              min_snr: float, code_mask: np.ndarray, out_path: str, depth: int, row0: int,
-              col0: int) -> np.ndarray:
-    """Reconstruct one tile and write it into the LTC store at ``out_path`` (run by a worker,
-    or in process); returns the tile's statistics. The caller marks the tile done."""
+def _band_job(run_path: str, token: str, depth: int, row0: int, col0: int, n_tiles: int,
+              tile_px: int, todo: list[int], plan: StationPatternPlan, lut: np.ndarray | None,
+              min_snr: float, code_mask: np.ndarray, out_path: str) -> list[np.ndarray]:
+    """Read one band of tiles (``n_tiles`` of ``tile_px`` side by side from camera pixel
+    (row0, col0)) from the run store and reconstruct and write the tiles at band indices
+    ``todo``; returns their statistics in that order. Run by a worker (or in process): the
+    frames go from the store to the worker without passing through the caller. ``token``
+    names one reconstruction, so a store reopened at the same path is never a stale one.
+    code_mask : (rows, cols) bool over the band."""
     import zarr
 
+    held = _RUN_STORES.get(run_path)
+    if held is None or held[0] != token:
+        held = _RUN_STORES[run_path] = (token, RunStore.open(run_path))
+    store = held[1]
     out = _OPEN_STORES.get(out_path)
     if out is None:
         out = _OPEN_STORES[out_path] = zarr.open_group(out_path, mode="r+")
-    _, th, tw = frames.shape
+    if tile_px == store.tile_px:
+        shape = (n_tiles, store.n_patterns, tile_px, tile_px)
+        buf = getattr(_BUFFERS, "frames", None)
+        if buf is None or buf.dtype != store.dtype or buf.size < np.prod(shape):
+            buf = _BUFFERS.frames = np.empty(shape, store.dtype)
+        tiles = store.read_tile_row(depth, row0, col0, n_tiles,
+                                    check_index=row0 == 0 and col0 == 0, out=buf)
+    else:
+        w, _ = store.camera_size
+        tiles = [store.read_tile(depth, row0, c0, tile_px, tile_px,
+                                 check_index=row0 == 0 and c0 == 0)
+                 for c0 in range(col0, min(col0 + n_tiles * tile_px, w), tile_px)]
     p = plan.fourier.period
-    blk, stats = reconstruct_tile(frames, plan, lut, min_snr, code_mask)
-    write_ltc_tile(out, depth, row0, col0, ltc=blk.ltc.reshape(th, tw, p, p),
-                   origin=blk.origin.reshape(th, tw, 2), gain=blk.gain.reshape(th, tw),
-                   noise=blk.noise.reshape(th, tw), lcd_xy=blk.lcd_xy.reshape(th, tw, 2))
+    stats = []
+    for i in todo:
+        tile = tiles[i]
+        _, th, tw = tile.frames.shape
+        c0 = tile.col0 - col0
+        blk, st = reconstruct_tile(tile.frames, plan, lut, min_snr,
+                                   code_mask[:th, c0 : c0 + tw])
+        write_ltc_tile(out, depth, tile.row0, tile.col0, ltc=blk.ltc.reshape(th, tw, p, p),
+                       origin=blk.origin.reshape(th, tw, 2), gain=blk.gain.reshape(th, tw),
+                       noise=blk.noise.reshape(th, tw), lcd_xy=blk.lcd_xy.reshape(th, tw, 2))
+        stats.append(st)
     return stats
 
 
@@ -516,7 +567,9 @@ def reconstruct(
         default every core in local processes; 1 in this process; ``dask`` a Dask
         LocalCluster of ``workers`` processes; ``scheduler`` an existing Dask cluster.
         Every engine gives bit-identical stores.
-    Tiles are read in order here (at the disk's pace) while the workers compute and write.
+    Each worker reads its bands of tiles (``BAND_BYTES`` of frames, one open and read per
+    frame) straight from the run store, then computes and writes them: only tile positions
+    and statistics pass through this process, and the reads run on every worker at once.
     Returns a JSON-able summary; per-depth statistics come from the store's per-tile
     records (``tile_stats``), so a resumed run reports what an uninterrupted one does.
     """
@@ -546,6 +599,9 @@ def reconstruct(
         )
     done = np.asarray(out["tile_done"][...])
     n_left = int((~done).sum())
+    per_tile = len(plan) * t * t * store.dtype.itemsize
+    band = max(1, BAND_BYTES // per_tile)  # tiles a worker reads and computes per task
+    token = uuid.uuid4().hex
     px_done = [0]
     with Engine(workers, dask=dask, scheduler=scheduler) as engine, \
             tqdm(total=done.size, initial=done.size - n_left, desc="reconstruct", unit="tile",
@@ -559,20 +615,24 @@ def reconstruct(
             code_mask = store.code_mask(di)
 
             def tasks(di=di, code_mask=code_mask):
-                for tile in store.iter_tiles(di, t):
-                    tr, tc = tile.row0 // t, tile.col0 // t
-                    if done[di, tr, tc]:
-                        continue
-                    _, th, tw = tile.frames.shape
-                    px_done[0] += th * tw
-                    cm = code_mask[tile.row0 : tile.row0 + th, tile.col0 : tile.col0 + tw]
-                    yield ((di, tr, tc), _tile_job,
-                           (tile.frames, plan, lut, float(min_snr), cm, str(out_path), di,
-                            tile.row0, tile.col0))
+                for r0 in range(0, h, t):
+                    tr = r0 // t
+                    for b0 in range(0, w, band * t):
+                        n = min(band, -(-(w - b0) // t))
+                        todo = [i for i in range(n) if not done[di, tr, b0 // t + i]]
+                        if not todo:
+                            continue
+                        for i in todo:
+                            px_done[0] += min(t, h - r0) * min(t, w - b0 - i * t)
+                        cm = np.ascontiguousarray(code_mask[r0 : r0 + t, b0 : b0 + n * t])
+                        yield ((di, tr, [b0 // t + i for i in todo]), _band_job,
+                               (str(store.path), token, di, r0, b0, n, t, todo, plan, lut,
+                                float(min_snr), cm, str(out_path)))
 
             def finished(key, stats) -> None:
-                mark_tile_done(out, *key, stats)
-                bar.update(1)
+                di_, tr, cols = key
+                mark_tiles_done(out, di_, tr, cols, stats)
+                bar.update(len(cols))
 
             run_ordered(engine, tasks(), finished)
             mark_depth_complete(out, di)

@@ -21,7 +21,7 @@ Layout (ARCHITECTURE.md, issue 3):
   depth), set True once every tile of the depth is done. Readers of a whole store
   (``open_ltc_volume``) refuse one with an incomplete depth, naming it.
 
-Writing: ``create_ltc_store``, ``write_ltc_tile``, ``mark_tile_done`` and
+Writing: ``create_ltc_store``, ``write_ltc_tile``, ``mark_tile_done`` (``mark_tiles_done``) and
 ``mark_depth_complete``. Reading for the lens derivation: ``open_ltc_volume`` gives an
 ``LtcVolume`` that reads camera rows on demand.
 """
@@ -138,6 +138,21 @@ def mark_tile_done(group: zarr.Group, depth: int, tile_row: int, tile_col: int,
     """Record a written tile: its statistics (``TILE_STATS``), then its done flag."""
     group["tile_stats"][depth, tile_row, tile_col] = np.asarray(stats, dtype=np.float64)
     group["tile_done"][depth, tile_row, tile_col] = True
+
+
+def mark_tiles_done(group: zarr.Group, depth: int, tile_row: int, tile_cols: list[int],
+                    stats: list[np.ndarray]) -> None:
+    """:func:`mark_tile_done` for several tiles of one tile row at once: their statistics,
+    then their done flags, each array's chunk rewritten once."""
+    cols = np.asarray(tile_cols, dtype=np.int64)
+    arr = group["tile_stats"]
+    row = np.asarray(arr[depth, tile_row])
+    row[cols] = np.asarray(stats, dtype=np.float64).reshape(len(cols), -1)
+    arr[depth, tile_row] = row
+    arr = group["tile_done"]
+    row = np.asarray(arr[depth, tile_row])
+    row[cols] = True
+    arr[depth, tile_row] = row
 
 
 def mark_depth_complete(group: zarr.Group, depth: int, all_tiles: bool = False) -> None:
