@@ -38,6 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 import zarr
 
+from station.acquisition.run_store import _create
 from station.acquisition.store_attrs import LtcStoreAttrs, check_attrs, open_zarr_group
 
 FORMAT = "ltc-store"
@@ -213,7 +214,7 @@ def _write_raw_chunk(group: zarr.Group, arr: zarr.Array, depth: int, row0: int, 
                      v: np.ndarray) -> bool:
     """Write ``v`` as the one whole chunk ``arr[depth, row0:, col0:]`` it covers, as the file
     zarr would write (uncompressed little-endian bytes, edge chunks padded with the fill value,
-    written to a temporary name and renamed), when the array is stored that way on a local
+    written to a temporary name and renamed, as the run store writes its files), when the array is stored that way on a local
     folder and ``v`` is exactly one chunk (clipped at the sensor's edge); else False. 3x
     faster than zarr's write path for the ``ltc`` array (9.4 MB per 64 x 64 tile at P = 24)."""
     from zarr.codecs import BytesCodec
@@ -243,14 +244,7 @@ def _write_raw_chunk(group: zarr.Group, arr: zarr.Array, depth: int, row0: int, 
     key = [depth, row0 // ch, col0 // cw] + [0] * (len(shape) - 3)
     path = Path(group.store.root) / arr.path / "c" / "/".join(str(k) for k in key)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(memoryview(data).cast("B"))
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    _create(path, [data])  # the run store's atomic file write (an OSError names the file)
     return True
 
 
