@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numba
 import numpy as np
+import scipy.fft
 from tqdm import tqdm
 
 from station.ltc.localise import lcd_coordinates
@@ -397,8 +398,9 @@ def unfold(folded: np.ndarray, origin: np.ndarray) -> np.ndarray:
 @numba.njit(cache=True, nogil=True)
 def _window(folded, origin, gain, valid):  # pragma: no cover - compiled
     """:func:`unfold` divided by the gain, NaN where not ``valid``, and the window's outer-ring
-    mass: folded (n, P, P), origin (n, 2) int64 (x, y), gain (n,), valid (n,) bool."""
-    n, p = folded.shape[0], folded.shape[-1]
+    mass: folded (P, P, n) pixel-minor (as the batched inverse DFT leaves it), origin (n, 2)
+    int64 (x, y), gain (n,), valid (n,) bool."""
+    p, n = folded.shape[0], folded.shape[2]
     ltc = np.empty((n, p, p))
     ring = np.empty(n)
     for j in range(n):
@@ -409,9 +411,9 @@ def _window(folded, origin, gain, valid):  # pragma: no cover - compiled
         ox, oy, g = origin[j, 0] % p, origin[j, 1] % p, gain[j]
         edge = 0.0
         for r in range(p):
-            src = folded[j, (oy + r) % p]
+            yy = (oy + r) % p
             for c in range(p):
-                v = src[(ox + c) % p] / g
+                v = folded[yy, (ox + c) % p, j] / g
                 ltc[j, r, c] = v
                 if r == 0 or r == p - 1 or c == 0 or c == p - 1:
                     edge += v
@@ -458,10 +460,10 @@ def _reconstruct_block(d: np.ndarray, plan: StationPatternPlan,
     origin = centred_origins(np.where(valid[:, None], centre, 0.0), f.period)
     origin[~valid] = 0
     q = p // 2 + 1  # the non-negative k half is all the real inverse DFT reads
-    half = np.empty((re.shape[1], p, q), dtype=np.complex128)
-    half.real = re.reshape(p, p, -1)[:, :q].transpose(2, 0, 1)
-    half.imag = im.reshape(p, p, -1)[:, :q].transpose(2, 0, 1)
-    folded = np.fft.irfft2(half, s=(p, p), axes=(-2, -1))
+    half = np.empty((p, q, re.shape[1]), dtype=np.complex128)  # frequency-major, no transpose
+    half.real = re.reshape(p, p, -1)[:, :q]
+    half.imag = im.reshape(p, p, -1)[:, :q]
+    folded = scipy.fft.irfft2(half, s=(p, p), axes=(0, 1), overwrite_x=True)  # (P, P, n)
     ltc, ring = _window(folded, origin.astype(np.int64), gain, valid)
     return LtcBlock(ltc=ltc, origin=origin, gain=gain, noise=ltc_noise(sigma_d, gain, f),
                     lcd_xy=lcd_xy, valid=valid, edge_mass=ring)
