@@ -8,8 +8,9 @@ stamped in, wait the display latency, capture, reject a frame that timed out, is
 shows the wrong code (re-capture, at most ``acquire.max_retries`` times, each retry logged
 and counted), count saturated pixels, write the frame and its metadata, mark it done.
 
-Capture and storage overlap: the engine hands each frame to a :class:`FrameWriter`, whose
-thread writes it while the next frame is captured, through a bounded queue (a few frames).
+Capture and storage overlap: the engine hands each frame to a :class:`FrameWriter`, through
+a bounded queue (a few frames), whose three threads encode, store and commit successive
+frames at once while the next frame is captured.
 Durability comes from the run store: a frame is done only once it and its metadata are on
 disk (fsync), so a killed run loses at most the frames in flight (queued or being written),
 and ``resume=True`` takes up the first frame not done, refusing a store made with another
