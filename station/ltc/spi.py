@@ -63,8 +63,8 @@ PIXELS_PER_BLOCK = 256  # pixels reconstructed at once: bounds memory whatever t
 class LtcBlock:
     """Reconstruction of n pixels.
 
-    ltc : (n, P, P) float64, normalised windows (NaN where invalid); [r, s] is LCD pixel
-        ``(origin_x + s, origin_y + r)``.
+    ltc : (n, P, P) float64 (float32, as stored, from :func:`reconstruct_tile`), normalised
+        windows (NaN where invalid); [r, s] is LCD pixel ``(origin_x + s, origin_y + r)``.
     origin : (n, 2) int32 LCD (x, y) of window element [0, 0] (0 where invalid).
     gain : (n,) response to full white, ADU.  noise : (n,) std of one LTC weight.
     lcd_xy : (n, 2) coarse LCD (x, y) from the localisation patterns.
@@ -396,12 +396,12 @@ def unfold(folded: np.ndarray, origin: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _window(folded, origin, gain, valid):  # pragma: no cover - compiled
-    """:func:`unfold` divided by the gain, NaN where not ``valid``, and the window's outer-ring
-    mass: folded (P, P, n) pixel-minor (as the batched inverse DFT leaves it), origin (n, 2)
-    int64 (x, y), gain (n,), valid (n,) bool."""
+def _window(folded, origin, gain, valid, ltc):  # pragma: no cover - compiled
+    """:func:`unfold` divided by the gain into ``ltc`` (n, P, P), float64 or float32 (each
+    value computed in float64, then rounded), NaN where not ``valid``; returns the windows'
+    outer-ring masses (n,) float64: folded (P, P, n) pixel-minor (as the batched inverse DFT
+    leaves it), origin (n, 2) int64 (x, y), gain (n,), valid (n,) bool."""
     p, n = folded.shape[0], folded.shape[2]
-    ltc = np.empty((n, p, p))
     ring = np.empty(n)
     for j in range(n):
         if not valid[j]:
@@ -418,7 +418,7 @@ def _window(folded, origin, gain, valid):  # pragma: no cover - compiled
                 if r == 0 or r == p - 1 or c == 0 or c == p - 1:
                     edge += v
         ring[j] = edge
-    return ltc, ring
+    return ring
 
 
 def reconstruct_frames(
@@ -443,10 +443,12 @@ def reconstruct_frames(
 
 def _reconstruct_block(d: np.ndarray, plan: StationPatternPlan,
                        harmonics: LevelHarmonics | None, lcd_xy: np.ndarray, min_snr: float,
-                       min_harmonic: float) -> LtcBlock:
+                       min_harmonic: float, ltc: np.ndarray | None = None) -> LtcBlock:
     """:func:`reconstruct_frames` of frames d (patterns, n) given the level harmonics (None:
     no level correction) and the decoded localisation ``lcd_xy`` (n, 2), both per pixel
-    independent of the block, so a tile computes them once."""
+    independent of the block, so a tile computes them once; ``ltc`` (n, P, P): where to put
+    the windows (float32 for the store: the float64 values rounded once), default new
+    float64."""
     f = plan.fourier
     p = f.period
     re, im, means = _demodulate(d, plan)
@@ -464,7 +466,9 @@ def _reconstruct_block(d: np.ndarray, plan: StationPatternPlan,
     half.real = re.reshape(p, p, -1)[:, :q]
     half.imag = im.reshape(p, p, -1)[:, :q]
     folded = scipy.fft.irfft2(half, s=(p, p), axes=(0, 1), overwrite_x=True)  # (P, P, n)
-    ltc, ring = _window(folded, origin.astype(np.int64), gain, valid)
+    if ltc is None:
+        ltc = np.empty((len(gain), p, p))
+    ring = _window(folded, origin.astype(np.int64), gain, valid, ltc)
     return LtcBlock(ltc=ltc, origin=origin, gain=gain, noise=ltc_noise(sigma_d, gain, f),
                     lcd_xy=lcd_xy, valid=valid, edge_mass=ring)
 
@@ -474,21 +478,25 @@ def reconstruct_tile(
     code_mask: np.ndarray,
 ) -> tuple[LtcBlock, np.ndarray]:
     """One camera tile: frames (patterns, th, tw) -> its :class:`LtcBlock` (th * tw pixels,
-    row-major; pixels in ``code_mask`` (th, tw) excluded) and its statistics
+    row-major, ``ltc`` float32 as stored; pixels in ``code_mask`` (th, tw) excluded) and its
+    statistics
     (``station.ltc.store.TILE_STATS``). Pure: every engine computes tiles with it."""
     _, th, tw = frames.shape
     flat = frames.reshape(len(plan), th * tw)
     harmonics = _level_harmonics_cached(plan.fourier, None if lut is None else
                                         np.asarray(lut, np.float64).tobytes())
     lcd_xy = lcd_coordinates(flat, plan).xy
-    out: dict[str, np.ndarray] = {}
+    p = plan.fourier.period
+    out: dict[str, np.ndarray] = {"ltc": np.empty((th * tw, p, p), np.float32)}
     for i in range(0, th * tw, PIXELS_PER_BLOCK):
         # contiguous: the compiled demodulation runs 2-4x faster on it than on the strided
         # slice (measured; the copy costs ~0.2 us per pixel)
         block = np.ascontiguousarray(flat[:, i : i + PIXELS_PER_BLOCK])
         part = _reconstruct_block(block, plan, harmonics, lcd_xy[i : i + PIXELS_PER_BLOCK],
-                                  min_snr, 0.05)
+                                  min_snr, 0.05, out["ltc"][i : i + PIXELS_PER_BLOCK])
         for fld in fields(LtcBlock):
+            if fld.name == "ltc":  # written in place
+                continue
             v = getattr(part, fld.name)
             if fld.name not in out:
                 out[fld.name] = np.empty((th * tw,) + v.shape[1:], dtype=v.dtype)
