@@ -39,11 +39,11 @@ from station.ltc.parallel import Engine, run_ordered
 from station.ltc.store import (
     TILE_STATS,
     LtcStoreError,
+    TileRecords,
     centred_origins,
     create_ltc_store,
     incomplete_depths,
     mark_depth_complete,
-    mark_tiles_done,
     open_ltc_store,
     write_ltc_tile,
 )
@@ -610,7 +610,8 @@ def reconstruct(
                    "software": software_versions(),
                    "created": _dt.datetime.now(_dt.timezone.utc).isoformat()},
         )
-    done = np.asarray(out["tile_done"][...])
+    records = TileRecords(out)
+    done = records.done.copy()
     n_left = int((~done).sum())
     per_tile = len(plan) * t * t * store.dtype.itemsize
     band = max(1, BAND_BYTES // per_tile)  # tiles a worker reads and computes per task
@@ -644,7 +645,7 @@ def reconstruct(
 
             def finished(key, stats) -> None:
                 di_, tr, cols = key
-                mark_tiles_done(out, di_, tr, cols, stats)
+                records.mark(di_, tr, cols, stats)
                 bar.update(len(cols))
 
             run_ordered(engine, tasks(), finished)

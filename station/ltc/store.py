@@ -21,7 +21,7 @@ Layout (ARCHITECTURE.md, issue 3):
   depth), set True once every tile of the depth is done. Readers of a whole store
   (``open_ltc_volume``) refuse one with an incomplete depth, naming it.
 
-Writing: ``create_ltc_store``, ``write_ltc_tile``, ``mark_tile_done`` (``mark_tiles_done``) and
+Writing: ``create_ltc_store``, ``write_ltc_tile``, ``mark_tile_done`` (``TileRecords``) and
 ``mark_depth_complete``. Reading for the lens derivation: ``open_ltc_volume`` gives an
 ``LtcVolume`` that reads camera rows on demand.
 """
@@ -141,19 +141,27 @@ def mark_tile_done(group: zarr.Group, depth: int, tile_row: int, tile_col: int,
     group["tile_done"][depth, tile_row, tile_col] = True
 
 
-def mark_tiles_done(group: zarr.Group, depth: int, tile_row: int, tile_cols: list[int],
-                    stats: list[np.ndarray]) -> None:
-    """:func:`mark_tile_done` for several tiles of one tile row at once: their statistics,
-    then their done flags, each array's chunk rewritten once."""
-    cols = np.asarray(tile_cols, dtype=np.int64)
-    arr = group["tile_stats"]
-    row = np.asarray(arr[depth, tile_row])
-    row[cols] = np.asarray(stats, dtype=np.float64).reshape(len(cols), -1)
-    arr[depth, tile_row] = row
-    arr = group["tile_done"]
-    row = np.asarray(arr[depth, tile_row])
-    row[cols] = True
-    arr[depth, tile_row] = row
+class TileRecords:
+    """The completion records (``tile_stats``, ``tile_done``) of an LTC store held by its one
+    writer: read once, then each :meth:`mark` rewrites the depth's two chunks (statistics
+    first, then done flags; each chunk file written whole and renamed into place, as zarr
+    writes it) without reading them back."""
+
+    def __init__(self, group: zarr.Group) -> None:
+        self.group = group
+        self.stats = np.asarray(group["tile_stats"][...], dtype=np.float64)
+        self.done = np.asarray(group["tile_done"][...], dtype=bool)
+
+    def mark(self, depth: int, tile_row: int, tile_cols: list[int],
+             stats: list[np.ndarray]) -> None:
+        """Record written tiles of one tile row: their statistics, then their done flags."""
+        cols = np.asarray(tile_cols, dtype=np.int64)
+        self.stats[depth, tile_row, cols] = np.asarray(stats, np.float64).reshape(len(cols), -1)
+        self.done[depth, tile_row, cols] = True
+        for name, values in (("tile_stats", self.stats), ("tile_done", self.done)):
+            arr = self.group[name]
+            if not _write_raw_chunk(self.group, arr, depth, 0, 0, values[depth]):
+                arr[depth] = values[depth]
 
 
 def mark_depth_complete(group: zarr.Group, depth: int, all_tiles: bool = False) -> None:
