@@ -221,10 +221,11 @@ def write_ltc_tile(
 def _write_raw_chunk(group: zarr.Group, arr: zarr.Array, depth: int, row0: int, col0: int,
                      v: np.ndarray) -> bool:
     """Write ``v`` as the one whole chunk ``arr[depth, row0:, col0:]`` it covers, as the file
-    zarr would write (uncompressed little-endian bytes, edge chunks padded with the fill value,
-    written to a temporary name and renamed, as the run store writes its files), when the array is stored that way on a local
-    folder and ``v`` is exactly one chunk (clipped at the sensor's edge); else False. 3x
-    faster than zarr's write path for the ``ltc`` array (9.4 MB per 64 x 64 tile at P = 24)."""
+    zarr would write (uncompressed little-endian bytes, edge chunks padded with the fill
+    value, written to a temporary name and renamed, as the run store writes its files), when
+    the array is stored that way on a local folder and ``v`` is exactly one chunk (clipped at
+    the sensor's edge); else False. 3x faster than zarr's write path for the ``ltc`` array
+    (9.4 MB per 64 x 64 tile at P = 24)."""
     from zarr.codecs import BytesCodec
     from zarr.codecs.bytes import Endian
     from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
