@@ -18,12 +18,18 @@ reconstruction reads) against a raw read of the same bytes. Candidates:
 Capture loop (``--capture``): the acquisition's loop shape with zero-latency fakes at full
 size: per frame an optional camera wait (``--frame-ms``, sleeping, GIL free), an optional
 stretch of pure-Python work holding the GIL (``--gil-ms``, standing for the loop's own Python),
-a copy of a ready frame (the camera driver's buffer copy), and ``FrameWriter.submit`` of
-``RunStore.write_frame`` (queue of 4), against the same loop whose writer does nothing. Prints
+a copy of a ready frame (the camera driver's buffer copy), and ``FrameWriter.submit_frame``
+(the pipelined writer, queue of 4), against the same loop whose writer does nothing. Prints
 frames/s with and without storage, and the loop's GIL work per frame with and without (if the
 writer held the GIL, that work would stretch).
 
-Run: ``python benchmarks/run_store_io.py [--frames 6] [--dir /tmp] [--zarr] [--capture]``. ``--zarr``
+Writer throughput (``--throughput``): ``--frames`` full-size frames submitted back to back
+through ``FrameWriter`` (then closed), and through ``RunStore.write_frame`` in series, against
+raw appends of the same bytes with an fsync per frame, in the same run; prints each one's
+ratio to raw (the target: at least 0.7).
+
+Run: ``python benchmarks/run_store_io.py [--frames 6] [--dir /tmp] [--zarr] [--capture]
+[--throughput]``. ``--zarr``
 adds the zarr candidates (slow: seconds per frame); without it only ``raw`` and ``store`` run.
 Prints a table; the numbers and the decision are in benchmarks/README.md.
 """
