@@ -18,12 +18,18 @@ reconstruction reads) against a raw read of the same bytes. Candidates:
 Capture loop (``--capture``): the acquisition's loop shape with zero-latency fakes at full
 size: per frame an optional camera wait (``--frame-ms``, sleeping, GIL free), an optional
 stretch of pure-Python work holding the GIL (``--gil-ms``, standing for the loop's own Python),
-a copy of a ready frame (the camera driver's buffer copy), and ``FrameWriter.submit`` of
-``RunStore.write_frame`` (queue of 4), against the same loop whose writer does nothing. Prints
+a copy of a ready frame (the camera driver's buffer copy), and ``FrameWriter.submit_frame``
+(the pipelined writer, queue of 4), against the same loop whose writer does nothing. Prints
 frames/s with and without storage, and the loop's GIL work per frame with and without (if the
 writer held the GIL, that work would stretch).
 
-Run: ``python benchmarks/run_store_io.py [--frames 6] [--dir /tmp] [--zarr] [--capture]``. ``--zarr``
+Writer throughput (``--throughput``): ``--frames`` full-size frames submitted back to back
+through ``FrameWriter`` (then closed), and through ``RunStore.write_frame`` in series, against
+raw appends of the same bytes with an fsync per frame, in the same run; prints each one's
+ratio to raw (the target: at least 0.7).
+
+Run: ``python benchmarks/run_store_io.py [--frames 6] [--dir /tmp] [--zarr] [--capture]
+[--throughput]``. ``--zarr``
 adds the zarr candidates (slow: seconds per frame); without it only ``raw`` and ``store`` run.
 Prints a table; the numbers and the decision are in benchmarks/README.md.
 """
@@ -120,6 +126,68 @@ def store_case(root: Path, imgs: list[np.ndarray], bits: int
             (statistics.median(store_t), read, size))
 
 
+def throughput_case(root: Path, imgs: list[np.ndarray], bits: int, n: int, how: str) -> float:
+    """Seconds to write ``n`` frames back to back: ``raw`` appends each frame's buffer to one
+    file with an fsync per frame; ``store`` submits them to a ``FrameWriter`` (the pipelined
+    writer the acquisition uses) and closes it; ``serial`` calls ``RunStore.write_frame`` in
+    this thread (the three stages in series, the writer of the previous version)."""
+    from station.acquisition.acquire import FrameWriter
+
+    plan = StationPatternPlan.for_lcd((64, 48), 4, 4)
+    depths = -(-(n + 1) // len(plan))
+    meta = FrameMeta(stage_target_mm=0.0, stage_measured_mm=0.0, swap_index=0, swap_time_s=0,
+                     camera_timestamp_s=0, frame_id=0, exposure_ms=1.0)
+    if how == "raw":
+        with open(root / f"tp-raw-{bits}.bin", "wb") as raw:
+            raw.write(imgs[0].data)  # warm-up, untimed
+            raw.flush()
+            os.fsync(raw.fileno())
+            t0 = time.perf_counter()
+            for k in range(n):
+                raw.write(imgs[k % len(imgs)].data)
+                raw.flush()
+                os.fsync(raw.fileno())
+            return time.perf_counter() - t0
+    s = RunStore.create(root / f"tp-{how}-{bits}.zarr", config={}, plan=plan,
+                        depths_mm=[0.0] * depths, camera_size=(W, H), bit_depth=bits,
+                        lcd_size=(64, 48), lcd_pitch_mm=0.2715, tile_px=T)
+    s.write_frame(depths - 1, len(plan) - 1, imgs[0], meta)  # warm-up, untimed
+    t0 = time.perf_counter()
+    if how == "serial":
+        for k in range(n):
+            s.write_frame(*divmod(k, len(plan)), imgs[k % len(imgs)], meta)
+        s.flush()
+    else:
+        writer = FrameWriter(s)
+        for k in range(n):
+            writer.submit_frame(f"frame {k}", *divmod(k, len(plan)), imgs[k % len(imgs)], meta)
+        writer.close()
+    return time.perf_counter() - t0
+
+
+def throughput_main(args: argparse.Namespace) -> None:
+    for bits in (12, 8):
+        imgs = frames(3, bits)
+        times: dict[str, list[float]] = {"raw": [], "store": [], "serial": []}
+        for r in range(args.repeats):
+            root = Path(tempfile.mkdtemp(prefix="run_store_io-", dir=args.dir))
+            try:
+                order = list(times)[:: 1 if r % 2 == 0 else -1]  # alternate who goes first
+                for how in order:
+                    times[how].append(throughput_case(root, imgs, bits, args.frames, how))
+            finally:
+                shutil.rmtree(root, ignore_errors=True)
+        t = {k: statistics.median(v) for k, v in times.items()}
+        mb = imgs[0].nbytes * args.frames / 1e6
+        print(f"\nwriter throughput, {bits}-bit frames ({imgs[0].dtype}, "
+              f"{imgs[0].nbytes / 1e6:.1f} MB each), {args.frames} frames back to back, "
+              f"median of {args.repeats}")
+        for how, label in (("raw", "raw + fsync/frame"), ("store", "FrameWriter"),
+                           ("serial", "write_frame serial")):
+            print(f"{label:<20} {t[how]:7.2f} s {args.frames / t[how]:6.1f} frames/s "
+                  f"{mb / t[how]:6.0f} MB/s  vs raw {t['raw'] / t[how]:5.2f}")
+
+
 def zarr_case(root: Path, imgs: list[np.ndarray], name: str) -> tuple[float, float, int]:
     n = len(imgs)
     k = 8 if name == "zarr-k8" else 1
@@ -186,7 +254,7 @@ def capture_case(root: Path, imgs: list[np.ndarray], bits: int, n: int, store: s
         raw.flush()
         os.fsync(raw.fileno())
 
-    write = {"store": s.write_frame, "raw": raw_write, "none": lambda *_: None}[store]
+    write = {"raw": raw_write, "none": lambda *_: None}.get(store)
     writer = FrameWriter(s)
     gil = 0.0
     t0 = time.perf_counter()
@@ -197,7 +265,10 @@ def capture_case(root: Path, imgs: list[np.ndarray], bits: int, n: int, store: s
         python_work(gil_ms)
         gil += time.perf_counter() - g0
         frame = imgs[k % len(imgs)].copy()
-        writer.submit(f"frame {k}", write, *divmod(k, len(plan)), frame, meta)
+        if write is None:  # the store: the pipelined writer's frame path
+            writer.submit_frame(f"frame {k}", *divmod(k, len(plan)), frame, meta)
+        else:
+            writer.submit(f"frame {k}", write, *divmod(k, len(plan)), frame, meta)
     writer.close()
     fps = n / (time.perf_counter() - t0)
     raw.close()
@@ -237,11 +308,17 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--zarr", action="store_true", help="also the zarr candidates (slow)")
     ap.add_argument("--capture", action="store_true", help="the capture loop instead")
+    ap.add_argument("--throughput", action="store_true",
+                    help="writer throughput instead: frames back to back through FrameWriter, "
+                         "write_frame in series, and raw appends with fsync per frame")
     ap.add_argument("--frame-ms", type=float, default=0.0, help="camera wait per frame, ms")
     ap.add_argument("--gil-ms", type=float, default=0.0, help="GIL-holding work per frame, ms")
     args = ap.parse_args()
     if args.capture:
         capture_main(args)
+        return
+    if args.throughput:
+        throughput_main(args)
         return
     for bits in (12, 8):
         imgs = frames(args.frames, bits)

@@ -44,8 +44,8 @@ import os
 import platform
 import shutil
 import uuid
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
 from importlib import metadata as _metadata
 from pathlib import Path
 
@@ -263,6 +263,20 @@ class FrameShard:
     top: int
 
 
+@dataclass(frozen=True)
+class EncodedFrame:
+    """A frame between the stages of :meth:`RunStore.write_frame`: its shard's chunks (a
+    codec's buffer) and index, the per-frame values to record (:data:`META_ARRAYS`) and,
+    once stored, the files written."""
+
+    depth: int
+    pattern: int
+    chunks: np.ndarray
+    index: bytes
+    values: dict
+    written: list = field(default_factory=list)
+
+
 class ShardCodec:
     """The bytes of one frame's shard: ``tile`` x ``tile`` chunks in row-major order, each its
     little-endian pixels then their crc32c, then the index ((offset, nbytes) uint64 per chunk)
@@ -294,15 +308,13 @@ class ShardCodec:
         self._crcs = self._buf.reshape(n, self.chunk_bytes)[:, self.data_bytes :].view("<u4")
         self._strip = np.zeros((t, self.nc * t), self.dtype)
 
-    def encode(self, image: np.ndarray, full: int,
-               sink: Callable[[np.ndarray], None] | None = None) -> FrameShard:
+    def encode(self, image: np.ndarray, full: int) -> FrameShard:
         """One frame's shard chunks and what the store records of the frame, in one pass over
         its pixels, chunk row by chunk row (each block of ``tile`` camera rows is read while it
         is in the CPU cache): the frame's crc32c continued over the block, the saturation count
         and maximum, one copy into shard order (edge chunk rows through a zero-padded strip),
-        then each chunk's crc32c on the buffer in place; ``sink`` (if given) gets each finished
-        chunk row's bytes, in order. The buffer is reused: valid until the next call, one
-        thread at once."""
+        then each chunk's crc32c on the buffer in place. The buffer is reused: valid until the
+        next call, one thread at once."""
         if self._buf is None:
             self._allocate()
         t, nc, w = self.t, self.nc, self.w
@@ -323,8 +335,6 @@ class ShardCodec:
                 self._pix[r] = self._strip.reshape(t, nc, t).transpose(1, 0, 2)
             self._crcs[r * nc : (r + 1) * nc, 0] = [
                 crc32c(v) for v in self._chunk_views[r * nc : (r + 1) * nc]]
-            if sink is not None:
-                sink(self._buf[r].reshape(-1))
         return FrameShard(self._buf.reshape(-1), crc, saturated, top)
 
     def decode_chunks(self, raw: bytes, n_chunks: int) -> tuple[np.ndarray, int]:
@@ -565,7 +575,21 @@ class RunStore:
         """Write one frame (its shard), then its metadata with the frame's crc32c, flush both
         to disk, then mark it done: an interruption loses at most this frame (a done flag
         not yet flushed by :meth:`flush` or the next write may be lost too, never set early).
-        Safe to call from one writer thread while another thread captures."""
+        The three stages :meth:`encode_frame`, :meth:`store_encoded` and :meth:`commit` in
+        series; a pipelined writer runs them in three threads on successive frames."""
+        self.commit(self.store_encoded(self.encode_frame(depth, pattern, image, meta)))
+
+    def new_codec(self) -> ShardCodec:
+        """A shard encoder of this store's frames with its own buffer (one per frame being
+        encoded or written at once)."""
+        w, h = self.camera_size
+        return ShardCodec(h, w, self.tile_px, self.dtype)
+
+    def encode_frame(self, depth: int, pattern: int, image: np.ndarray, meta: FrameMeta,
+                     codec: ShardCodec | None = None) -> EncodedFrame:
+        """Check a frame and encode its shard in ``codec``'s buffer (default: the store's
+        own), with what the store records of it; CPU only, nothing written. The buffer is
+        valid until ``codec`` encodes again."""
         self._check_index(depth, pattern)
         img = np.asarray(image)
         w, h = self.camera_size
@@ -583,27 +607,33 @@ class RunStore:
                                 f"{meta.stage_target_mm} mm, but depth {depth} is "
                                 f"{self.depths_mm[depth]} mm (attribute 'depths_mm')")
         full = 2**self.bit_depth - 1
-        final = self._shard_path(depth, pattern)
-        final.parent.mkdir(parents=True, exist_ok=True)
-        with _new_file(final) as fd:
-            written = [0]
-
-            def sink(part: np.ndarray) -> None:  # each chunk row as soon as it is encoded
-                _write(final, fd, [part])
-                _start_writeback(fd, written[0], part.nbytes)
-                written[0] += part.nbytes
-
-            enc = self.codec.encode(img, full, sink)
-            if enc.top > full:
-                raise RunStoreError(f"{self.path}: frame ({depth}, {pattern}) has values above "
-                                    f"{full}, the camera's {self.bit_depth}-bit full scale")
-            _write(final, fd, [self.codec.index])
+        codec = self.codec if codec is None else codec
+        enc = codec.encode(img, full)
+        if enc.top > full:
+            raise RunStoreError(f"{self.path}: frame ({depth}, {pattern}) has values above "
+                                f"{full}, the camera's {self.bit_depth}-bit full scale")
         values = {**meta.model_dump(), "saturated_px": enc.saturated,
                   "frame_crc32c": enc.crc32c}
-        written = [self._set_small(name, depth, pattern, values[name]) for name in self._meta]
-        # the frame and its metadata reach the disk before the done flag can
-        _barrier(self.path, [final, *written])
-        self._mark_done(depth, pattern)
+        return EncodedFrame(depth, pattern, enc.chunks, codec.index, values)
+
+    def store_encoded(self, frame: EncodedFrame) -> EncodedFrame:
+        """Write an encoded frame's shard (under a temporary name, renamed into place; the
+        kernel starts writing it to disk at once) and its metadata, without waiting for the
+        disk: not durable, not done. Returns the frame with the paths written."""
+        final = self._shard_path(frame.depth, frame.pattern)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        with _new_file(final) as fd:
+            _write(final, fd, [frame.chunks, frame.index])
+            _start_writeback(fd, 0, frame.chunks.nbytes + len(frame.index))
+        written = [self._set_small(name, frame.depth, frame.pattern, frame.values[name])
+                   for name in self._meta]
+        return replace(frame, written=[final, *written])
+
+    def commit(self, frame: EncodedFrame) -> None:
+        """Make a stored frame durable (one barrier: its shard and metadata reach the disk),
+        then set its done flag (durable at the next barrier)."""
+        _barrier(self.path, frame.written)
+        self._mark_done(frame.depth, frame.pattern)
 
     def _mark_done(self, depth: int, pattern: int) -> None:
         """Set a frame's done flag (durable at the next barrier: :meth:`flush` or a write)."""
@@ -756,6 +786,71 @@ class RunStore:
             out[p] = band[row0 - cr0 * t : r1 - cr0 * t, col0 - cc0 * t : c1 - cc0 * t]
         return Tile(depth, row0, col0, out)
 
+    def read_tile_row(self, depth: int, row0: int, col0: int, n_tiles: int,
+                      check_index: bool = False, out: np.ndarray | None = None) -> list[Tile]:
+        """``n_tiles`` tiles of the store's chunk grid (``tile_px``, clipped at the sensor's
+        edge) side by side from camera row ``row0`` and column ``col0`` (multiples of
+        ``tile_px``): all frames of ``depth`` over each, every chunk checked against its
+        crc32c (``check_index``: each shard's index too). Per frame one open and one
+        ``preadv`` that puts each chunk's pixels straight into its tile (a chunk of the shard
+        is a tile of the frame) and its crc32c beside: no copy in user space. ``out``: a
+        buffer of at least (k, patterns, tile_px, tile_px) in the camera's dtype to reuse
+        (default: a new one); the tiles' ``frames`` are views of it, contiguous (patterns,
+        rows, cols) except at the sensor's edge. The depth must be complete (the caller
+        checks)."""
+        self._check_index(depth, 0)
+        c, t = self.codec, self.codec.t
+        if row0 % t or col0 % t or not (0 <= row0 < c.h and 0 <= col0 < c.w) or n_tiles < 1:
+            raise RunStoreError(f"{self.path}: tile row at ({row0}, {col0}) x {n_tiles} is not "
+                                f"on the {t}-pixel chunk grid of the camera's {c.w} x {c.h} "
+                                "pixels")
+        cr, cc0 = row0 // t, col0 // t
+        k, n = min(n_tiles, c.nc - cc0), self.n_patterns
+        shape = (k, n, t, t)
+        if out is None:
+            out = np.empty(shape, self.dtype)
+        elif out.dtype != self.dtype or not out.flags.c_contiguous or out.size < np.prod(shape):
+            raise RunStoreError(f"{self.path}: tile buffer of {out.dtype} {out.shape} cannot "
+                                f"hold {shape} {self.dtype}")
+        out = out.reshape(-1)[: int(np.prod(shape))].reshape(shape)
+        dest = out.view(np.uint8).reshape(k, n, c.data_bytes)
+        check = _readonly(dest)
+        crcs = np.empty((k, _CRC_BYTES), np.uint8)  # the frame's chunks' stored crc32c
+        stored = crcs.view("<u4")[:, 0]
+        offset = (cr * c.nc + cc0) * c.chunk_bytes
+        nbytes = k * c.chunk_bytes
+        crc32c = google_crc32c.value
+        folder = str(self._shard_path(depth, 0).parents[2])  # frames/c/<depth>
+        for p in range(n):
+            parts = [x for i in range(k) for x in (dest[i, p], crcs[i])]
+            path = f"{folder}/{p}/0/0"
+            try:
+                fd = os.open(path, os.O_RDONLY)
+            except FileNotFoundError:
+                self._corrupt(depth, p, "is missing")
+            try:
+                size = os.fstat(fd).st_size
+                if size != c.size:
+                    self._corrupt(depth, p, f"is truncated or resized ({size} bytes, expected "
+                                            f"{c.size})")
+                if check_index and os.pread(fd, len(c.index), c.size - len(c.index)) != c.index:
+                    self._corrupt(depth, p, "has a damaged shard index")
+                if os.preadv(fd, parts, offset) != nbytes:
+                    self._corrupt(depth, p, "is truncated")
+            finally:
+                os.close(fd)
+            for i in range(k):  # while the frame's chunks are in the CPU cache
+                if crc32c(check[i, p]) != stored[i]:
+                    self._corrupt(depth, p, f"fails the crc32c of chunk {(cr, cc0 + i)} "
+                                            f"(camera rows {row0}.., columns {(cc0 + i) * t}..)")
+        th = min(t, c.h - row0)
+        tiles = []
+        for i in range(k):
+            tw = min(t, c.w - (cc0 + i) * t)
+            f = out[i] if (th, tw) == (t, t) else np.ascontiguousarray(out[i, :, :th, :tw])
+            tiles.append(Tile(depth, row0, (cc0 + i) * t, f))
+        return tiles
+
     def iter_tiles(self, depth: int, tile_px: int | None = None,
                    block_bytes: int = 256 * 2**20) -> Iterator[Tile]:
         """All frames of ``depth`` over square tiles in row-major order (edge tiles smaller),
@@ -773,6 +868,12 @@ class RunStore:
         w, h = self.camera_size
         per_tile = self.n_patterns * t * t * self.dtype.itemsize
         cols = t * max(1, block_bytes // max(per_tile, 1))
+        if t == self.tile_px:  # the store's own chunks: each read straight into its tile
+            for r0 in range(0, h, t):
+                for b0 in range(0, w, cols):
+                    yield from self.read_tile_row(depth, r0, b0, cols // t,
+                                                  check_index=r0 == 0 and b0 == 0)
+            return
         for r0 in range(0, h, t):
             for b0 in range(0, w, cols):
                 block = self._read_tile(depth, r0, b0, t, cols, check_index=r0 == 0 and b0 == 0)

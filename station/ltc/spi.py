@@ -22,13 +22,16 @@ propagates to one normalised LTC weight as
 from __future__ import annotations
 
 import datetime as _dt
+import threading
 import time
+import uuid
 from dataclasses import dataclass, fields, replace
 from functools import lru_cache
 from pathlib import Path
 
 import numba
 import numpy as np
+import scipy.fft
 from tqdm import tqdm
 
 from station.ltc.localise import lcd_coordinates
@@ -36,11 +39,11 @@ from station.ltc.parallel import Engine, run_ordered
 from station.ltc.store import (
     TILE_STATS,
     LtcStoreError,
+    TileRecords,
     centred_origins,
     create_ltc_store,
     incomplete_depths,
     mark_depth_complete,
-    mark_tile_done,
     open_ltc_store,
     write_ltc_tile,
 )
@@ -60,8 +63,8 @@ PIXELS_PER_BLOCK = 256  # pixels reconstructed at once: bounds memory whatever t
 class LtcBlock:
     """Reconstruction of n pixels.
 
-    ltc : (n, P, P) float64, normalised windows (NaN where invalid); [r, s] is LCD pixel
-        ``(origin_x + s, origin_y + r)``.
+    ltc : (n, P, P) float64 (float32, as stored, from :func:`reconstruct_tile`), normalised
+        windows (NaN where invalid); [r, s] is LCD pixel ``(origin_x + s, origin_y + r)``.
     origin : (n, 2) int32 LCD (x, y) of window element [0, 0] (0 where invalid).
     gain : (n,) response to full white, ADU.  noise : (n,) std of one LTC weight.
     lcd_xy : (n, 2) coarse LCD (x, y) from the localisation patterns.
@@ -192,39 +195,95 @@ def level_harmonics(fourier: FourierPatternSet, lut: np.ndarray | None = None) -
     return LevelHarmonics(h=h, gamma=gamma, gamma_sc=gamma_sc)
 
 
-def correct_levels(
-    spectrum: np.ndarray, fourier: FourierPatternSet, harmonics: LevelHarmonics,
-    max_iterations: int = 8, rtol: float = 1e-7,
-) -> np.ndarray:
-    """Undo the shown levels' harmonics (see :class:`LevelHarmonics`) by a fixed-point
-    (Jacobi) iteration on the regular coefficients,
-    ``G <- (G' - sum_side gamma_h G(-h k, -h l)) / gamma_main``; each iteration gains a factor
-    ``sum |gamma_side| / |gamma_main|`` (about 1e-2 for 8-bit rounding); stops when the update
-    is below ``rtol`` of every pixel's DC term (all pixels of the block iterate together).
-    spectrum (n, P, P) complex as from :func:`demodulate`; returns a corrected copy."""
+@lru_cache(maxsize=16)
+def _level_harmonics_cached(fourier: FourierPatternSet, lut: bytes | None) -> LevelHarmonics:
+    """:func:`level_harmonics` once per pattern set and LUT (float64 bytes) in a process."""
+    return level_harmonics(fourier, None if lut is None else np.frombuffer(lut, np.float64))
+
+
+def correct_levels(spectrum: np.ndarray, fourier: FourierPatternSet,
+                   harmonics: LevelHarmonics) -> np.ndarray:
+    """Undo the shown levels' harmonics (see :class:`LevelHarmonics`): solve, per pixel, the
+    linear equations ``G'(k, l) = gamma_main G(k, l) + sum_side gamma_h G(-h k, -h l)`` of the
+    regular coefficients (self-conjugate ones divided by ``gamma_sc``; ``G(-v) = conj G(v)``)
+    exactly. The solution is one fixed real-linear map of the measured coefficients, the same
+    for every pixel; it is computed once per pattern set and LUT (:func:`_level_inverse`) and
+    is sparse (a coefficient depends only on the frequencies ``c (k, l)`` for the products c of
+    the side harmonics' multipliers), so applying it costs a few multiply-adds per
+    coefficient. spectrum (n, P, P) complex as from :func:`demodulate`; returns a corrected
+    copy."""
     re, im = _to_planes(spectrum)
-    _correct_planes(re, im, fourier, harmonics, max_iterations, rtol)
+    _correct_planes(re, im, fourier, harmonics)
     return _to_spectrum(re, im, fourier.period)
 
 
 def _correct_planes(re: np.ndarray, im: np.ndarray, fourier: FourierPatternSet,
-                    harmonics: LevelHarmonics, max_iterations: int = 8,
-                    rtol: float = 1e-7) -> None:
+                    harmonics: LevelHarmonics) -> None:
     """:func:`correct_levels` in place on frequency-major planes re, im (P^2, n)."""
     t = _plan_tables(fourier)
-    big = fourier.grid
-    keep = [i for i, (h, g) in enumerate(zip(harmonics.h, harmonics.gamma))
-            if h != big - 1 and abs(g) > 1e-15]
-    target = np.ascontiguousarray(t.side_target[[int(harmonics.h[i]) for i in keep]])
-    coef = harmonics.gamma[keep].astype(np.complex128)
-    main = complex(harmonics.gamma[harmonics.h == big - 1][0])
+    op = _level_inverse(fourier, harmonics.h.tobytes(), harmonics.gamma.tobytes(),
+                        harmonics.gamma_sc)
     re[t.sc] /= harmonics.gamma_sc
     im[t.sc] /= harmonics.gamma_sc
-    dc = np.hypot(re[0], im[0])  # per pixel; dark pixels judged against a floor
-    scale = rtol * np.maximum(dc, 1e-3 * dc.max(initial=0.0) + 1e-300)
-    inv = 1.0 / main
-    _fixed_point(re, im, t.here, t.mirror, target, coef.real.copy(), coef.imag.copy(),
-                 inv.real, inv.imag, scale * scale, max_iterations if len(coef) else 0)
+    _apply_level_inverse(re, im, op.start, op.source, op.weight, t.here, t.mirror)
+
+
+@dataclass(frozen=True)
+class _LevelInverse:
+    """The exact level correction as a sparse real matrix (CSR): output row ``r`` (< m: the
+    real part of regular frequency r's estimate, else the imaginary part of ``r - m``) is
+    ``sum weight[q] x[source[q]]`` over ``q in start[r] : start[r + 1]``, where ``x[s]`` is
+    row s of the re plane (s < P^2) or row ``s - P^2`` of the im plane (after the
+    self-conjugate rows were divided by ``gamma_sc``)."""
+
+    start: np.ndarray
+    source: np.ndarray
+    weight: np.ndarray
+
+
+@lru_cache(maxsize=16)
+def _level_inverse(fourier: FourierPatternSet, h_bytes: bytes, gamma_bytes: bytes,
+                   gamma_sc: float) -> _LevelInverse:
+    """:class:`_LevelInverse` for a pattern set and its level harmonics (as bytes, hashable).
+    The map is real-linear, so its column for each plane row (a unit input there, zero
+    elsewhere) is the correction of that input: computed for all 2 P^2 unit inputs at once by
+    the Jacobi (fixed-point) iteration ``u <- (G' - sum_side gamma_h G(-h k, -h l)) /
+    gamma_main`` until it no longer changes in float64 (each step gains a factor
+    ``sum |gamma_side| / |gamma_main|`` < 0.5, checked by :func:`level_harmonics`), with
+    element-wise numpy only, so every process and machine with this numpy gets the same
+    weights bit for bit (a LAPACK inverse may vary with its thread count). Weights below
+    1e-17 of a row's largest are dropped (they change no result above float64 rounding)."""
+    t = _plan_tables(fourier)
+    h = np.frombuffer(h_bytes, dtype=np.int64)
+    gamma = np.frombuffer(gamma_bytes, dtype=np.complex128)
+    big, pp, m = fourier.grid, fourier.period ** 2, len(t.here)
+    side = [(t.side_target[int(hh)], complex(g)) for hh, g in zip(h, gamma)
+            if hh != big - 1 and abs(g) > 1e-15]
+    main = complex(gamma[h == big - 1][0])
+    x = np.zeros((pp, 2 * pp), np.complex128)  # plane rows x unit inputs (re plane, im plane)
+    x[np.arange(pp), np.arange(pp)] = 1.0
+    x[np.arange(pp), pp + np.arange(pp)] = 1j
+    measured = x[t.here]
+    est = measured / main
+    for _ in range(200 if side else 0):
+        x[t.here], x[t.mirror] = est, np.conj(est)
+        acc = measured.copy()
+        for target, g in side:
+            acc -= x[target] * g
+        new = acc / main
+        change = np.abs(new - est).max()
+        est = new
+        if change <= 1e-18:  # inputs are 1: below float64 rounding of every weight that stays
+            break
+    full = np.concatenate([est.real, est.imag])  # (2m, 2 P^2)
+    full[np.abs(full) < 1e-17 * np.abs(full).max(axis=1, keepdims=True)] = 0.0
+    nz = full != 0
+    op = _LevelInverse(
+        start=np.concatenate([[0], np.cumsum(nz.sum(axis=1))]).astype(np.int64),
+        source=np.nonzero(nz)[1].astype(np.int64), weight=full[nz].astype(np.float64))
+    for arr in (op.start, op.source, op.weight):
+        arr.flags.writeable = False
+    return op
 
 
 @dataclass(frozen=True)
@@ -255,59 +314,27 @@ def _plan_tables(fourier: FourierPatternSet) -> _PlanTables:
 
 
 @numba.njit(cache=True, nogil=True)
-def _put_estimates(re, im, est_r, est_i, here, mirror):  # pragma: no cover - compiled
-    """Write the estimates (m, n) of the regular frequencies into planes re, im (P^2, n) at
-    ``here`` and their conjugates at ``mirror``."""
-    for i in range(here.shape[0]):
-        h, mi = here[i], mirror[i]
-        for j in range(re.shape[1]):
-            re[h, j] = est_r[i, j]
-            im[h, j] = est_i[i, j]
-            re[mi, j] = est_r[i, j]
-            im[mi, j] = -est_i[i, j]
-
-
-@numba.njit(cache=True, nogil=True)
-def _fixed_point(re, im, here, mirror, target, c_re, c_im, inv_re, inv_im, lim,
-                 max_iterations):  # pragma: no cover - compiled
-    """In place on planes re, im (P^2, n): the Jacobi iteration of :func:`correct_levels`
-    (every side term read from the previous estimate), loops over pixels innermost."""
-    n, m, ns = re.shape[1], here.shape[0], c_re.shape[0]
-    meas_r, meas_i = np.empty((m, n)), np.empty((m, n))
-    est_r, est_i = np.empty((m, n)), np.empty((m, n))
-    new_r, new_i = np.empty((m, n)), np.empty((m, n))
-    acc_r, acc_i = np.empty(n), np.empty(n)
+def _apply_level_inverse(re, im, start, source, weight, here,
+                         mirror):  # pragma: no cover - compiled
+    """In place on planes re, im (P^2, n): the regular rows ``here`` (and their conjugates
+    at ``mirror``) replaced by the sparse map of :class:`_LevelInverse` of the planes."""
+    pp, n = re.shape
+    m = here.shape[0]
+    out = np.zeros((2 * m, n))
+    for r in range(2 * m):
+        o = out[r]
+        for q in range(start[r], start[r + 1]):
+            s, w = source[q], weight[q]
+            x = re[s] if s < pp else im[s - pp]
+            for j in range(n):
+                o[j] += w * x[j]
     for i in range(m):
+        h, mi = here[i], mirror[i]
         for j in range(n):
-            ar, ai = re[here[i], j], im[here[i], j]
-            meas_r[i, j], meas_i[i, j] = ar, ai
-            est_r[i, j] = ar * inv_re - ai * inv_im
-            est_i[i, j] = ar * inv_im + ai * inv_re
-    for _ in range(max_iterations):
-        _put_estimates(re, im, est_r, est_i, here, mirror)
-        converged = 0
-        for i in range(m):
-            for j in range(n):
-                acc_r[j] = meas_r[i, j]
-                acc_i[j] = meas_i[i, j]
-            for s in range(ns):
-                t, cr, ci = target[s, i], c_re[s], c_im[s]
-                for j in range(n):
-                    tr, ti = re[t, j], im[t, j]
-                    acc_r[j] -= tr * cr - ti * ci
-                    acc_i[j] -= tr * ci + ti * cr
-            for j in range(n):
-                vr = acc_r[j] * inv_re - acc_i[j] * inv_im
-                vi = acc_r[j] * inv_im + acc_i[j] * inv_re
-                dr, di = vr - est_r[i, j], vi - est_i[i, j]
-                converged += dr * dr + di * di <= lim[j]
-                new_r[i, j] = vr
-                new_i[i, j] = vi
-        est_r, new_r = new_r, est_r
-        est_i, new_i = new_i, est_i
-        if converged == m * n:
-            break
-    _put_estimates(re, im, est_r, est_i, here, mirror)
+            re[h, j] = out[i, j]
+            im[h, j] = out[m + i, j]
+            re[mi, j] = out[i, j]
+            im[mi, j] = -out[m + i, j]
 
 
 def fold(spectrum: np.ndarray) -> np.ndarray:
@@ -369,11 +396,12 @@ def unfold(folded: np.ndarray, origin: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _window(folded, origin, gain, valid):  # pragma: no cover - compiled
-    """:func:`unfold` divided by the gain, NaN where not ``valid``, and the window's outer-ring
-    mass: folded (n, P, P), origin (n, 2) int64 (x, y), gain (n,), valid (n,) bool."""
-    n, p = folded.shape[0], folded.shape[-1]
-    ltc = np.empty((n, p, p))
+def _window(folded, origin, gain, valid, ltc):  # pragma: no cover - compiled
+    """:func:`unfold` divided by the gain into ``ltc`` (n, P, P), float64 or float32 (each
+    value computed in float64, then rounded), NaN where not ``valid``; returns the windows'
+    outer-ring masses (n,) float64: folded (P, P, n) pixel-minor (as the batched inverse DFT
+    leaves it), origin (n, 2) int64 (x, y), gain (n,), valid (n,) bool."""
+    p, n = folded.shape[0], folded.shape[2]
     ring = np.empty(n)
     for j in range(n):
         if not valid[j]:
@@ -383,14 +411,14 @@ def _window(folded, origin, gain, valid):  # pragma: no cover - compiled
         ox, oy, g = origin[j, 0] % p, origin[j, 1] % p, gain[j]
         edge = 0.0
         for r in range(p):
-            src = folded[j, (oy + r) % p]
+            yy = (oy + r) % p
             for c in range(p):
-                v = src[(ox + c) % p] / g
+                v = folded[yy, (ox + c) % p, j] / g
                 ltc[j, r, c] = v
                 if r == 0 or r == p - 1 or c == 0 or c == p - 1:
                     edge += v
         ring[j] = edge
-    return ltc, ring
+    return ring
 
 
 def reconstruct_frames(
@@ -408,27 +436,41 @@ def reconstruct_frames(
     d = np.asarray(frames)
     if d.ndim != 2 or d.shape[0] != len(plan):
         raise ValueError(f"frames must be (patterns={len(plan)}, pixels), got {d.shape}")
+    harmonics = level_harmonics(plan.fourier, lut) if level_correction else None
+    return _reconstruct_block(d, plan, harmonics, lcd_coordinates(d, plan).xy, min_snr,
+                              min_harmonic)
+
+
+def _reconstruct_block(d: np.ndarray, plan: StationPatternPlan,
+                       harmonics: LevelHarmonics | None, lcd_xy: np.ndarray, min_snr: float,
+                       min_harmonic: float, ltc: np.ndarray | None = None) -> LtcBlock:
+    """:func:`reconstruct_frames` of frames d (patterns, n) given the level harmonics (None:
+    no level correction) and the decoded localisation ``lcd_xy`` (n, 2), both per pixel
+    independent of the block, so a tile computes them once; ``ltc`` (n, P, P): where to put
+    the windows (float32 for the store: the float64 values rounded once), default new
+    float64."""
     f = plan.fourier
     p = f.period
     re, im, means = _demodulate(d, plan)
-    if level_correction:
-        _correct_planes(re, im, f, level_harmonics(f, lut))
+    if harmonics is not None:
+        _correct_planes(re, im, f, harmonics)
     gain = re[0].copy()
     sigma_d = _noise_from_means(means, f.steps)
-    lmap = lcd_coordinates(d, plan)
-    centre = _refine(gain, re[1] + 1j * im[1], re[p] + 1j * im[p], p, lmap.xy, min_harmonic)
+    centre = _refine(gain, re[1] + 1j * im[1], re[p] + 1j * im[p], p, lcd_xy, min_harmonic)
     valid = (gain > 0) & (gain > min_snr * sigma_d / (np.sqrt(2.0) * f.amplitude))
     valid &= np.all(np.isfinite(centre), axis=1)
     origin = centred_origins(np.where(valid[:, None], centre, 0.0), f.period)
     origin[~valid] = 0
     q = p // 2 + 1  # the non-negative k half is all the real inverse DFT reads
-    half = np.empty((re.shape[1], p, q), dtype=np.complex128)
-    half.real = re.reshape(p, p, -1)[:, :q].transpose(2, 0, 1)
-    half.imag = im.reshape(p, p, -1)[:, :q].transpose(2, 0, 1)
-    folded = np.fft.irfft2(half, s=(p, p), axes=(-2, -1))
-    ltc, ring = _window(folded, origin.astype(np.int64), gain, valid)
+    half = np.empty((p, q, re.shape[1]), dtype=np.complex128)  # frequency-major, no transpose
+    half.real = re.reshape(p, p, -1)[:, :q]
+    half.imag = im.reshape(p, p, -1)[:, :q]
+    folded = scipy.fft.irfft2(half, s=(p, p), axes=(0, 1), overwrite_x=True)  # (P, P, n)
+    if ltc is None:
+        ltc = np.empty((len(gain), p, p))
+    ring = _window(folded, origin.astype(np.int64), gain, valid, ltc)
     return LtcBlock(ltc=ltc, origin=origin, gain=gain, noise=ltc_noise(sigma_d, gain, f),
-                    lcd_xy=lmap.xy, valid=valid, edge_mass=ring)
+                    lcd_xy=lcd_xy, valid=valid, edge_mass=ring)
 
 
 def reconstruct_tile(
@@ -436,15 +478,25 @@ def reconstruct_tile(
     code_mask: np.ndarray,
 ) -> tuple[LtcBlock, np.ndarray]:
     """One camera tile: frames (patterns, th, tw) -> its :class:`LtcBlock` (th * tw pixels,
-    row-major; pixels in ``code_mask`` (th, tw) excluded) and its statistics
+    row-major, ``ltc`` float32 as stored; pixels in ``code_mask`` (th, tw) excluded) and its
+    statistics
     (``station.ltc.store.TILE_STATS``). Pure: every engine computes tiles with it."""
     _, th, tw = frames.shape
     flat = frames.reshape(len(plan), th * tw)
-    out: dict[str, np.ndarray] = {}
+    harmonics = _level_harmonics_cached(plan.fourier, None if lut is None else
+                                        np.asarray(lut, np.float64).tobytes())
+    lcd_xy = lcd_coordinates(flat, plan).xy
+    p = plan.fourier.period
+    out: dict[str, np.ndarray] = {"ltc": np.empty((th * tw, p, p), np.float32)}
     for i in range(0, th * tw, PIXELS_PER_BLOCK):
-        part = reconstruct_frames(flat[:, i : i + PIXELS_PER_BLOCK], plan, lut=lut,
-                                  min_snr=min_snr)
+        # contiguous: the compiled demodulation runs 2-4x faster on it than on the strided
+        # slice (measured; the copy costs ~0.2 us per pixel)
+        block = np.ascontiguousarray(flat[:, i : i + PIXELS_PER_BLOCK])
+        part = _reconstruct_block(block, plan, harmonics, lcd_xy[i : i + PIXELS_PER_BLOCK],
+                                  min_snr, 0.05, out["ltc"][i : i + PIXELS_PER_BLOCK])
         for fld in fields(LtcBlock):
+            if fld.name == "ltc":  # written in place
+                continue
             v = getattr(part, fld.name)
             if fld.name not in out:
                 out[fld.name] = np.empty((th * tw,) + v.shape[1:], dtype=v.dtype)
@@ -461,25 +513,55 @@ def reconstruct_tile(
     return blk, stats
 
 
+BAND_BYTES = 64 * 2**20  # frames a worker reads at once (one band of tiles side by side)
+
 _OPEN_STORES: dict[str, object] = {}  # per worker process: LTC stores opened for writing
+_RUN_STORES: dict[str, tuple[str, RunStore]] = {}  # per worker process: run path -> (token, store)
+_BUFFERS = threading.local()  # per worker thread: the band buffer, reused from band to band
 
 
-def _tile_job(frames: np.ndarray, plan: StationPatternPlan, lut: np.ndarray | None,
-              min_snr: float, code_mask: np.ndarray, out_path: str, depth: int, row0: int,
-              col0: int) -> np.ndarray:
-    """Reconstruct one tile and write it into the LTC store at ``out_path`` (run by a worker,
-    or in process); returns the tile's statistics. The caller marks the tile done."""
+def _band_job(run_path: str, token: str, depth: int, row0: int, col0: int, n_tiles: int,
+              tile_px: int, todo: list[int], plan: StationPatternPlan, lut: np.ndarray | None,
+              min_snr: float, code_mask: np.ndarray, out_path: str) -> list[np.ndarray]:
+    """Read one band of tiles (``n_tiles`` of ``tile_px`` side by side from camera pixel
+    (row0, col0)) from the run store and reconstruct and write the tiles at band indices
+    ``todo``; returns their statistics in that order. Run by a worker (or in process): the
+    frames go from the store to the worker without passing through the caller. ``token``
+    names one reconstruction, so a store reopened at the same path is never a stale one.
+    code_mask : (rows, cols) bool over the band."""
     import zarr
 
+    held = _RUN_STORES.get(run_path)
+    if held is None or held[0] != token:
+        held = _RUN_STORES[run_path] = (token, RunStore.open(run_path))
+    store = held[1]
     out = _OPEN_STORES.get(out_path)
     if out is None:
         out = _OPEN_STORES[out_path] = zarr.open_group(out_path, mode="r+")
-    _, th, tw = frames.shape
+    if tile_px == store.tile_px:
+        shape = (n_tiles, store.n_patterns, tile_px, tile_px)
+        buf = getattr(_BUFFERS, "frames", None)
+        if buf is None or buf.dtype != store.dtype or buf.size < np.prod(shape):
+            buf = _BUFFERS.frames = np.empty(shape, store.dtype)
+        tiles = store.read_tile_row(depth, row0, col0, n_tiles,
+                                    check_index=row0 == 0 and col0 == 0, out=buf)
+    else:
+        w, _ = store.camera_size
+        tiles = [store.read_tile(depth, row0, c0, tile_px, tile_px,
+                                 check_index=row0 == 0 and c0 == 0)
+                 for c0 in range(col0, min(col0 + n_tiles * tile_px, w), tile_px)]
     p = plan.fourier.period
-    blk, stats = reconstruct_tile(frames, plan, lut, min_snr, code_mask)
-    write_ltc_tile(out, depth, row0, col0, ltc=blk.ltc.reshape(th, tw, p, p),
-                   origin=blk.origin.reshape(th, tw, 2), gain=blk.gain.reshape(th, tw),
-                   noise=blk.noise.reshape(th, tw), lcd_xy=blk.lcd_xy.reshape(th, tw, 2))
+    stats = []
+    for i in todo:
+        tile = tiles[i]
+        _, th, tw = tile.frames.shape
+        c0 = tile.col0 - col0
+        blk, st = reconstruct_tile(tile.frames, plan, lut, min_snr,
+                                   code_mask[:th, c0 : c0 + tw])
+        write_ltc_tile(out, depth, tile.row0, tile.col0, ltc=blk.ltc.reshape(th, tw, p, p),
+                       origin=blk.origin.reshape(th, tw, 2), gain=blk.gain.reshape(th, tw),
+                       noise=blk.noise.reshape(th, tw), lcd_xy=blk.lcd_xy.reshape(th, tw, 2))
+        stats.append(st)
     return stats
 
 
@@ -498,7 +580,9 @@ def reconstruct(
         default every core in local processes; 1 in this process; ``dask`` a Dask
         LocalCluster of ``workers`` processes; ``scheduler`` an existing Dask cluster.
         Every engine gives bit-identical stores.
-    Tiles are read in order here (at the disk's pace) while the workers compute and write.
+    Each worker reads its bands of tiles (``BAND_BYTES`` of frames, one open and read per
+    frame) straight from the run store, then computes and writes them: only tile positions
+    and statistics pass through this process, and the reads run on every worker at once.
     Returns a JSON-able summary; per-depth statistics come from the store's per-tile
     records (``tile_stats``), so a resumed run reports what an uninterrupted one does.
     """
@@ -526,8 +610,12 @@ def reconstruct(
                    "software": software_versions(),
                    "created": _dt.datetime.now(_dt.timezone.utc).isoformat()},
         )
-    done = np.asarray(out["tile_done"][...])
+    records = TileRecords(out)
+    done = records.done.copy()
     n_left = int((~done).sum())
+    per_tile = len(plan) * t * t * store.dtype.itemsize
+    band = max(1, BAND_BYTES // per_tile)  # tiles a worker reads and computes per task
+    token = uuid.uuid4().hex
     px_done = [0]
     with Engine(workers, dask=dask, scheduler=scheduler) as engine, \
             tqdm(total=done.size, initial=done.size - n_left, desc="reconstruct", unit="tile",
@@ -541,20 +629,24 @@ def reconstruct(
             code_mask = store.code_mask(di)
 
             def tasks(di=di, code_mask=code_mask):
-                for tile in store.iter_tiles(di, t):
-                    tr, tc = tile.row0 // t, tile.col0 // t
-                    if done[di, tr, tc]:
-                        continue
-                    _, th, tw = tile.frames.shape
-                    px_done[0] += th * tw
-                    cm = code_mask[tile.row0 : tile.row0 + th, tile.col0 : tile.col0 + tw]
-                    yield ((di, tr, tc), _tile_job,
-                           (tile.frames, plan, lut, float(min_snr), cm, str(out_path), di,
-                            tile.row0, tile.col0))
+                for r0 in range(0, h, t):
+                    tr = r0 // t
+                    for b0 in range(0, w, band * t):
+                        n = min(band, -(-(w - b0) // t))
+                        todo = [i for i in range(n) if not done[di, tr, b0 // t + i]]
+                        if not todo:
+                            continue
+                        for i in todo:
+                            px_done[0] += min(t, h - r0) * min(t, w - b0 - i * t)
+                        cm = np.ascontiguousarray(code_mask[r0 : r0 + t, b0 : b0 + n * t])
+                        yield ((di, tr, [b0 // t + i for i in todo]), _band_job,
+                               (str(store.path), token, di, r0, b0, n, t, todo, plan, lut,
+                                float(min_snr), cm, str(out_path)))
 
             def finished(key, stats) -> None:
-                mark_tile_done(out, *key, stats)
-                bar.update(1)
+                di_, tr, cols = key
+                records.mark(di_, tr, cols, stats)
+                bar.update(len(cols))
 
             run_ordered(engine, tasks(), finished)
             mark_depth_complete(out, di)

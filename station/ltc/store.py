@@ -21,7 +21,7 @@ Layout (ARCHITECTURE.md, issue 3):
   depth), set True once every tile of the depth is done. Readers of a whole store
   (``open_ltc_volume``) refuse one with an incomplete depth, naming it.
 
-Writing: ``create_ltc_store``, ``write_ltc_tile``, ``mark_tile_done`` and
+Writing: ``create_ltc_store``, ``write_ltc_tile``, ``mark_tile_done`` (``TileRecords``) and
 ``mark_depth_complete``. Reading for the lens derivation: ``open_ltc_volume`` gives an
 ``LtcVolume`` that reads camera rows on demand.
 """
@@ -38,6 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 import zarr
 
+from station.acquisition.run_store import _create
 from station.acquisition.store_attrs import LtcStoreAttrs, check_attrs, open_zarr_group
 
 FORMAT = "ltc-store"
@@ -78,11 +79,16 @@ def create_ltc_store(
     # about as much as the tile's reconstruction (benchmarks/README.md, issue 13)
     g.create_array("ltc", shape=(d, h, w, period, period), chunks=t + (period, period),
                    dtype="float32", fill_value=np.nan, compressors=None)
-    g.create_array("origin", shape=(d, h, w, 2), chunks=t + (2,), dtype="int32", fill_value=0)
-    g.create_array("gain", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan)
-    g.create_array("noise", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan)
+    # the per-pixel scalars too (1 % of the store): every tile's chunks are then written as
+    # plain files (``_write_raw_chunk``), 20 ms less per tile than four zarr writes
+    g.create_array("origin", shape=(d, h, w, 2), chunks=t + (2,), dtype="int32", fill_value=0,
+                   compressors=None)
+    g.create_array("gain", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan,
+                   compressors=None)
+    g.create_array("noise", shape=(d, h, w), chunks=t, dtype="float32", fill_value=np.nan,
+                   compressors=None)
     g.create_array("lcd_xy", shape=(d, h, w, 2), chunks=t + (2,), dtype="float32",
-                   fill_value=np.nan)
+                   fill_value=np.nan, compressors=None)
     tiles = (-(-h // t[1]), -(-w // t[2]))
     # completion records: small, one chunk per depth, rewritten whole (atomically) per tile
     g.create_array("tile_done", shape=(d,) + tiles, chunks=(1,) + tiles, dtype="bool",
@@ -135,6 +141,29 @@ def mark_tile_done(group: zarr.Group, depth: int, tile_row: int, tile_col: int,
     group["tile_done"][depth, tile_row, tile_col] = True
 
 
+class TileRecords:
+    """The completion records (``tile_stats``, ``tile_done``) of an LTC store held by its one
+    writer: read once, then each :meth:`mark` rewrites the depth's two chunks (statistics
+    first, then done flags; each chunk file written whole and renamed into place, as zarr
+    writes it) without reading them back."""
+
+    def __init__(self, group: zarr.Group) -> None:
+        self.group = group
+        self.stats = np.asarray(group["tile_stats"][...], dtype=np.float64)
+        self.done = np.asarray(group["tile_done"][...], dtype=bool)
+
+    def mark(self, depth: int, tile_row: int, tile_cols: list[int],
+             stats: list[np.ndarray]) -> None:
+        """Record written tiles of one tile row: their statistics, then their done flags."""
+        cols = np.asarray(tile_cols, dtype=np.int64)
+        self.stats[depth, tile_row, cols] = np.asarray(stats, np.float64).reshape(len(cols), -1)
+        self.done[depth, tile_row, cols] = True
+        for name, values in (("tile_stats", self.stats), ("tile_done", self.done)):
+            arr = self.group[name]
+            if not _write_raw_chunk(self.group, arr, depth, 0, 0, values[depth]):
+                arr[depth] = values[depth]
+
+
 def mark_depth_complete(group: zarr.Group, depth: int, all_tiles: bool = False) -> None:
     """Mark a depth complete; refused unless every one of its tiles is done.
     all_tiles : first mark every tile done (a writer that filled the whole depth at once)."""
@@ -185,7 +214,47 @@ def write_ltc_tile(
                                 f"expected one of {ARRAYS + OPTIONAL_ARRAYS}")
         arr = group[name]
         v = np.asarray(value)
-        arr[depth, row0 : row0 + v.shape[0], col0 : col0 + v.shape[1]] = v.astype(arr.dtype)
+        if not _write_raw_chunk(group, arr, depth, row0, col0, v):
+            arr[depth, row0 : row0 + v.shape[0], col0 : col0 + v.shape[1]] = v.astype(arr.dtype)
+
+
+def _write_raw_chunk(group: zarr.Group, arr: zarr.Array, depth: int, row0: int, col0: int,
+                     v: np.ndarray) -> bool:
+    """Write ``v`` as the one whole chunk ``arr[depth, row0:, col0:]`` it covers, as the file
+    zarr would write (uncompressed little-endian bytes, edge chunks padded with the fill
+    value, written to a temporary name and renamed, as the run store writes its files), when
+    the array is stored that way on a local folder and ``v`` is exactly one chunk (clipped at
+    the sensor's edge); else False. 3x faster than zarr's write path for the ``ltc`` array
+    (9.4 MB per 64 x 64 tile at P = 24)."""
+    from zarr.codecs import BytesCodec
+    from zarr.codecs.bytes import Endian
+    from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
+    from zarr.storage import LocalStore
+
+    chunks, shape = tuple(arr.chunks), tuple(arr.shape)
+    enc = arr.metadata.chunk_key_encoding
+    if not (isinstance(group.store, LocalStore) and arr.compressors == () and arr.filters == ()
+            and isinstance(arr.serializer, BytesCodec)
+            and arr.serializer.endian in (None, Endian.little)
+            and isinstance(enc, DefaultChunkKeyEncoding) and enc.separator == "/"):
+        return False
+    th, tw = v.shape[:2]
+    ch, cw = chunks[1], chunks[2]
+    if chunks[0] != 1 or chunks[3:] != shape[3:] or v.shape[2:] != shape[3:] or \
+            row0 % ch or col0 % cw or th != min(ch, shape[1] - row0) or \
+            tw != min(cw, shape[2] - col0):
+        return False
+    dtype = np.dtype(arr.dtype).newbyteorder("<")
+    if (th, tw) == (ch, cw):
+        data = np.ascontiguousarray(v, dtype)
+    else:
+        data = np.full(chunks[1:], arr.fill_value, dtype)
+        data[:th, :tw] = v
+    key = [depth, row0 // ch, col0 // cw] + [0] * (len(shape) - 3)
+    path = Path(group.store.root) / arr.path / "c" / "/".join(str(k) for k in key)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _create(path, [data])  # the run store's atomic file write (an OSError names the file)
+    return True
 
 
 def windows_from_sparse(

@@ -264,14 +264,14 @@ def test_writer_queue_gives_the_frames_of_the_serial_path(tmp_path):
 def test_a_writer_error_stops_the_run_with_one_error_and_keeps_what_is_done(tmp_path,
                                                                             monkeypatch):
     config = parse_config(one_depth_text(), "<one>")
-    real = RunStore.write_frame
+    real = RunStore.store_encoded
 
-    def full_disk(self, depth, pattern, image, meta):
-        if pattern == 4:
+    def full_disk(self, frame):
+        if frame.pattern == 4:
             raise OSError(errno.ENOSPC, "No space left on device", str(self.path))
-        real(self, depth, pattern, image, meta)
+        return real(self, frame)
 
-    monkeypatch.setattr(RunStore, "write_frame", full_disk)
+    monkeypatch.setattr(RunStore, "store_encoded", full_disk)
     out = tmp_path / "run.zarr"
     with pytest.raises(AcquisitionError, match=r"run\.zarr: could not write frame \(depth 0, "
                                                r"pattern 4\): .*no space left on device; free "

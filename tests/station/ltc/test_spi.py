@@ -218,7 +218,9 @@ def test_level_model_refuses_a_lut_that_flattens_the_patterns():
 def _reference_reconstruction(frames, plan, lut=None, min_snr=10.0, min_harmonic=0.05):
     """The numpy formulas the compiled reconstruction replaced (einsum demodulation, the
     Jacobi level correction on whole frequency rows, complex inverse FFT, fancy-index
-    unfolding): ltc, origin, gain, noise, edge mass."""
+    unfolding): ltc, origin, gain, noise, edge mass. The Jacobi iteration runs to float64
+    rounding (the compiled path solves the level equations exactly; a Jacobi stopped at 1e-7
+    of the DC term differs from it by ~1e-10 of the LTC peak)."""
     from station.ltc.spi import level_harmonics, ltc_noise, refine_centre
     from station.ltc.store import centred_origins
 
@@ -245,8 +247,8 @@ def _reference_reconstruction(frames, plan, lut=None, min_snr=10.0, min_harmonic
     measured = s[here]
     est = measured / main
     dc = np.abs(s[0])
-    scale = 1e-7 * np.maximum(dc, 1e-3 * dc.max(initial=0.0) + 1e-300)
-    for _ in range(8 if side else 0):
+    scale = 1e-15 * np.maximum(dc, 1e-3 * dc.max(initial=0.0) + 1e-300)
+    for _ in range(60 if side else 0):
         s[here], s[mirror] = est, np.conj(est)
         acc = measured.copy()
         for target, g in side:
