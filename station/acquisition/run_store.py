@@ -201,8 +201,9 @@ def _new_file(path: Path) -> Iterator[int]:
         raise
 
 
-def _create(path: Path, parts: list) -> None:
-    """Write a new file of ``parts`` atomically (:func:`_new_file`)."""
+def write_new_file(path: Path, parts: list) -> None:
+    """Write a new file of ``parts`` (bytes-like) atomically: a temporary name, then a rename
+    (:func:`_new_file`); an OSError names the file."""
     with _new_file(path) as fd:
         _write(path, fd, parts)
 
@@ -656,7 +657,7 @@ class RunStore:
             chunk = np.full(n, fill, dtype)
             chunk[pattern] = value
             path.parent.mkdir(parents=True, exist_ok=True)
-            _create(path, [chunk])
+            write_new_file(path, [chunk])
             return path
         try:
             size = os.fstat(fd).st_size

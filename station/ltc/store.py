@@ -38,7 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 import zarr
 
-from station.acquisition.run_store import _create
+from station.acquisition.run_store import write_new_file
 from station.acquisition.store_attrs import LtcStoreAttrs, check_attrs, open_zarr_group
 
 FORMAT = "ltc-store"
@@ -253,7 +253,7 @@ def _write_raw_chunk(group: zarr.Group, arr: zarr.Array, depth: int, row0: int, 
     key = [depth, row0 // ch, col0 // cw] + [0] * (len(shape) - 3)
     path = Path(group.store.root) / arr.path / "c" / "/".join(str(k) for k in key)
     path.parent.mkdir(parents=True, exist_ok=True)
-    _create(path, [data])  # the run store's atomic file write (an OSError names the file)
+    write_new_file(path, [data])  # atomic; an OSError names the file
     return True
 
 
