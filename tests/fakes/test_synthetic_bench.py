@@ -41,7 +41,7 @@ def test_response_matches_a_brute_force_integral_of_the_ltc() -> None:
     plan = StationPatternPlan.for_lcd(LCD, 24, 4)
     # every localisation pattern (Gray code and phase-shift stripes), the four phase steps of
     # two low frequencies (k, l) (the high ones are blurred flat), and one more
-    picks = list(range(25)) + [73, 74, 75, 76, 169, 170, 171, 172, 600]
+    picks = list(range(25)) + [73, 74, 75, 76, 169, 170, 171, 172, 300, 600, 901, 1100]
     for z_mm in (60.0, 260.0):
         for i in picks:
             img = plan.image(i, LCD)
