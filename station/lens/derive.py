@@ -91,6 +91,40 @@ def _row_blocks(pixels: np.ndarray, width: int,
         start = stop
 
 
+def local_ray_centres(geom: LensGeometry, pixels: np.ndarray, radius_px: int) -> np.ndarray:
+    """Principal rays of the given flat pixels on the optical centre's plane, minus the
+    centre (n, 2) mm, station frame: a weighted local-plane fit (``a + b du + c dv``,
+    weights ``1 / var``) over the usable pixels within ``radius_px`` (a square window), so
+    the per-pixel noise of the ray (centroid noise magnified ~4x by the extrapolation from
+    the LCD depths to the centre) averages out while linear field trends pass unbiased, also
+    at the sensor's border. ``radius_px = 0``: each pixel's own ray. Pixels with no usable
+    ray in their window keep their own (possibly unusable) ray."""
+    rays = geom.rays
+    zc = float(geom.centre.position[2])
+    own = rays.xy_at(zc) - geom.centre.position[:2]
+    pixels = np.asarray(pixels, dtype=np.int64)
+    if radius_px <= 0:
+        return own[pixels]
+    w, h = geom.camera_size
+    r = np.arange(-radius_px, radius_px + 1)
+    du, dv = (a.ravel() for a in np.meshgrid(r, r))
+    u = pixels[:, None] % w + du[None]
+    v = pixels[:, None] // w + dv[None]
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    q = np.where(inside, v * w + u, 0)
+    var = rays.var_at(zc)
+    ok = inside & rays.usable[q] & np.isfinite(own[q]).all(-1) & (var[q] > 0)
+    wt = np.where(ok, 1.0 / np.where(ok, var[q], 1.0), 0.0)
+    a = np.stack([np.ones(q.shape), np.broadcast_to(du, q.shape),
+                  np.broadcast_to(dv, q.shape)], axis=-1).astype(np.float64)
+    ata = np.einsum("nm,nmi,nmj->nij", wt, a, a)
+    atb = np.einsum("nm,nmi,nmk->nik", wt, a, np.where(ok[..., None], own[q], 0.0))
+    good = np.linalg.det(ata) > 1e-12 * np.maximum(ata[:, 0, 0], 1e-300) ** 3
+    ata[~good] = np.eye(3)
+    coef = np.linalg.solve(ata, atb)
+    return np.where(good[:, None], coef[:, 0], own[pixels])
+
+
 def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
                  pixels: np.ndarray, cfg: LensFitConfig | None = None,
                  keep_depths: bool = False, progress: bool = False,
@@ -121,7 +155,6 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
     coverage = np.zeros((n, d))
     fused = np.zeros((n, g, g)) if keep_fused else None
     mean, cov = np.zeros((n, 2)), np.zeros((n, 2, 2))
-    at_centre = rays.xy_at(zc) - geom.centre.position[:2]
     mom = c.moments_px2.reshape(d, -1, 3)
     blocks = list(_row_blocks(pixels, w_cam, rows_per_read(volume)))
     for r0, r1, sel in tqdm(blocks, desc="lens: aperture", unit="block",
@@ -137,6 +170,7 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
             pix = pixels[idx]
             loc = pix - r0 * w_cam
             m_all = np.zeros((len(idx), d, g, g))
+            a_c = local_ray_centres(geom, pix, cfg.ray_window_px)
             for i in range(d):
                 used = rays.used[i, pix] & rays.usable[pix]
                 if not used.any():
@@ -144,9 +178,14 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
                 h = ltc[i, loc].astype(np.float64)
                 st = window_stats(np.where(used[:, None, None], h, np.nan), noise[i, loc])
                 hh = np.where(st.region, h, 0.0)
+                # each depth's LTC is placed by its own centroid onto the principal ray at
+                # the centre's plane: the depths' noisy residuals (x |s_i| ~ 5 at the
+                # extreme depths) neither shift nor blur the fused distribution
                 at_depth = rays.xy_ref[pix] + rays.slope[pix] * (c.depths_mm[i]
                                                                  - rays.z_ref[pix])[:, None]
-                m = ap.resample(hh, origin[i, loc], at_depth, at_centre[pix], s[i], c.pitch_mm,
+                own = (st.centroid + origin[i, loc]) * c.pitch_mm
+                at_depth = np.where(np.isfinite(own), own, at_depth)
+                m = ap.resample(hh, origin[i, loc], at_depth, a_c, s[i], c.pitch_mm,
                                 grid, rot2, cfg.supersample)
                 cov_i = m.sum(axis=(1, 2))
                 coverage[idx, i] = np.where(used, cov_i, 0.0)
@@ -167,7 +206,10 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
             if per_depth is not None:
                 per_depth[idx] = m_all
             ok_c = wd.sum(axis=1) > 0
-            mean_c, cov_c = _moments(fz, wd, ok_c, grid, c.pitch_mm * s, fp * s, cfg.deblur)
+            _, cov_c = _moments(fz, wd, ok_c, grid, c.pitch_mm * s, fp * s, cfg.deblur)
+            # the samples' centroid is the principal ray on the centre's plane (camera axes):
+            # the fit over all depths and the pixel's neighbours, not the fused grid's mean
+            mean_c = a_c @ rot2.T
             mean[idx], cov[idx] = mean_c, cov_c
             if on_chunk is not None:
                 on_chunk(idx, fz, ok_c, mean_c, cov_c)
