@@ -4,6 +4,14 @@ This module's line: given the ``LensGeometry`` (``station.lens.geometry``: princ
 optical centre -> focus plane), it takes every node pixel's LTC at each depth, scales it onto
 the aperture plane at the optical centre and fuses the depths (``station.lens.aperture``),
 draws K samples per node and writes the lens model (``sim.optics.measured_lens``).
+
+Each depth's LTC is placed on the aperture plane by its own centroid, and the samples'
+centroid is the pixel's principal ray on the optical centre's plane, fitted as a local plane
+over the pixels within ``ray_window_px`` (``local_ray_centres``). One pixel's ray is only
+as good as its centroids extrapolated ~4x from the LCD depths to the centre (~150 um RMS on
+the experiment's benches), and the fused distribution's own mean adds each depth's residual
+times ``|s_i|`` (~5 at the extreme depths): the samples' centroids were ~300-400 um RMS off
+the true lens's, ~30 um with both changes (``benchmarks/README.md``).
 ``derive_lens`` runs the whole chain from an LTC volume.
 
 Nodes: every ``grid_step``-th pixel in u and v, plus the last column and row. A node without
@@ -91,38 +99,47 @@ def _row_blocks(pixels: np.ndarray, width: int,
         start = stop
 
 
-def local_ray_centres(geom: LensGeometry, pixels: np.ndarray, radius_px: int) -> np.ndarray:
-    """Principal rays of the given flat pixels on the optical centre's plane, minus the
-    centre (n, 2) mm, station frame: a weighted local-plane fit (``a + b du + c dv``,
-    weights ``1 / var``) over the usable pixels within ``radius_px`` (a square window), so
-    the per-pixel noise of the ray (centroid noise magnified ~4x by the extrapolation from
-    the LCD depths to the centre) averages out while linear field trends pass unbiased, also
-    at the sensor's border. ``radius_px = 0``: each pixel's own ray. Pixels with no usable
-    ray in their window keep their own (possibly unusable) ray."""
-    rays = geom.rays
-    zc = float(geom.centre.position[2])
-    own = rays.xy_at(zc) - geom.centre.position[:2]
+def local_plane_fit(values: np.ndarray, var: np.ndarray, ok: np.ndarray,
+                    camera_size: tuple[int, int], pixels: np.ndarray,
+                    radius_px: int) -> np.ndarray:
+    """Per-pixel ``values`` (N, k) (flat pixel order, variance ``var`` (N,), ``ok`` (N,)
+    usable) at the given flat pixels (n,), as a weighted local-plane fit (``a + b du + c dv``,
+    weights ``1 / var``) over the usable pixels within ``radius_px`` (a square window): the
+    pixels' noise averages out while linear field trends pass unbiased, also at the
+    sensor's border. ``radius_px = 0`` or no usable pixel in the window: the pixel's own
+    value. Returns (n, k)."""
     pixels = np.asarray(pixels, dtype=np.int64)
     if radius_px <= 0:
-        return own[pixels]
-    w, h = geom.camera_size
+        return values[pixels]
+    w, h = camera_size
     r = np.arange(-radius_px, radius_px + 1)
     du, dv = (a.ravel() for a in np.meshgrid(r, r))
     u = pixels[:, None] % w + du[None]
     v = pixels[:, None] // w + dv[None]
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     q = np.where(inside, v * w + u, 0)
-    var = rays.var_at(zc)
-    ok = inside & rays.usable[q] & np.isfinite(own[q]).all(-1) & (var[q] > 0)
-    wt = np.where(ok, 1.0 / np.where(ok, var[q], 1.0), 0.0)
+    good = inside & ok[q] & np.isfinite(values[q]).all(-1) & (var[q] > 0)
+    wt = np.where(good, 1.0 / np.where(good, var[q], 1.0), 0.0)
     a = np.stack([np.ones(q.shape), np.broadcast_to(du, q.shape),
                   np.broadcast_to(dv, q.shape)], axis=-1).astype(np.float64)
     ata = np.einsum("nm,nmi,nmj->nij", wt, a, a)
-    atb = np.einsum("nm,nmi,nmk->nik", wt, a, np.where(ok[..., None], own[q], 0.0))
-    good = np.linalg.det(ata) > 1e-12 * np.maximum(ata[:, 0, 0], 1e-300) ** 3
-    ata[~good] = np.eye(3)
+    atb = np.einsum("nm,nmi,nmk->nik", wt, a, np.where(good[..., None], values[q], 0.0))
+    solvable = np.linalg.det(ata) > 1e-12 * np.maximum(ata[:, 0, 0], 1e-300) ** 3
+    ata[~solvable] = np.eye(3)
     coef = np.linalg.solve(ata, atb)
-    return np.where(good[:, None], coef[:, 0], own[pixels])
+    return np.where(solvable[:, None], coef[:, 0], values[pixels])
+
+
+def local_ray_centres(geom: LensGeometry, pixels: np.ndarray, radius_px: int) -> np.ndarray:
+    """Principal rays of the given flat pixels on the optical centre's plane, minus the
+    centre (n, 2) mm, station frame, by ``local_plane_fit`` over ``radius_px``: the ray's
+    per-pixel noise (centroid noise magnified ~4x by the extrapolation from the LCD depths
+    to the centre) averages out."""
+    rays = geom.rays
+    zc = float(geom.centre.position[2])
+    own = rays.xy_at(zc) - geom.centre.position[:2]
+    return local_plane_fit(own, rays.var_at(zc), rays.usable, geom.camera_size, pixels,
+                           radius_px)
 
 
 def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
