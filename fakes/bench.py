@@ -17,6 +17,7 @@ The stage moves the camera away from the LCD as its reading grows:
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
@@ -60,6 +61,10 @@ class BenchConfig(BenchGeometry):
         (0.0, 0.0), description="optical centre offset from the LCD centre along LCD x, y, mm"
     )
     pupil_samples: int = Field(400, ge=1, description="pupil samples for the exact LTC")
+    pupil_edge: Literal["hard", "soft"] = Field(
+        "hard", description="how the pupil samples meet the vignetting circle "
+        "(sim.optics.lens.AberratedLens.edge): 'soft' converges with far fewer samples, so the "
+        "LTC is the lens's own and not its sampling's (the experiment's benches use it)")
     subpixels: int = Field(3, ge=1, description="pixel area sampled on an n x n grid")
 
     @model_validator(mode="after")
@@ -111,6 +116,7 @@ class FakeBench:
             spherical_mm=c.spherical_mm,
             coma_mm=c.coma_mm,
             samples=c.pupil_samples,
+            edge=c.pupil_edge,
         )
 
     @property

@@ -239,11 +239,14 @@ def gaussian_equivalent(lens: MeasuredLens, samples: int | None = None) -> Gauss
 
 
 def smoothed_lens(lens: MeasuredLens, sigma_nodes: float) -> MeasuredLens:
-    """The lens with its per-node samples averaged over neighbouring nodes (a Gaussian of
-    ``sigma_nodes`` node spacings, edges held): sample k is the same part of the aperture at
-    every node, so this removes the station's node-to-node measurement noise (sample
-    positions, weights, transmittance) while keeping the slow field dependence (vignetting).
-    Weights are renormalised per node. ``sigma_nodes = 0``: the lens itself."""
+    """The lens with its per-node aperture shape averaged over neighbouring nodes (a
+    Gaussian of ``sigma_nodes`` node spacings, edges held): sample k is the same part of the
+    aperture at every node, so this removes the station's node-to-node measurement noise
+    (sample offsets from the node's centroid, weights, transmittance) while keeping the slow
+    field dependence (vignetting). Each node keeps its own samples' centroid (its principal
+    ray, which the station already fits over neighbouring pixels): smoothing that curved
+    field too would bias it, most at the sensor's border. Weights are renormalised per node.
+    ``sigma_nodes = 0``: the lens itself."""
     if sigma_nodes < 0:
         raise ValueError(f"smoothed_lens: sigma_nodes must be >= 0, got {sigma_nodes}")
     if sigma_nodes == 0:
@@ -256,9 +259,16 @@ def smoothed_lens(lens: MeasuredLens, sigma_nodes: float) -> MeasuredLens:
         return gaussian_filter(a, (sigma_nodes, sigma_nodes) + (0,) * (a.ndim - 2),
                                mode="nearest")
 
+    def centroid(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+        return (x * w).sum(axis=2, keepdims=True)
+
+    cx = centroid(lens.aperture_x_mm, lens.weights)
+    cy = centroid(lens.aperture_y_mm, lens.weights)
     w = f(lens.weights)
-    return replace(lens, aperture_x_mm=f(lens.aperture_x_mm),
-                   aperture_y_mm=f(lens.aperture_y_mm), weights=w / w.sum(axis=2, keepdims=True),
+    w = w / w.sum(axis=2, keepdims=True)
+    x, y = f(lens.aperture_x_mm - cx), f(lens.aperture_y_mm - cy)
+    return replace(lens, aperture_x_mm=x - centroid(x, w) + cx,
+                   aperture_y_mm=y - centroid(y, w) + cy, weights=w,
                    transmittance=f(lens.transmittance))
 
 

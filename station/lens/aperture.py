@@ -105,8 +105,10 @@ def resample(
     """Aperture-plane masses (n, G, G) of n LTC windows at one depth.
 
     h : (n, P, P) weights (0 outside the region to keep); origin : (n, 2) LCD (col, row) of
-    element [0, 0]; ray_at_depth_mm : (n, 2) principal ray at the depth (LCD-plane mm);
-    ray_at_centre_mm : (n, 2) principal ray at z_O minus the optical centre (mm);
+    element [0, 0]; ray_at_depth_mm : (n, 2) the point of the LTC that maps onto
+    ``ray_at_centre_mm`` (the principal ray at the depth, or the LTC's own centroid)
+    (LCD-plane mm); ray_at_centre_mm : (n, 2) principal ray at z_O minus the optical centre
+    (mm);
     ratio : scalar or (n,) signed scale; rotation2 : (2, 2) station-to-camera rotation of
     aperture-plane vectors (identity if None).
     """

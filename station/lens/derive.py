@@ -4,6 +4,14 @@ This module's line: given the ``LensGeometry`` (``station.lens.geometry``: princ
 optical centre -> focus plane), it takes every node pixel's LTC at each depth, scales it onto
 the aperture plane at the optical centre and fuses the depths (``station.lens.aperture``),
 draws K samples per node and writes the lens model (``sim.optics.measured_lens``).
+
+Each depth's LTC is placed on the aperture plane by its own centroid, and the samples'
+centroid is the pixel's principal ray on the optical centre's plane, fitted as a local plane
+over the pixels within ``ray_window_px`` (``local_ray_centres``). One pixel's ray is only
+as good as its centroids extrapolated ~4x from the LCD depths to the centre (~150 um RMS on
+the experiment's benches), and the fused distribution's own mean adds each depth's residual
+times ``|s_i|`` (~5 at the extreme depths): the samples' centroids were ~300-400 um RMS off
+the true lens's, ~30 um with both changes (``benchmarks/README.md``).
 ``derive_lens`` runs the whole chain from an LTC volume.
 
 Nodes: every ``grid_step``-th pixel in u and v, plus the last column and row. A node without
@@ -91,6 +99,49 @@ def _row_blocks(pixels: np.ndarray, width: int,
         start = stop
 
 
+def local_plane_fit(values: np.ndarray, var: np.ndarray, ok: np.ndarray,
+                    camera_size: tuple[int, int], pixels: np.ndarray,
+                    radius_px: int) -> np.ndarray:
+    """Per-pixel ``values`` (N, k) (flat pixel order, variance ``var`` (N,), ``ok`` (N,)
+    usable) at the given flat pixels (n,), as a weighted local-plane fit (``a + b du + c dv``,
+    weights ``1 / var``) over the usable pixels within ``radius_px`` (a square window): the
+    pixels' noise averages out while linear field trends pass unbiased, also at the
+    sensor's border. ``radius_px = 0`` or no usable pixel in the window: the pixel's own
+    value. Returns (n, k)."""
+    pixels = np.asarray(pixels, dtype=np.int64)
+    if radius_px <= 0:
+        return values[pixels]
+    w, h = camera_size
+    r = np.arange(-radius_px, radius_px + 1)
+    du, dv = (a.ravel() for a in np.meshgrid(r, r))
+    u = pixels[:, None] % w + du[None]
+    v = pixels[:, None] // w + dv[None]
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    q = np.where(inside, v * w + u, 0)
+    good = inside & ok[q] & np.isfinite(values[q]).all(-1) & (var[q] > 0)
+    wt = np.where(good, 1.0 / np.where(good, var[q], 1.0), 0.0)
+    a = np.stack([np.ones(q.shape), np.broadcast_to(du, q.shape),
+                  np.broadcast_to(dv, q.shape)], axis=-1).astype(np.float64)
+    ata = np.einsum("nm,nmi,nmj->nij", wt, a, a)
+    atb = np.einsum("nm,nmi,nmk->nik", wt, a, np.where(good[..., None], values[q], 0.0))
+    solvable = np.linalg.det(ata) > 1e-12 * np.maximum(ata[:, 0, 0], 1e-300) ** 3
+    ata[~solvable] = np.eye(3)
+    coef = np.linalg.solve(ata, atb)
+    return np.where(solvable[:, None], coef[:, 0], values[pixels])
+
+
+def local_ray_centres(geom: LensGeometry, pixels: np.ndarray, radius_px: int) -> np.ndarray:
+    """Principal rays of the given flat pixels on the optical centre's plane, minus the
+    centre (n, 2) mm, station frame, by ``local_plane_fit`` over ``radius_px``: the ray's
+    per-pixel noise (centroid noise magnified ~4x by the extrapolation from the LCD depths
+    to the centre) averages out."""
+    rays = geom.rays
+    zc = float(geom.centre.position[2])
+    own = rays.xy_at(zc) - geom.centre.position[:2]
+    return local_plane_fit(own, rays.var_at(zc), rays.usable, geom.camera_size, pixels,
+                           radius_px)
+
+
 def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
                  pixels: np.ndarray, cfg: LensFitConfig | None = None,
                  keep_depths: bool = False, progress: bool = False,
@@ -121,7 +172,6 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
     coverage = np.zeros((n, d))
     fused = np.zeros((n, g, g)) if keep_fused else None
     mean, cov = np.zeros((n, 2)), np.zeros((n, 2, 2))
-    at_centre = rays.xy_at(zc) - geom.centre.position[:2]
     mom = c.moments_px2.reshape(d, -1, 3)
     blocks = list(_row_blocks(pixels, w_cam, rows_per_read(volume)))
     for r0, r1, sel in tqdm(blocks, desc="lens: aperture", unit="block",
@@ -137,6 +187,7 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
             pix = pixels[idx]
             loc = pix - r0 * w_cam
             m_all = np.zeros((len(idx), d, g, g))
+            a_c = local_ray_centres(geom, pix, cfg.ray_window_px)
             for i in range(d):
                 used = rays.used[i, pix] & rays.usable[pix]
                 if not used.any():
@@ -144,9 +195,14 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
                 h = ltc[i, loc].astype(np.float64)
                 st = window_stats(np.where(used[:, None, None], h, np.nan), noise[i, loc])
                 hh = np.where(st.region, h, 0.0)
+                # each depth's LTC is placed by its own centroid onto the principal ray at
+                # the centre's plane: the depths' noisy residuals (x |s_i| ~ 5 at the
+                # extreme depths) neither shift nor blur the fused distribution
                 at_depth = rays.xy_ref[pix] + rays.slope[pix] * (c.depths_mm[i]
                                                                  - rays.z_ref[pix])[:, None]
-                m = ap.resample(hh, origin[i, loc], at_depth, at_centre[pix], s[i], c.pitch_mm,
+                own = (st.centroid + origin[i, loc]) * c.pitch_mm
+                at_depth = np.where(np.isfinite(own), own, at_depth)
+                m = ap.resample(hh, origin[i, loc], at_depth, a_c, s[i], c.pitch_mm,
                                 grid, rot2, cfg.supersample)
                 cov_i = m.sum(axis=(1, 2))
                 coverage[idx, i] = np.where(used, cov_i, 0.0)
@@ -167,7 +223,10 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
             if per_depth is not None:
                 per_depth[idx] = m_all
             ok_c = wd.sum(axis=1) > 0
-            mean_c, cov_c = _moments(fz, wd, ok_c, grid, c.pitch_mm * s, fp * s, cfg.deblur)
+            _, cov_c = _moments(fz, wd, ok_c, grid, c.pitch_mm * s, fp * s, cfg.deblur)
+            # the samples' centroid is the principal ray on the centre's plane (camera axes):
+            # the fit over all depths and the pixel's neighbours, not the fused grid's mean
+            mean_c = a_c @ rot2.T
             mean[idx], cov[idx] = mean_c, cov_c
             if on_chunk is not None:
                 on_chunk(idx, fz, ok_c, mean_c, cov_c)

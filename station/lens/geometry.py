@@ -65,6 +65,10 @@ class LensFitConfig(BaseModel):
     outlier_sigma: float = Field(6.0, gt=0, description="outlier threshold, normalised residual")
     max_outliers: int = Field(1, ge=0, description="outlier depths dropped per pixel at most")
     ray_floor_mm: float = Field(0.005, gt=0, description="centroid error floor, mm")
+    ray_window_px: int = Field(4, ge=0, description="the aperture samples' centroid is the "
+                               "principal ray on the optical centre's plane, fitted as a local "
+                               "plane over the pixels within this many pixels (0: the pixel's "
+                               "own ray)")
     deblur: bool = Field(True, description="remove the known LCD-pixel and camera-pixel box "
                          "variances from the samples' second moments")
     kmeans_iterations: int = Field(30, ge=1, description="Lloyd iterations")

@@ -427,3 +427,27 @@ def test_ray_fit_in_pixel_blocks_equals_one_block(bench, truth, monkeypatch):
         np.testing.assert_array_equal(getattr(blocks.rays, f.name), getattr(whole.rays, f.name),
                                       err_msg=f.name)
     np.testing.assert_array_equal(blocks.centre.position, whole.centre.position)
+
+
+def test_local_plane_fit_passes_a_linear_field_and_averages_the_noise():
+    """A field linear in (u, v) comes back exactly at every pixel, border and corners
+    included; unusable pixels do not count; independent noise shrinks by about the square
+    root of the window's pixel count (9 x 9 = 81: ~9 x, fewer at the border)."""
+    from station.lens.derive import local_plane_fit
+
+    w, h = 40, 30
+    v, u = np.divmod(np.arange(w * h), w)
+    field = np.stack([0.3 + 0.01 * u - 0.02 * v, -1.0 + 0.005 * v], axis=1)
+    ok = np.ones(w * h, bool)
+    ok[::7] = False
+    values = np.where(ok[:, None], field, 1e6)  # unusable pixels hold garbage
+    pixels = np.arange(w * h)
+    var = np.ones(w * h)
+    np.testing.assert_allclose(local_plane_fit(values, var, ok, (w, h), pixels, 4), field,
+                               atol=1e-9)
+    noise = np.random.default_rng(0).normal(0, 1, field.shape)
+    out = local_plane_fit(field + noise, var, np.ones(w * h, bool), (w, h), pixels, 4)
+    inner = (u >= 4) & (u < w - 4) & (v >= 4) & (v < h - 4)
+    assert np.std((out - field)[inner]) < 0.15
+    assert np.std(out - field) < 0.25
+    np.testing.assert_array_equal(local_plane_fit(values, var, ok, (w, h), pixels, 0), values)
