@@ -112,24 +112,22 @@ def resample(
     ratio : scalar or (n,) signed scale; rotation2 : (2, 2) station-to-camera rotation of
     aperture-plane vectors (identity if None).
     """
-    n, p = h.shape[0], h.shape[-1]
+    from station.lens.kernels import resample_kernel
+
+    h = np.ascontiguousarray(h, dtype=np.float64)
+    n = h.shape[0]
     pts = grid.points(sub).reshape(-1, 2)  # camera-frame aperture coordinates
     if rotation2 is not None:
         pts = pts @ np.asarray(rotation2)  # p_station = R2^T p_cam, row-vector form
     s = np.broadcast_to(np.asarray(ratio, dtype=np.float64), (n,))
-    inv = 1.0 / s[:, None]
-    col = np.floor((ray_at_depth_mm[:, :1] + (pts[None, :, 0] - ray_at_centre_mm[:, :1]) * inv)
-                   / pitch_mm + 0.5).astype(np.int64) - origin[:, :1]
-    row = np.floor((ray_at_depth_mm[:, 1:] + (pts[None, :, 1] - ray_at_centre_mm[:, 1:]) * inv)
-                   / pitch_mm + 0.5).astype(np.int64) - origin[:, 1:]
-    inside = (col >= 0) & (col < p) & (row >= 0) & (row < p)
-    flat = np.where(inside, row * p + col, 0) + (np.arange(n) * p * p)[:, None]
-    val = np.where(inside, h.reshape(-1)[flat], 0.0)
-    box = (pitch_mm * s) ** 2  # (n,) LCD pixel area on the aperture plane
-    dens = val / box[:, None]
-    g = grid.cells
-    cell_area = grid.cell_mm**2
-    return dens.reshape(n, g, sub, g, sub).mean(axis=(2, 4)) * cell_area
+    out = np.zeros((n, grid.cells, grid.cells))
+    resample_kernel(h, np.ascontiguousarray(origin, dtype=np.int64),
+                    np.ascontiguousarray(ray_at_depth_mm, dtype=np.float64),
+                    np.ascontiguousarray(ray_at_centre_mm, dtype=np.float64),
+                    np.ascontiguousarray(1.0 / s), np.ascontiguousarray((pitch_mm * s) ** 2),
+                    np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
+                    float(pitch_mm), grid.cells, sub, grid.cell_mm**2, out)
+    return out
 
 
 def depth_errors(
@@ -248,6 +246,32 @@ def kmeans_samples(
             new[who, empty[who].argmax(axis=1)] = pts[cost.argmax(axis=1)]
         centres = new
     return centres, wsum / wsum.sum(axis=1, keepdims=True)
+
+
+def strata_samples(mass: np.ndarray, grid: ApertureGrid,
+                   k: int) -> tuple[np.ndarray, np.ndarray]:
+    """K samples of grid masses (n, G, G) by equal-mass strata: positions (n, k, 2) mm and
+    weights (n, k) summing to 1 (each about 1/k). The grid square is cut recursively into
+    k rectangles, alternately across x and y, each cut splitting the mass in proportion to
+    the samples on either side (a cell's mass spread uniformly over the cell); a sample is
+    its rectangle's centroid. The first moment is kept exactly, and sample j is the same
+    stratum (part of the aperture) at every node, so bilinear blending of neighbouring
+    nodes blends like with like. Negative masses count as 0."""
+    from station.lens.kernels import strata_kernel
+
+    if k < 1:
+        raise ValueError(f"strata_samples: need k >= 1 samples, got {k}")
+    n = len(mass)
+    m = np.maximum(np.asarray(mass, dtype=np.float64).reshape(n, grid.cells, grid.cells), 0.0)
+    tot = m.sum(axis=(1, 2))
+    if np.any(tot <= 0):
+        raise ValueError(f"strata_samples: {int((tot <= 0).sum())} distribution(s) have no "
+                         "positive mass")
+    uv = np.empty((n, k, 2))
+    w = np.empty((n, k))
+    strata_kernel(np.ascontiguousarray(m / tot[:, None, None]), k, uv, w)
+    x = -grid.half_width_mm + uv * grid.cell_mm
+    return x, w / w.sum(axis=1, keepdims=True)
 
 
 def canonical_order(x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

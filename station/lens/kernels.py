@@ -1,0 +1,296 @@
+"""Compiled (numba) kernels of the lens derivation: the same formulas as the numpy reference
+code they replace (``station.lens.centroids.window_stats``, ``station.lens.aperture.resample``),
+one window or node at a time so nothing grows with the batch.
+
+``stats_kernel`` computes what ``window_stats`` documents (3 x 3 box smoothing, the
+8-connected region above the threshold that holds the smoothed peak, grown by a disk of
+radius ``REGION_MARGIN_PX + 0.5``; centroid, moments and their noise); only the order of
+floating-point sums differs from the numpy version (tests compare them within 1e-12).
+``resample_kernel`` is ``aperture.resample`` (nearest LCD pixel at each sub-cell centre).
+``strata_kernel`` draws K aperture samples by equal-mass stratification (``aperture.strata``).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True)
+def stats_kernel(h, sigma, signal, noise_sigmas, peak_fraction, margin,
+                 centroid, centroid_std, moments, trace_std, region_out, status_out):
+    """Per window n: h (n, P, P) float64 (NaN windows already zeroed), sigma (n,), signal (n,)
+    bool; writes centroid (n, 2), centroid_std (n, 2), moments (n, 3), trace_std (n,),
+    region_out (n, P, P) bool, status_out (n,) int8 (0 ok, 1 no signal, 2 truncated)."""
+    n, p = h.shape[0], h.shape[1]
+    sm = np.empty((p, p))
+    tmp = np.empty((p, p))
+    above = np.empty((p, p), dtype=np.bool_)
+    core = np.empty((p, p), dtype=np.bool_)
+    region = np.empty((p, p), dtype=np.bool_)
+    stack = np.empty(p * p, dtype=np.int64)
+    r2m = (margin + 0.5) ** 2
+    for k in range(n):
+        hz = h[k]
+        sig_k = sigma[k] if signal[k] else 0.0
+        # separable 3-tap box, zero outside (uniform_filter mode "constant"): rows then columns
+        for i in range(p):
+            for j in range(p):
+                a = hz[i - 1, j] if i > 0 else 0.0
+                c = hz[i + 1, j] if i < p - 1 else 0.0
+                tmp[i, j] = (a + hz[i, j] + c) / 3.0
+        peak = -np.inf
+        ipk = 0
+        rawmax = -np.inf
+        for i in range(p):
+            for j in range(p):
+                a = tmp[i, j - 1] if j > 0 else 0.0
+                c = tmp[i, j + 1] if j < p - 1 else 0.0
+                v = (a + tmp[i, j] + c) / 3.0
+                sm[i, j] = v
+                if v > peak:
+                    peak = v
+                    ipk = i * p + j
+                if hz[i, j] > rawmax:
+                    rawmax = hz[i, j]
+        thr = max(noise_sigmas * sig_k / 3.0, peak_fraction * peak)
+        for i in range(p):
+            for j in range(p):
+                above[i, j] = (sm[i, j] > thr) and signal[k] and peak > 0
+                core[i, j] = False
+        lab = above[ipk // p, ipk % p]
+        if lab:  # flood fill (8-connected) from the peak
+            top = 0
+            stack[0] = ipk
+            core[ipk // p, ipk % p] = True
+            top = 1
+            while top > 0:
+                top -= 1
+                q = stack[top]
+                qi, qj = q // p, q % p
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        ii, jj = qi + di, qj + dj
+                        if 0 <= ii < p and 0 <= jj < p and above[ii, jj] and not core[ii, jj]:
+                            core[ii, jj] = True
+                            stack[top] = ii * p + jj
+                            top += 1
+        raw_thr = max(noise_sigmas * sig_k, peak_fraction * rawmax)
+        edge = False
+        for i in range(p):
+            for j in range(p):
+                if (i == 0 or i == p - 1 or j == 0 or j == p - 1) and core[i, j] \
+                        and hz[i, j] > raw_thr:
+                    edge = True
+        # region: core dilated by the disk
+        for i in range(p):
+            for j in range(p):
+                hit = False
+                for di in range(-margin, margin + 1):
+                    ii = i + di
+                    if ii < 0 or ii >= p:
+                        continue
+                    for dj in range(-margin, margin + 1):
+                        jj = j + dj
+                        if jj < 0 or jj >= p or di * di + dj * dj > r2m:
+                            continue
+                        if core[ii, jj]:
+                            hit = True
+                            break
+                    if hit:
+                        break
+                region[i, j] = hit
+        s = 0.0
+        sx = 0.0
+        sy = 0.0
+        npx = 0
+        for i in range(p):
+            for j in range(p):
+                if region[i, j]:
+                    v = hz[i, j]
+                    s += v
+                    sx += v * j
+                    sy += v * i
+                    npx += 1
+        ok = signal[k] and lab and s > noise_sigmas * sigma[k] * np.sqrt(max(npx, 1))
+        safe = s if ok else 1.0
+        cx = sx / safe
+        cy = sy / safe
+        mxx = 0.0
+        myy = 0.0
+        mxy = 0.0
+        sdx = 0.0
+        sdy = 0.0
+        for i in range(p):
+            for j in range(p):
+                if region[i, j]:
+                    v = hz[i, j]
+                    dx = j - cx
+                    dy = i - cy
+                    mxx += v * dx * dx
+                    myy += v * dy * dy
+                    mxy += v * dx * dy
+                    sdx += dx * dx
+                    sdy += dy * dy
+        mxx /= safe
+        myy /= safe
+        mxy /= safe
+        tr = mxx + myy
+        st = 0.0
+        for i in range(p):
+            for j in range(p):
+                if region[i, j]:
+                    dx = j - cx
+                    dy = i - cy
+                    e = dx * dx + dy * dy - tr
+                    st += e * e
+        sig = (sigma[k] if ok else 0.0) / safe
+        if ok:
+            centroid[k, 0] = cx
+            centroid[k, 1] = cy
+            centroid_std[k, 0] = sig * np.sqrt(sdx)
+            centroid_std[k, 1] = sig * np.sqrt(sdy)
+            moments[k, 0] = mxx
+            moments[k, 1] = myy
+            moments[k, 2] = mxy
+            trace_std[k] = sig * np.sqrt(st)
+            status_out[k] = 2 if edge else 0
+        else:
+            centroid[k, 0] = np.nan
+            centroid[k, 1] = np.nan
+            centroid_std[k, 0] = np.nan
+            centroid_std[k, 1] = np.nan
+            moments[k, 0] = np.nan
+            moments[k, 1] = np.nan
+            moments[k, 2] = np.nan
+            trace_std[k] = np.nan
+            status_out[k] = 1
+        for i in range(p):
+            for j in range(p):
+                region_out[k, i, j] = region[i, j] and ok
+
+
+@numba.njit(cache=True, nogil=True)
+def resample_kernel(h, origin, ray_d, ray_c, inv, box, ptx, pty, pitch_mm, g, sub, cell_area,
+                    out):
+    """out[k] (G, G) += masses of window h[k] (P, P) (see ``aperture.resample``): sub-cell
+    centres ptx, pty ((G sub)^2,) station-frame mm; inv (n,) = 1 / ratio; box (n,) the LCD
+    pixel's area on the aperture plane."""
+    n, p = h.shape[0], h.shape[-1]
+    gs = g * sub
+    norm = 1.0 / (sub * sub)
+    for k in range(n):
+        ox, oy = origin[k, 0], origin[k, 1]
+        for a in range(gs):
+            for b in range(gs):
+                q = a * gs + b
+                col = np.int64(np.floor((ray_d[k, 0] + (ptx[q] - ray_c[k, 0]) * inv[k])
+                                        / pitch_mm + 0.5)) - ox
+                row = np.int64(np.floor((ray_d[k, 1] + (pty[q] - ray_c[k, 1]) * inv[k])
+                                        / pitch_mm + 0.5)) - oy
+                if 0 <= col < p and 0 <= row < p:
+                    out[k, a // sub, b // sub] += h[k, row, col] / box[k] * norm
+        for a in range(g):
+            for b in range(g):
+                out[k, a, b] *= cell_area
+
+
+@numba.njit(cache=True, nogil=True)
+def _overlap(a0, a1, i):
+    """Length of [a0, a1] inside the unit cell [i, i + 1]."""
+    return max(0.0, min(a1, i + 1.0) - max(a0, float(i)))
+
+
+@numba.njit(cache=True, nogil=True)
+def strata_kernel(mass, k, out_uv, out_w):
+    """Equal-mass strata of grid masses (n, G, G) (cell units, >= 0): per node, the grid
+    square [0, G]^2 is cut recursively into rectangles, alternately across x (columns) and
+    y (rows), each cut at the point that gives the two sides masses in proportion to the
+    samples they get (floor(k/2) : ceil(k/2)), the mass in a cell counted as spread
+    uniformly over it. Writes each of the k rectangles' centroid out_uv (n, k, 2) (u, v)
+    cell units and mass out_w (n, k), in depth-first order (low side first)."""
+    n, g = mass.shape[0], mass.shape[1]
+    # stack of rectangles: u0, u1, v0, v1, count, axis, offset
+    st_f = np.empty((2 * k + 2, 4))
+    st_i = np.empty((2 * k + 2, 3), dtype=np.int64)
+    line = np.empty(g)
+    for m in range(n):
+        rho = mass[m]
+        top = 1
+        st_f[0, 0], st_f[0, 1], st_f[0, 2], st_f[0, 3] = 0.0, float(g), 0.0, float(g)
+        st_i[0, 0], st_i[0, 1], st_i[0, 2] = k, 1, 0
+        while top > 0:
+            top -= 1
+            u0, u1, v0, v1 = st_f[top, 0], st_f[top, 1], st_f[top, 2], st_f[top, 3]
+            kk, axis, off = st_i[top, 0], st_i[top, 1], st_i[top, 2]
+            i0, i1 = int(np.floor(u0)), min(g, int(np.ceil(u1)))
+            j0, j1 = int(np.floor(v0)), min(g, int(np.ceil(v1)))
+            if kk == 1:
+                s = 0.0
+                su = 0.0
+                sv = 0.0
+                for j in range(j0, j1):
+                    oy = _overlap(v0, v1, j)
+                    if oy <= 0.0:
+                        continue
+                    cv = 0.5 * (max(v0, float(j)) + min(v1, j + 1.0))
+                    for i in range(i0, i1):
+                        ox = _overlap(u0, u1, i)
+                        if ox <= 0.0:
+                            continue
+                        q = rho[j, i] * ox * oy
+                        s += q
+                        su += q * 0.5 * (max(u0, float(i)) + min(u1, i + 1.0))
+                        sv += q * cv
+                out_w[m, off] = s
+                if s > 0:
+                    out_uv[m, off, 0] = su / s
+                    out_uv[m, off, 1] = sv / s
+                else:
+                    out_uv[m, off, 0] = 0.5 * (u0 + u1)
+                    out_uv[m, off, 1] = 0.5 * (v0 + v1)
+                continue
+            k1 = kk // 2
+            if axis == 0:  # cut across x: the mass of each column inside the rectangle
+                lo, hi, a0, a1 = u0, u1, i0, i1
+                for i in range(i0, i1):
+                    ox = _overlap(u0, u1, i)
+                    t = 0.0
+                    for j in range(j0, j1):
+                        t += rho[j, i] * _overlap(v0, v1, j)
+                    line[i] = t * ox
+            else:
+                lo, hi, a0, a1 = v0, v1, j0, j1
+                for j in range(j0, j1):
+                    oy = _overlap(v0, v1, j)
+                    t = 0.0
+                    for i in range(i0, i1):
+                        t += rho[j, i] * _overlap(u0, u1, i)
+                    line[j] = t * oy
+            total = 0.0
+            for i in range(a0, a1):
+                total += line[i]
+            cut = 0.5 * (lo + hi)
+            if total > 0:
+                target = total * k1 / kk
+                cut = hi  # rounding left the target beyond the last column's mass
+                cum = 0.0
+                for i in range(a0, a1):
+                    if cum + line[i] >= target and line[i] > 0:
+                        s0, s1 = max(lo, float(i)), min(hi, i + 1.0)
+                        cut = s0 + (target - cum) / line[i] * (s1 - s0)
+                        break
+                    cum += line[i]
+            nxt = 1 - axis
+            # push the high side first so the low side is handled first (order is by offset)
+            if axis == 0:
+                st_f[top, 0], st_f[top, 1], st_f[top, 2], st_f[top, 3] = cut, u1, v0, v1
+                st_f[top + 1, 0], st_f[top + 1, 1] = u0, cut
+                st_f[top + 1, 2], st_f[top + 1, 3] = v0, v1
+            else:
+                st_f[top, 0], st_f[top, 1], st_f[top, 2], st_f[top, 3] = u0, u1, cut, v1
+                st_f[top + 1, 0], st_f[top + 1, 1] = u0, u1
+                st_f[top + 1, 2], st_f[top + 1, 3] = v0, cut
+            st_i[top, 0], st_i[top, 1], st_i[top, 2] = kk - k1, nxt, off + k1
+            st_i[top + 1, 0], st_i[top + 1, 1], st_i[top + 1, 2] = k1, nxt, off
+            top += 2
