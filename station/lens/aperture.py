@@ -117,16 +117,19 @@ def resample(
     h = np.ascontiguousarray(h, dtype=np.float64)
     n = h.shape[0]
     pts = grid.points(sub).reshape(-1, 2)  # camera-frame aperture coordinates
+    rot = np.eye(2) if rotation2 is None else np.asarray(rotation2, dtype=np.float64)
     if rotation2 is not None:
-        pts = pts @ np.asarray(rotation2)  # p_station = R2^T p_cam, row-vector form
+        pts = pts @ rot  # p_station = R2^T p_cam, row-vector form
     s = np.broadcast_to(np.asarray(ratio, dtype=np.float64), (n,))
     out = np.zeros((n, grid.cells, grid.cells))
+    step = grid.cell_mm / sub
     resample_kernel(h, np.ascontiguousarray(origin, dtype=np.int64),
                     np.ascontiguousarray(ray_at_depth_mm, dtype=np.float64),
                     np.ascontiguousarray(ray_at_centre_mm, dtype=np.float64),
                     np.ascontiguousarray(1.0 / s), np.ascontiguousarray((pitch_mm * s) ** 2),
                     np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
-                    float(pitch_mm), grid.cells, sub, grid.cell_mm**2, out)
+                    float(pitch_mm), grid.cells, sub, grid.cell_mm**2, rot,
+                    -grid.half_width_mm + 0.5 * step, step, out)
     return out
 
 
@@ -186,13 +189,13 @@ def fusion_weights(blur: np.ndarray, noise: np.ndarray, available: np.ndarray) -
 
 def grid_moments(mass: np.ndarray, grid: ApertureGrid) -> tuple[np.ndarray, np.ndarray]:
     """Mean (n, 2) and covariance (n, 2, 2) of normalised grid masses (n, G, G)."""
-    pts = grid.points().reshape(-1, 2)
-    m = mass.reshape(len(mass), -1)
-    tot = m.sum(axis=1, keepdims=True)
-    m = m / np.where(tot > 0, tot, 1.0)
-    mean = m @ pts
-    d = pts[None] - mean[:, None]
-    cov = np.einsum("nk,nki,nkj->nij", m, d, d)
+    from station.lens.kernels import moments_kernel
+
+    n = len(mass)
+    m = np.ascontiguousarray(np.asarray(mass, dtype=np.float64).reshape(n, grid.cells,
+                                                                         grid.cells))
+    mean, cov = np.empty((n, 2)), np.empty((n, 2, 2))
+    moments_kernel(m, grid.centres_mm, mean, cov)
     return mean, cov
 
 

@@ -72,7 +72,7 @@ class LensFitConfig(BaseModel):
     deblur: bool = Field(True, description="remove the known LCD-pixel and camera-pixel box "
                          "variances from the samples' second moments")
     kmeans_iterations: int = Field(30, ge=1, description="Lloyd iterations")
-    nodes_per_chunk: int = Field(64, ge=1, description="node pixels processed together")
+    nodes_per_chunk: int = Field(256, ge=1, description="node pixels processed together")
 
 
 @dataclass(frozen=True)

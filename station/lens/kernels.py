@@ -82,24 +82,22 @@ def stats_kernel(h, sigma, signal, noise_sigmas, peak_fraction, margin,
                 if (i == 0 or i == p - 1 or j == 0 or j == p - 1) and core[i, j] \
                         and hz[i, j] > raw_thr:
                     edge = True
-        # region: core dilated by the disk
+        # region: core dilated by the disk (each core pixel paints its disk)
         for i in range(p):
             for j in range(p):
-                hit = False
+                region[i, j] = False
+        for i in range(p):
+            for j in range(p):
+                if not core[i, j]:
+                    continue
                 for di in range(-margin, margin + 1):
                     ii = i + di
                     if ii < 0 or ii >= p:
                         continue
                     for dj in range(-margin, margin + 1):
                         jj = j + dj
-                        if jj < 0 or jj >= p or di * di + dj * dj > r2m:
-                            continue
-                        if core[ii, jj]:
-                            hit = True
-                            break
-                    if hit:
-                        break
-                region[i, j] = hit
+                        if 0 <= jj < p and di * di + dj * dj <= r2m:
+                            region[ii, jj] = True
         s = 0.0
         sx = 0.0
         sy = 0.0
@@ -170,26 +168,74 @@ def stats_kernel(h, sigma, signal, noise_sigmas, peak_fraction, margin,
                 region_out[k, i, j] = region[i, j] and ok
 
 
+OFFSET_I = 1 << 20  # added before truncating LCD coordinates (|index| << 2^20), exact in float64
+OFFSET = float(OFFSET_I)
+
+
 @numba.njit(cache=True, nogil=True)
 def resample_kernel(h, origin, ray_d, ray_c, inv, box, ptx, pty, pitch_mm, g, sub, cell_area,
-                    out):
+                    rot, first, pts_cam_step, out):
     """out[k] (G, G) += masses of window h[k] (P, P) (see ``aperture.resample``): sub-cell
-    centres ptx, pty ((G sub)^2,) station-frame mm; inv (n,) = 1 / ratio; box (n,) the LCD
-    pixel's area on the aperture plane."""
+    centres ptx, pty ((G sub)^2,) station-frame mm, ``p_station = R2^T p_cam`` with
+    rot = R2; the camera-frame sub-cell centres are ``first + i pts_cam_step`` along each
+    axis; inv (n,) = 1 / ratio; box (n,) the LCD pixel's area on the aperture plane."""
     n, p = h.shape[0], h.shape[-1]
     gs = g * sub
     norm = 1.0 / (sub * sub)
+    sc = pts_cam_step  # sub-cell pitch, mm
+    colb = np.empty(gs)
+    rowb = np.empty(gs)
     for k in range(n):
         ox, oy = origin[k, 0], origin[k, 1]
-        for a in range(gs):
-            for b in range(gs):
-                q = a * gs + b
-                col = np.int64(np.floor((ray_d[k, 0] + (ptx[q] - ray_c[k, 0]) * inv[k])
-                                        / pitch_mm + 0.5)) - ox
-                row = np.int64(np.floor((ray_d[k, 1] + (pty[q] - ray_c[k, 1]) * inv[k])
-                                        / pitch_mm + 0.5)) - oy
+        # the window's nonzero weights: only sub-cells that can land on them are visited
+        # (the others add 0); their box, mapped back to the aperture, bounds the loop
+        cmin, cmax, rmin, rmax = p, -1, p, -1
+        for r in range(p):
+            for c in range(p):
+                if h[k, r, c] != 0.0:
+                    cmin, cmax = min(cmin, c), max(cmax, c)
+                    rmin, rmax = min(rmin, r), max(rmax, r)
+        if cmax < 0:
+            continue
+        s_k = 1.0 / inv[k]
+        xa = ray_c[k, 0] + ((cmin + ox - 0.5) * pitch_mm - ray_d[k, 0]) * s_k
+        xb = ray_c[k, 0] + ((cmax + 1 + ox - 0.5) * pitch_mm - ray_d[k, 0]) * s_k
+        ya = ray_c[k, 1] + ((rmin + oy - 0.5) * pitch_mm - ray_d[k, 1]) * s_k
+        yb = ray_c[k, 1] + ((rmax + 1 + oy - 0.5) * pitch_mm - ray_d[k, 1]) * s_k
+        # station-frame box -> camera frame (p_cam = R2 p_station): bounding box of corners
+        umin, umax, vmin, vmax = np.inf, -np.inf, np.inf, -np.inf
+        for xs in (xa, xb):
+            for ys in (ya, yb):
+                u = rot[0, 0] * xs + rot[0, 1] * ys
+                v = rot[1, 0] * xs + rot[1, 1] * ys
+                umin, umax = min(umin, u), max(umax, u)
+                vmin, vmax = min(vmin, v), max(vmax, v)
+        b0 = max(0, int(np.floor((umin - first) / sc)) - 2)
+        b1 = min(gs, int(np.ceil((umax - first) / sc)) + 3)
+        a0 = max(0, int(np.floor((vmin - first) / sc)) - 2)
+        a1 = min(gs, int(np.ceil((vmax - first) / sc)) + 3)
+        # LCD column and row (+ 0.5) are affine in the camera-frame sub-cell indices (a, b):
+        # p_station = R2^T p_cam, so col = ccol + ca a + cb b (likewise row)
+        ax, ay = inv[k] / pitch_mm, inv[k] / pitch_mm
+        bx = (ray_d[k, 0] - ray_c[k, 0] * inv[k]) / pitch_mm + 0.5
+        by = (ray_d[k, 1] - ray_c[k, 1] * inv[k]) / pitch_mm + 0.5
+        hb = 1.0 / box[k] * norm
+        for b in range(b0, b1):
+            xb = first + b * sc
+            colb[b] = rot[0, 0] * xb * ax + OFFSET
+            rowb[b] = rot[0, 1] * xb * ay + OFFSET
+        for a in range(a0, a1):
+            ya = first + a * sc
+            cya = rot[1, 0] * ya * ax + bx
+            rya = rot[1, 1] * ya * ay + by
+            oa = out[k, a // sub]
+            hk = h[k]
+            for b in range(b0, b1):
+                # floor by truncation of a positive number (OFFSET >> any LCD index)
+                col = np.int64(colb[b] + cya) - OFFSET_I - ox
+                row = np.int64(rowb[b] + rya) - OFFSET_I - oy
                 if 0 <= col < p and 0 <= row < p:
-                    out[k, a // sub, b // sub] += h[k, row, col] / box[k] * norm
+                    oa[b // sub] += hk[row, col] * hb
         for a in range(g):
             for b in range(g):
                 out[k, a, b] *= cell_area
@@ -294,3 +340,38 @@ def strata_kernel(mass, k, out_uv, out_w):
             st_i[top, 0], st_i[top, 1], st_i[top, 2] = kk - k1, nxt, off + k1
             st_i[top + 1, 0], st_i[top + 1, 1], st_i[top + 1, 2] = k1, nxt, off
             top += 2
+
+
+@numba.njit(cache=True, nogil=True)
+def moments_kernel(mass, centres, mean, cov):
+    """Mean (n, 2) and covariance (n, 2, 2) of grid masses (n, G, G) normalised per node,
+    cell centres ``centres`` (G,) mm along both axes (see ``aperture.grid_moments``)."""
+    n, g = mass.shape[0], mass.shape[1]
+    for k in range(n):
+        tot = 0.0
+        for a in range(g):
+            for b in range(g):
+                tot += mass[k, a, b]
+        if tot <= 0:
+            tot = 1.0
+        mx = 0.0
+        my = 0.0
+        for a in range(g):
+            for b in range(g):
+                q = mass[k, a, b] / tot
+                mx += q * centres[b]
+                my += q * centres[a]
+        sxx = 0.0
+        syy = 0.0
+        sxy = 0.0
+        for a in range(g):
+            dy = centres[a] - my
+            for b in range(g):
+                q = mass[k, a, b] / tot
+                dx = centres[b] - mx
+                sxx += q * dx * dx
+                syy += q * dy * dy
+                sxy += q * dx * dy
+        mean[k, 0], mean[k, 1] = mx, my
+        cov[k, 0, 0], cov[k, 1, 1] = sxx, syy
+        cov[k, 0, 1], cov[k, 1, 0] = sxy, sxy
