@@ -44,6 +44,7 @@ from station.lens.rays import FLAG_BAD_FIT, FLAG_FEW_DEPTHS, FLAG_OUTLIER
 
 GRID_MARGIN = 1.2  # aperture grid half-width over the largest pupil extent seen
 EXTENT_PERCENTILE = 99.5
+GRID_PIXELS = 1 << 18  # pixels per block of the grid extent's temporaries
 MIN_COVERAGE = 0.5  # a depth whose resampled LTC falls mostly off the grid is not fused
 
 
@@ -68,19 +69,27 @@ class ApertureSet:
 
 
 def aperture_grid(geom: LensGeometry, cfg: LensFitConfig) -> ap.ApertureGrid:
-    """A grid covering every usable pixel's scaled LTC (robust maximum extent, with margin)."""
+    """A grid covering every usable pixel's scaled LTC (robust maximum extent, with margin);
+    computed in pixel blocks, so its temporaries do not grow with the sensor."""
     c, rays = geom.centroids, geom.rays
     d = len(c.depths_mm)
     zc = float(geom.centre.position[2])
     s = ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, zc)
-    use = rays.used & rays.usable[None]  # not empty: the centre needed usable rays
-    mom = c.moments_px2.reshape(d, -1, 3) * c.pitch_mm**2 * (s**2)[:, None, None]
-    lam = 0.5 * (mom[..., 0] + mom[..., 1]) + np.hypot(0.5 * (mom[..., 0] - mom[..., 1]),
-                                                       mom[..., 2])
-    a = rays.xy_at(zc) - geom.centre.position[:2]
-    reach = np.abs(a).max(axis=1)[None] + 2.0 * np.sqrt(np.maximum(lam, 0.0))
-    reach = reach + 0.5 * c.pitch_mm * np.abs(s)[:, None]
-    half = GRID_MARGIN * float(np.percentile(reach[use], EXTENT_PERCENTILE))
+    moments = c.moments_px2.reshape(d, -1, 3)
+    n = moments.shape[1]
+    parts = []
+    for a0 in range(0, n, GRID_PIXELS):
+        sl = slice(a0, min(n, a0 + GRID_PIXELS))
+        use = rays.used[:, sl] & rays.usable[None, sl]  # not empty: the centre needed rays
+        mom = moments[:, sl] * c.pitch_mm**2 * (s**2)[:, None, None]
+        lam = 0.5 * (mom[..., 0] + mom[..., 1]) + np.hypot(0.5 * (mom[..., 0] - mom[..., 1]),
+                                                           mom[..., 2])
+        a = (rays.xy_ref[sl] + rays.slope[sl] * (zc - rays.z_ref[sl])[:, None]
+             - geom.centre.position[:2])
+        reach = np.abs(a).max(axis=1)[None] + 2.0 * np.sqrt(np.maximum(lam, 0.0))
+        reach = reach + 0.5 * c.pitch_mm * np.abs(s)[:, None]
+        parts.append(reach[use])
+    half = GRID_MARGIN * float(np.percentile(np.concatenate(parts), EXTENT_PERCENTILE))
     return ap.ApertureGrid(half, cfg.aperture_cells)
 
 
