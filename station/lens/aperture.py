@@ -25,13 +25,16 @@ non-negative weights summing to 1 (``fusion_weights``): with no noise the sharpe
 alone; with noise a blend. (By noise alone, depths near focus, whose LTC is a few large
 boxes with little noise, would win while being the blurriest.)
 
-K samples: weighted k-means (Lloyd) over the cells, started from cells at evenly spaced
-quantiles of the raster-order cumulative mass (deterministic), keeps the first moment
-exactly; an affine map about the mean then gives the samples the target covariance exactly
+K samples: equal-mass strata (``strata_samples``): the grid is cut recursively into K
+rectangles of equal mass, alternately across y and x, and each sample is its rectangle's
+centroid; this keeps the first moment exactly, costs O(G^2 log K) per node, and sample j is
+the same stratum at every node, so bilinear interpolation between nodes blends like with
+like. (It replaced per-node weighted k-means plus an optimal-assignment reordering, about
+100 times slower; on the fake bench's held-out depth the measured lens's LTC centroids agree
+with the truth as well, median 0.042 against 0.041 LCD px, and its size within 1.9 % against
+0.3 %.) An affine map about the mean then gives the samples the target covariance exactly
 (the grid covariance plus the cell's own ``cell^2/12``, minus the known box blurs, so the
-samples describe the aperture, not the measurement's pixels). Finally the samples are put in
-a canonical order (``canonical_order``) so that bilinear interpolation between nodes blends
-like with like.
+samples describe the aperture, not the measurement's pixels).
 """
 
 from __future__ import annotations
@@ -39,9 +42,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
-from sim.optics.lens import sunflower_disk
 
 SQRT_2_OVER_PI = float(np.sqrt(2.0 / np.pi))
 EDGE_L1_PER_SIGMA = 0.8  # L1 error of a blurred step edge per unit blur std and edge length
@@ -199,58 +200,6 @@ def grid_moments(mass: np.ndarray, grid: ApertureGrid) -> tuple[np.ndarray, np.n
     return mean, cov
 
 
-def kmeans_samples(
-    mass: np.ndarray, grid: ApertureGrid, k: int, iterations: int = 30
-) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted k-means of grid masses (n, G, G) into k samples: positions (n, k, 2), weights
-    (n, k) summing to 1. An empty cluster is re-seeded at the cell that costs most (mass x
-    squared distance); one still empty at the end (fewer occupied cells than k) keeps
-    weight 0. Negative masses count as 0."""
-    if k < 1:
-        raise ValueError(f"kmeans_samples: need k >= 1 samples, got {k}")
-    n = len(mass)
-    pts = grid.points().reshape(-1, 2)
-    m = np.maximum(mass.reshape(n, -1), 0.0)
-    tot = m.sum(axis=1)
-    if np.any(tot <= 0):
-        raise ValueError(f"kmeans_samples: {int((tot <= 0).sum())} distribution(s) have no "
-                         "positive mass")
-    m = m / tot[:, None]
-    cdf = np.cumsum(m, axis=1)
-    q = (np.arange(k) + 0.5) / k
-    first = np.minimum((cdf[:, :, None] < q[None, None, :]).sum(axis=1), len(pts) - 1)
-    centres = pts[first]  # (n, k, 2)
-    active = m.any(axis=0)  # cells with mass somewhere in this batch
-    pts, m = pts[active], m[:, active]
-    px, py = pts[:, 0].astype(np.float32), pts[:, 1].astype(np.float32)
-    rows = np.arange(n)[:, None]
-    mx, my = (m * pts[None, :, 0]).ravel(), (m * pts[None, :, 1]).ravel()
-    lab_prev = None
-    for _ in range(iterations):
-        cx = centres[..., 0].astype(np.float32)[:, None, :]
-        cy = centres[..., 1].astype(np.float32)[:, None, :]
-        d2 = (px[None, :, None] - cx) ** 2
-        d2 += (py[None, :, None] - cy) ** 2  # (n, cells, k)
-        lab = d2.argmin(axis=2)
-        if lab_prev is not None and np.array_equal(lab, lab_prev):
-            break  # assignments stable: the centres are the means of this assignment
-        lab_prev = lab
-        key = (rows * k + lab).ravel()
-        wsum = np.bincount(key, weights=m.ravel(), minlength=n * k).reshape(n, k)
-        sx = np.bincount(key, weights=mx, minlength=n * k).reshape(n, k)
-        sy = np.bincount(key, weights=my, minlength=n * k).reshape(n, k)
-        safe = np.where(wsum > 0, wsum, 1.0)
-        new = np.where((wsum > 0)[..., None], np.stack([sx, sy], axis=-1) / safe[..., None],
-                       centres)
-        empty = wsum <= 0
-        if empty.any():  # re-seed one empty cluster per pixel at its costliest cell
-            who = np.flatnonzero(empty.any(axis=1))
-            cost = m[who] * np.take_along_axis(d2[who], lab[who, :, None], axis=2)[..., 0]
-            new[who, empty[who].argmax(axis=1)] = pts[cost.argmax(axis=1)]
-        centres = new
-    return centres, wsum / wsum.sum(axis=1, keepdims=True)
-
-
 def strata_samples(mass: np.ndarray, grid: ApertureGrid,
                    k: int) -> tuple[np.ndarray, np.ndarray]:
     """K samples of grid masses (n, G, G) by equal-mass strata: positions (n, k, 2) mm and
@@ -275,26 +224,6 @@ def strata_samples(mass: np.ndarray, grid: ApertureGrid,
     strata_kernel(np.ascontiguousarray(m / tot[:, None, None]), k, uv, w)
     x = -grid.half_width_mm + uv * grid.cell_mm
     return x, w / w.sum(axis=1, keepdims=True)
-
-
-def canonical_order(x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Reorder samples x (n, k, 2), weights (n, k) so that sample j of every node sits near
-    point j of one reference pattern (a Vogel spiral of unit covariance) in the node's
-    whitened coordinates: optimal assignment (Hungarian) per node. Nodes of similar
-    distributions then agree on what sample j is, so blending sample j of neighbouring
-    nodes (bilinear interpolation) does not shrink the distribution."""
-    n, k = w.shape
-    ref = sunflower_disk(k) * 2.0  # the unit disk's Vogel spiral has per-axis variance 1/4
-    mu = np.einsum("nk,nki->ni", w, x)
-    d = x - mu[:, None]
-    c = np.einsum("nk,nki,nkj->nij", w, d, d) + 1e-12 * np.eye(2)
-    white = np.einsum("nij,nkj->nki", _sqrtm(c, inverse=True), d)
-    cost = ((white[:, :, None, :] - ref[None, None, :, :]) ** 2).sum(-1)  # (n, sample, ref)
-    order = np.empty((n, k), dtype=np.int64)
-    for i in range(n):
-        rows, cols = linear_sum_assignment(cost[i])
-        order[i, cols] = rows
-    return np.take_along_axis(x, order[..., None], axis=1), np.take_along_axis(w, order, axis=1)
 
 
 def _sqrtm(c: np.ndarray, inverse: bool = False) -> np.ndarray:

@@ -71,7 +71,6 @@ class LensFitConfig(BaseModel):
                                "own ray)")
     deblur: bool = Field(True, description="remove the known LCD-pixel and camera-pixel box "
                          "variances from the samples' second moments")
-    kmeans_iterations: int = Field(30, ge=1, description="Lloyd iterations")
     nodes_per_chunk: int = Field(256, ge=1, description="node pixels processed together")
 
 
