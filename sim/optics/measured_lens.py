@@ -385,22 +385,36 @@ class LensFileWriter:
               dist_coeffs: np.ndarray | None = None, metadata: dict | None = None) -> Path:
         """Validate the scalar fields, write the ``.npz`` and return its path."""
         gv, gu, _ = self.shape
-        ones = np.ones((gv, gu, 1))  # stands in for the streamed arrays (validated per block)
-        lens = MeasuredLens(focus_distance_mm, optical_centre_mm, camera_size, self.node_u,
-                            self.node_v, np.zeros((gv, gu, 1)), np.zeros((gv, gu, 1)), ones,
-                            transmittance, interpolation, camera_matrix, dist_coeffs,
+        # the scalar fields, validated by a one-node stand-in (the per-node arrays were
+        # checked per block); then the node positions and the transmittance themselves
+        lens = MeasuredLens(focus_distance_mm, optical_centre_mm, camera_size, [0.0], [0.0],
+                            np.zeros((1, 1, 1)), np.zeros((1, 1, 1)), np.ones((1, 1, 1)),
+                            np.ones((1, 1)), interpolation, camera_matrix, dist_coeffs,
                             metadata or {})
-        del ones
+        w, h = lens.camera_size
+        for name, a, size in (("node_u", self.node_u, w), ("node_v", self.node_v, h)):
+            _finite(name, a)
+            if a.ndim != 1 or len(a) < 1 or np.any(np.diff(a) <= 0) or a[0] < 0 \
+                    or a[-1] > size - 1:
+                raise LensFileError(f"{self.path}: field '{name}' must increase strictly within "
+                                    f"[0, {size - 1}]")
+        transmittance = np.asarray(transmittance, dtype=np.float64)
+        if transmittance.shape != (gv, gu):
+            raise LensFileError(f"{self.path}: field 'transmittance' must have shape ({gv}, "
+                                f"{gu}), got {transmittance.shape}")
+        _finite("transmittance", transmittance)
+        if np.any(transmittance < 0):
+            raise LensFileError(f"{self.path}: field 'transmittance' has negative values")
         small = {
             "format": np.array(FORMAT),
             "format_version": np.array(FORMAT_VERSION, dtype=np.int64),
             "focus_distance_mm": np.array(lens.focus_distance_mm),
             "optical_centre_mm": lens.optical_centre_mm,
             "camera_size": np.array(lens.camera_size, dtype=np.int64),
-            "node_u": lens.node_u,
-            "node_v": lens.node_v,
+            "node_u": self.node_u,
+            "node_v": self.node_v,
         }
-        tail = {"transmittance": lens.transmittance,
+        tail = {"transmittance": transmittance,
                 "interpolation": np.array(lens.interpolation),
                 "metadata_json": np.array(json.dumps(lens.metadata))}
         if lens.camera_matrix is not None:
@@ -437,6 +451,7 @@ class LensFileWriter:
             f.close()
         self._files = {}
         shutil.rmtree(self.part, ignore_errors=True)
+        self.path.with_name(self.path.name + ".tmp").unlink(missing_ok=True)
 
 
 def read_lens_nodes(path: str | Path,

@@ -69,3 +69,27 @@ def test_streamed_and_dask_lenses_equal_the_in_memory_one(store, tmp_path):
     np.testing.assert_array_equal(x, ref.lens.aperture_x_mm.reshape(-1, 32)[nodes])
     np.testing.assert_array_equal(w, (ref.lens.weights * ref.lens.transmittance[..., None])
                                   .reshape(-1, 32)[nodes])
+
+
+def test_lens_file_writer_checks_blocks_and_leaves_nothing_when_aborted(tmp_path):
+    from sim.optics.measured_lens import LensFileError, LensFileWriter
+
+    path = tmp_path / "l.npz"
+    wr = LensFileWriter(path, np.arange(3.0), np.arange(2.0), 4)
+    x = np.zeros((2, 3, 4))
+    with pytest.raises(LensFileError, match="'weights' of nodes from row 0, col 0"):
+        wr.write_nodes(0, 0, x, x, np.full((2, 3, 4), 0.3))
+    wr.write_nodes(0, 0, x + 1.0, x, np.full((2, 3, 4), 0.25))
+    with pytest.raises(LensFileError, match="'transmittance' must have shape"):
+        wr.close(focus_distance_mm=100.0, optical_centre_mm=np.zeros(3), camera_size=(3, 2),
+                 transmittance=np.ones((3, 2)))
+    wr.abort()
+    assert not path.exists() and not (tmp_path / "l.npz.partial").exists()
+    wr = LensFileWriter(path, np.arange(3.0), np.arange(2.0), 4)
+    wr.write_nodes(0, 0, x + np.arange(6.0).reshape(2, 3, 1), x, np.full((2, 3, 4), 0.25))
+    wr.copy_nodes(np.array([5]), np.array([0]))
+    wr.close(focus_distance_mm=100.0, optical_centre_mm=np.zeros(3), camera_size=(3, 2),
+             transmittance=np.ones((2, 3)))
+    lens = load_lens(path)
+    np.testing.assert_array_equal(lens.aperture_x_mm[..., 0], [[0, 1, 2], [3, 4, 0]])
+    assert lens.weights.sum() == pytest.approx(6.0)
