@@ -25,16 +25,15 @@ non-negative weights summing to 1 (``fusion_weights``): with no noise the sharpe
 alone; with noise a blend. (By noise alone, depths near focus, whose LTC is a few large
 boxes with little noise, would win while being the blurriest.)
 
-K samples: equal-mass strata (``strata_samples``): the grid is cut recursively into K
-rectangles of equal mass, alternately across y and x, and each sample is its rectangle's
-centroid; this keeps the first moment exactly, costs O(G^2 log K) per node, and sample j is
-the same stratum at every node, so bilinear interpolation between nodes blends like with
-like. (It replaced per-node weighted k-means plus an optimal-assignment reordering, about
-100 times slower; on the fake bench's held-out depth the measured lens's LTC centroids agree
-with the truth as well, median 0.042 against 0.041 LCD px, and its size within 1.9 % against
-0.3 %.) An affine map about the mean then gives the samples the target covariance exactly
-(the grid covariance plus the cell's own ``cell^2/12``, minus the known box blurs, so the
-samples describe the aperture, not the measurement's pixels).
+K samples (``ring_samples``): equal-mass polar strata about the mean in whitened
+coordinates (rings by radius, sectors by angle from a golden-angle offset per ring), each
+sample its stratum's centroid, refined by a few weighted Lloyd (k-means) steps over the
+cells; sample j is the same part of the aperture at every node, so bilinear interpolation
+between nodes blends like with like. (It replaced weighted k-means from raster-quantile
+seeds plus an optimal-assignment reordering per node (scipy, a Python loop over nodes).)
+An affine map about the mean then gives the samples the target covariance exactly (the grid
+covariance plus the cell's own ``cell^2/12``, minus the known box blurs, so the samples
+describe the aperture, not the measurement's pixels).
 """
 
 from __future__ import annotations
@@ -46,6 +45,7 @@ import numpy as np
 
 SQRT_2_OVER_PI = float(np.sqrt(2.0 / np.pi))
 EDGE_L1_PER_SIGMA = 0.8  # L1 error of a blurred step edge per unit blur std and edge length
+LLOYD_ITERATIONS = 10  # Lloyd steps after the ring strata (see ring_samples)
 NOISE_FLOOR_L1 = 1e-4  # keeps noise-free weights finite
 
 
@@ -200,37 +200,60 @@ def grid_moments(mass: np.ndarray, grid: ApertureGrid) -> tuple[np.ndarray, np.n
     return mean, cov
 
 
-def strata_samples(mass: np.ndarray, grid: ApertureGrid,
-                   k: int) -> tuple[np.ndarray, np.ndarray]:
-    """K samples of grid masses (n, G, G) by equal-mass strata: positions (n, k, 2) mm and
-    weights (n, k) summing to 1 (each about 1/k). The grid square is cut recursively into
-    k rectangles, alternately across x and y, each cut splitting the mass in proportion to
-    the samples on either side (a cell's mass spread uniformly over the cell); a sample is
-    its rectangle's centroid. The first moment is kept exactly, and sample j is the same
-    stratum (part of the aperture) at every node, so bilinear blending of neighbouring
-    nodes blends like with like. Negative masses count as 0."""
-    from station.lens.kernels import strata_kernel
-
-    if k < 1:
-        raise ValueError(f"strata_samples: need k >= 1 samples, got {k}")
-    n = len(mass)
-    m = np.maximum(np.asarray(mass, dtype=np.float64).reshape(n, grid.cells, grid.cells), 0.0)
-    tot = m.sum(axis=(1, 2))
-    if np.any(tot <= 0):
-        raise ValueError(f"strata_samples: {int((tot <= 0).sum())} distribution(s) have no "
-                         "positive mass")
-    uv = np.empty((n, k, 2))
-    w = np.empty((n, k))
-    strata_kernel(np.ascontiguousarray(m / tot[:, None, None]), k, uv, w)
-    x = -grid.half_width_mm + uv * grid.cell_mm
-    return x, w / w.sum(axis=1, keepdims=True)
-
-
 def _sqrtm(c: np.ndarray, inverse: bool = False) -> np.ndarray:
     val, vec = np.linalg.eigh(c)
     val = np.maximum(val, 1e-18)
     f = val**-0.5 if inverse else np.sqrt(val)
     return np.einsum("nij,nj,nkj->nik", vec, f, vec)
+
+
+def ring_counts(k: int) -> np.ndarray:
+    """Samples per ring of ``ring_samples``: R = round(sqrt(k / pi)) rings (at least 1), ring
+    i holding about k (2 i + 1) / R^2 (equal areas per sample for a uniform disk)."""
+    r = max(1, int(round(np.sqrt(k / np.pi))))
+    c = np.maximum(1, np.round(k * (2 * np.arange(r) + 1) / r**2)).astype(np.int64)
+    while c.sum() != k:  # round-off goes to the outer rings
+        i = int(np.argmax(c)) if c.sum() > k else len(c) - 1
+        c[i] += 1 if c.sum() < k else -1
+    return c[c > 0]
+
+
+def ring_samples(mass: np.ndarray, grid: ApertureGrid, k: int,
+                 iterations: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """K samples of grid masses (n, G, G) by equal-mass polar strata: positions (n, k, 2) mm
+    and weights (n, k) summing to 1 (each about 1/k). About the distribution's mean, in
+    coordinates whitened by its covariance, the cells are cut into rings of equal mass per
+    sample (``ring_counts``) by radius and each ring into sectors of equal mass by angle,
+    starting at a golden-angle offset per ring (so no two rings line up); a cell's mass is
+    split where a boundary falls inside it, and a sample is its stratum's centroid. The
+    first moment is kept exactly, the samples spread like a Vogel spiral over a disk (no
+    lattice: many distinct positions along every direction), and sample j is the same
+    stratum at every node, so bilinear blending of neighbouring nodes blends like with
+    like. Then ``iterations`` (default ``LLOYD_ITERATIONS``) weighted Lloyd (k-means) steps
+    over the cells move each sample to the centroid of the cells nearest to it (first
+    moment still exact; weights then unequal; sample j keeps its number). Negative masses
+    count as 0."""
+    from station.lens.kernels import lloyd_kernel, rings_kernel
+
+    if k < 1:
+        raise ValueError(f"ring_samples: need k >= 1 samples, got {k}")
+    n = len(mass)
+    m = np.maximum(np.asarray(mass, dtype=np.float64).reshape(n, grid.cells, grid.cells), 0.0)
+    tot = m.sum(axis=(1, 2))
+    if np.any(tot <= 0):
+        raise ValueError(f"ring_samples: {int((tot <= 0).sum())} distribution(s) have no "
+                         "positive mass")
+    m = np.ascontiguousarray(m / tot[:, None, None])
+    mean, cov = grid_moments(m, grid)
+    white = _sqrtm(cov + np.eye(2) * grid.cell_mm**2 / 12.0, inverse=True)
+    counts = ring_counts(k)
+    offsets = np.arange(len(counts)) * np.pi * (3.0 - np.sqrt(5.0))
+    x, w = np.empty((n, k, 2)), np.empty((n, k))
+    rings_kernel(m, grid.centres_mm, mean, np.ascontiguousarray(white), counts, offsets, x, w)
+    iterations = LLOYD_ITERATIONS if iterations is None else iterations
+    if iterations:
+        lloyd_kernel(m, grid.centres_mm, x, w, iterations)
+    return x, w / w.sum(axis=1, keepdims=True)
 
 
 def match_moments(

@@ -7,7 +7,8 @@ one window or node at a time so nothing grows with the batch.
 radius ``REGION_MARGIN_PX + 0.5``; centroid, moments and their noise); only the order of
 floating-point sums differs from the numpy version (tests compare them within 1e-12).
 ``resample_kernel`` is ``aperture.resample`` (nearest LCD pixel at each sub-cell centre).
-``strata_kernel`` draws K aperture samples by equal-mass stratification (``aperture.strata``).
+``rings_kernel`` and ``lloyd_kernel`` draw K aperture samples (``aperture.ring_samples``);
+``moments_kernel`` is ``aperture.grid_moments``.
 """
 
 from __future__ import annotations
@@ -185,6 +186,7 @@ def resample_kernel(h, origin, ray_d, ray_c, inv, box, ptx, pty, pitch_mm, g, su
     sc = pts_cam_step  # sub-cell pitch, mm
     colb = np.empty(gs)
     rowb = np.empty(gs)
+    cell = np.arange(gs) // sub  # output cell of each sub-cell index (no division per point)
     for k in range(n):
         ox, oy = origin[k, 0], origin[k, 1]
         # the window's nonzero weights: only sub-cells that can land on them are visited
@@ -235,111 +237,10 @@ def resample_kernel(h, origin, ray_d, ray_c, inv, box, ptx, pty, pitch_mm, g, su
                 col = np.int64(colb[b] + cya) - OFFSET_I - ox
                 row = np.int64(rowb[b] + rya) - OFFSET_I - oy
                 if 0 <= col < p and 0 <= row < p:
-                    oa[b // sub] += hk[row, col] * hb
+                    oa[cell[b]] += hk[row, col] * hb
         for a in range(g):
             for b in range(g):
                 out[k, a, b] *= cell_area
-
-
-@numba.njit(cache=True, nogil=True)
-def _overlap(a0, a1, i):
-    """Length of [a0, a1] inside the unit cell [i, i + 1]."""
-    return max(0.0, min(a1, i + 1.0) - max(a0, float(i)))
-
-
-@numba.njit(cache=True, nogil=True)
-def strata_kernel(mass, k, out_uv, out_w):
-    """Equal-mass strata of grid masses (n, G, G) (cell units, >= 0): per node, the grid
-    square [0, G]^2 is cut recursively into rectangles, alternately across x (columns) and
-    y (rows), each cut at the point that gives the two sides masses in proportion to the
-    samples they get (floor(k/2) : ceil(k/2)), the mass in a cell counted as spread
-    uniformly over it. Writes each of the k rectangles' centroid out_uv (n, k, 2) (u, v)
-    cell units and mass out_w (n, k), in depth-first order (low side first)."""
-    n, g = mass.shape[0], mass.shape[1]
-    # stack of rectangles: u0, u1, v0, v1, count, axis, offset
-    st_f = np.empty((2 * k + 2, 4))
-    st_i = np.empty((2 * k + 2, 3), dtype=np.int64)
-    line = np.empty(g)
-    for m in range(n):
-        rho = mass[m]
-        top = 1
-        st_f[0, 0], st_f[0, 1], st_f[0, 2], st_f[0, 3] = 0.0, float(g), 0.0, float(g)
-        st_i[0, 0], st_i[0, 1], st_i[0, 2] = k, 1, 0
-        while top > 0:
-            top -= 1
-            u0, u1, v0, v1 = st_f[top, 0], st_f[top, 1], st_f[top, 2], st_f[top, 3]
-            kk, axis, off = st_i[top, 0], st_i[top, 1], st_i[top, 2]
-            i0, i1 = int(np.floor(u0)), min(g, int(np.ceil(u1)))
-            j0, j1 = int(np.floor(v0)), min(g, int(np.ceil(v1)))
-            if kk == 1:
-                s = 0.0
-                su = 0.0
-                sv = 0.0
-                for j in range(j0, j1):
-                    oy = _overlap(v0, v1, j)
-                    if oy <= 0.0:
-                        continue
-                    cv = 0.5 * (max(v0, float(j)) + min(v1, j + 1.0))
-                    for i in range(i0, i1):
-                        ox = _overlap(u0, u1, i)
-                        if ox <= 0.0:
-                            continue
-                        q = rho[j, i] * ox * oy
-                        s += q
-                        su += q * 0.5 * (max(u0, float(i)) + min(u1, i + 1.0))
-                        sv += q * cv
-                out_w[m, off] = s
-                if s > 0:
-                    out_uv[m, off, 0] = su / s
-                    out_uv[m, off, 1] = sv / s
-                else:
-                    out_uv[m, off, 0] = 0.5 * (u0 + u1)
-                    out_uv[m, off, 1] = 0.5 * (v0 + v1)
-                continue
-            k1 = kk // 2
-            if axis == 0:  # cut across x: the mass of each column inside the rectangle
-                lo, hi, a0, a1 = u0, u1, i0, i1
-                for i in range(i0, i1):
-                    ox = _overlap(u0, u1, i)
-                    t = 0.0
-                    for j in range(j0, j1):
-                        t += rho[j, i] * _overlap(v0, v1, j)
-                    line[i] = t * ox
-            else:
-                lo, hi, a0, a1 = v0, v1, j0, j1
-                for j in range(j0, j1):
-                    oy = _overlap(v0, v1, j)
-                    t = 0.0
-                    for i in range(i0, i1):
-                        t += rho[j, i] * _overlap(u0, u1, i)
-                    line[j] = t * oy
-            total = 0.0
-            for i in range(a0, a1):
-                total += line[i]
-            cut = 0.5 * (lo + hi)
-            if total > 0:
-                target = total * k1 / kk
-                cut = hi  # rounding left the target beyond the last column's mass
-                cum = 0.0
-                for i in range(a0, a1):
-                    if cum + line[i] >= target and line[i] > 0:
-                        s0, s1 = max(lo, float(i)), min(hi, i + 1.0)
-                        cut = s0 + (target - cum) / line[i] * (s1 - s0)
-                        break
-                    cum += line[i]
-            nxt = 1 - axis
-            # push the high side first so the low side is handled first (order is by offset)
-            if axis == 0:
-                st_f[top, 0], st_f[top, 1], st_f[top, 2], st_f[top, 3] = cut, u1, v0, v1
-                st_f[top + 1, 0], st_f[top + 1, 1] = u0, cut
-                st_f[top + 1, 2], st_f[top + 1, 3] = v0, v1
-            else:
-                st_f[top, 0], st_f[top, 1], st_f[top, 2], st_f[top, 3] = u0, u1, cut, v1
-                st_f[top + 1, 0], st_f[top + 1, 1] = u0, u1
-                st_f[top + 1, 2], st_f[top + 1, 3] = v0, cut
-            st_i[top, 0], st_i[top, 1], st_i[top, 2] = kk - k1, nxt, off + k1
-            st_i[top + 1, 0], st_i[top + 1, 1], st_i[top + 1, 2] = k1, nxt, off
-            top += 2
 
 
 @numba.njit(cache=True, nogil=True)
@@ -375,3 +276,177 @@ def moments_kernel(mass, centres, mean, cov):
         mean[k, 0], mean[k, 1] = mx, my
         cov[k, 0, 0], cov[k, 1, 1] = sxx, syy
         cov[k, 0, 1], cov[k, 1, 0] = sxy, sxy
+
+
+@numba.njit(cache=True, nogil=True)
+def rings_kernel(mass, centres, mean, white, counts, offsets, out_xy, out_w):
+    """Equal-mass polar strata of grid masses (n, G, G) (normalised, >= 0) about their mean
+    (n, 2) in whitened coordinates (``white`` (n, 2, 2) = cov^-1/2): rings of mass
+    counts[i] / K (cells sorted by whitened radius), each cut into counts[i] sectors of equal
+    mass by whitened angle from ``offsets[i]`` (radians). A cell's mass is split where a
+    boundary falls inside it. Writes each stratum's centroid (cell centres ``centres`` (G,)
+    mm) to out_xy (n, K, 2) and its mass to out_w (n, K), ring by ring, sector by sector."""
+    n, g = mass.shape[0], mass.shape[1]
+    nr = len(counts)
+    k = out_w.shape[1]
+    ncell = g * g
+    px = np.empty(ncell)
+    py = np.empty(ncell)
+    rad = np.empty(ncell)
+    ang = np.empty(ncell)
+    mm = np.empty(ncell)
+    piece_cell = np.empty(ncell + nr, dtype=np.int64)
+    piece_mass = np.empty(ncell + nr)
+    piece_ring = np.empty(ncell + nr, dtype=np.int64)
+    for m in range(n):
+        na = 0
+        for a in range(g):
+            for b in range(g):
+                v = mass[m, a, b]
+                if v > 0:
+                    x, y = centres[b], centres[a]
+                    dx, dy = x - mean[m, 0], y - mean[m, 1]
+                    zx = white[m, 0, 0] * dx + white[m, 0, 1] * dy
+                    zy = white[m, 1, 0] * dx + white[m, 1, 1] * dy
+                    px[na], py[na], mm[na] = x, y, v
+                    rad[na] = zx * zx + zy * zy
+                    ang[na] = np.arctan2(zy, zx)
+                    na += 1
+        order = np.argsort(rad[:na], kind="mergesort")
+        # rings: walk the cells outwards, cutting at cumulative masses sum(counts[:i+1]) / K
+        np_ = 0
+        ring = 0
+        cum_count = counts[0]
+        target = cum_count / k
+        acc = 0.0
+        for t in range(na):
+            c = order[t]
+            left = mm[c]
+            while left > 0:
+                room = target - acc if ring < nr - 1 else left
+                take = min(left, room)
+                if take > 0:
+                    piece_cell[np_], piece_mass[np_], piece_ring[np_] = c, take, ring
+                    np_ += 1
+                    acc += take
+                    left -= take
+                if left > 0 and ring < nr - 1:
+                    ring += 1
+                    cum_count += counts[ring]
+                    target = cum_count / k
+        # sectors: within each ring (its pieces are contiguous: the walk went outwards), by
+        # angle from the ring's offset
+        first = 0
+        q0 = 0
+        for r in range(nr):
+            q1 = q0
+            while q1 < np_ and piece_ring[q1] == r:
+                q1 += 1
+            ns = q1 - q0
+            tot = 0.0
+            ks = np.empty(ns)
+            for t in range(ns):
+                q = q0 + t
+                a2 = ang[piece_cell[q]] - offsets[r]
+                ks[t] = a2 - 2 * np.pi * np.floor(a2 / (2 * np.pi))
+                tot += piece_mass[q]
+            cnt = counts[r]
+            for j in range(cnt):
+                out_w[m, first + j] = 0.0
+                out_xy[m, first + j, 0] = mean[m, 0]
+                out_xy[m, first + j, 1] = mean[m, 1]
+            if ns == 0:
+                first += cnt
+                q0 = q1
+                continue
+            so = np.argsort(ks, kind="mergesort")
+            sec = 0
+            sec_target = tot / cnt
+            acc = 0.0
+            sx = 0.0
+            sy = 0.0
+            for t in range(ns):
+                q = q0 + so[t]
+                c = piece_cell[q]
+                left = piece_mass[q]
+                while left > 0:
+                    room = sec_target - acc if sec < cnt - 1 else left
+                    take = min(left, room)
+                    if take > 0:
+                        acc += take
+                        sx += take * px[c]
+                        sy += take * py[c]
+                        out_w[m, first + sec] += take
+                        left -= take
+                    if left > 0 and sec < cnt - 1:
+                        w = out_w[m, first + sec]
+                        if w > 0:
+                            out_xy[m, first + sec, 0] = sx / w
+                            out_xy[m, first + sec, 1] = sy / w
+                        sec += 1
+                        sec_target = tot * (sec + 1) / cnt
+                        sx = 0.0
+                        sy = 0.0
+            w = out_w[m, first + sec]
+            if w > 0:
+                out_xy[m, first + sec, 0] = sx / w
+                out_xy[m, first + sec, 1] = sy / w
+            first += cnt
+            q0 = q1
+
+
+@numba.njit(cache=True, nogil=True)
+def lloyd_kernel(mass, centres, x, w, iterations):
+    """Weighted Lloyd (k-means) iterations from the samples x (n, K, 2) mm over the cells of
+    grid masses (n, G, G) (normalised, >= 0; cell centres ``centres`` (G,) mm): each cell
+    goes to its nearest sample, each sample moves to its cells' centroid (one without cells
+    stays, weight 0); stops early when no cell changes sample. Writes x and the samples'
+    masses w (n, K). Sample j stays sample j (its stratum moves, it is not renumbered)."""
+    n, g = mass.shape[0], mass.shape[1]
+    k = x.shape[1]
+    ncell = g * g
+    cx = np.empty(ncell)
+    cy = np.empty(ncell)
+    cm = np.empty(ncell)
+    lab = np.empty(ncell, dtype=np.int64)
+    sx = np.empty(k)
+    sy = np.empty(k)
+    sw = np.empty(k)
+    for m in range(n):
+        na = 0
+        for a in range(g):
+            for b in range(g):
+                v = mass[m, a, b]
+                if v > 0:
+                    cx[na], cy[na], cm[na] = centres[b], centres[a], v
+                    lab[na] = -1
+                    na += 1
+        for it in range(iterations):
+            changed = False
+            for j in range(k):
+                sx[j] = 0.0
+                sy[j] = 0.0
+                sw[j] = 0.0
+            for c in range(na):
+                best = 0
+                bd = np.inf
+                for j in range(k):
+                    dx = cx[c] - x[m, j, 0]
+                    dy = cy[c] - x[m, j, 1]
+                    d = dx * dx + dy * dy
+                    if d < bd:
+                        bd = d
+                        best = j
+                if best != lab[c]:
+                    changed = True
+                    lab[c] = best
+                sx[best] += cm[c] * cx[c]
+                sy[best] += cm[c] * cy[c]
+                sw[best] += cm[c]
+            for j in range(k):
+                w[m, j] = sw[j]
+                if sw[j] > 0:
+                    x[m, j, 0] = sx[j] / sw[j]
+                    x[m, j, 1] = sy[j] / sw[j]
+            if not changed:
+                break

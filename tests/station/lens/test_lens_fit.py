@@ -33,7 +33,7 @@ from station.lens.aperture import (
     ApertureGrid,
     fusion_weights,
     grid_moments,
-    strata_samples,
+    ring_samples,
     match_moments,
     resample,
     scale_ratio,
@@ -346,10 +346,10 @@ def test_aperture_helper_errors():
         ApertureGrid(1.0, 1)
     grid = ApertureGrid(1.0, 4)
     with pytest.raises(ValueError, match="need k >= 1 samples"):
-        strata_samples(np.ones((1, 4, 4)), grid, 0)
+        ring_samples(np.ones((1, 4, 4)), grid, 0)
     with pytest.raises(ValueError, match=r"1 distribution\(s\) have no positive mass"):
-        strata_samples(-np.ones((1, 4, 4)), grid, 2)
-    _, ws = strata_samples(np.eye(4)[None], grid, 8)  # 4 occupied cells for 8 samples
+        ring_samples(-np.ones((1, 4, 4)), grid, 2)
+    _, ws = ring_samples(np.eye(4)[None], grid, 8, iterations=0)  # 4 cells, 8 samples
     np.testing.assert_allclose(ws, 1 / 8, atol=1e-12)  # cells are split: equal masses
 
 
@@ -395,7 +395,7 @@ def test_samples_match_moments():
     grid = ApertureGrid(4.0, 32)
     pts = grid.points().reshape(-1, 2)
     mass = (np.hypot(pts[:, 0] - 0.5, pts[:, 1]) < 3.0).astype(float).reshape(1, 32, 32)
-    x, w = strata_samples(mass, grid, 32)
+    x, w = ring_samples(mass, grid, 32)
     mean, cov = grid_moments(mass, grid)
     target = cov + np.eye(2) * 0.1
     y = match_moments(x, w, mean, target)

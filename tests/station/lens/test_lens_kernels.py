@@ -1,12 +1,12 @@
 """The compiled lens kernels against the numpy formulas they replace (kept here as the
-reference): ``window_stats`` and ``aperture.resample``; and the strata sampler's properties."""
+reference): ``window_stats`` and ``aperture.resample``; and the ring sampler's properties."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
 
-from station.lens.aperture import ApertureGrid, grid_moments, resample, strata_samples
+from station.lens.aperture import ApertureGrid, grid_moments, resample, ring_samples
 from station.lens.centroids import (
     NOISE_SIGMAS,
     PEAK_FRACTION,
@@ -139,20 +139,24 @@ def test_resample_equals_the_numpy_formulas():
         np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-15)
 
 
-def test_strata_keep_the_mean_and_equal_masses_in_a_fixed_order():
-    """Every sample carries 1/k of the mass, the samples' mean is the distribution's, and
-    sample j lies in the same part of the aperture for a disk and a shifted, vignetted one."""
+def test_ring_strata_keep_the_mean_and_equal_masses_in_a_fixed_order():
+    """Every stratum carries 1/k of the mass, the samples' mean is the distribution's (also
+    after the Lloyd steps), and sample j lies in the same part of the aperture for a disk
+    and a shifted, vignetted one."""
     grid = ApertureGrid(4.0, 32)
     pts = grid.points().reshape(-1, 2)
     disk = (np.hypot(pts[:, 0], pts[:, 1]) < 3.0).astype(float)
     cat = disk * (np.hypot(pts[:, 0] - 1.5, pts[:, 1]) < 3.0) * (1 + 0.1 * pts[:, 1])
     mass = np.stack([disk, cat, np.eye(32).ravel()]).reshape(3, 32, 32)
     for k in (1, 7, 32):
-        x, w = strata_samples(mass, grid, k)
+        x, w = ring_samples(mass, grid, k, iterations=0)
         np.testing.assert_allclose(w, 1.0 / k, atol=1e-12)
         mean, _ = grid_moments(mass, grid)
         np.testing.assert_allclose(np.einsum("nk,nki->ni", w, x), mean, atol=1e-12)
-    x, _ = strata_samples(mass[:2], grid, 32)
+        x, w = ring_samples(mass, grid, k)
+        np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-12)
+        np.testing.assert_allclose(np.einsum("nk,nki->ni", w, x), mean, atol=1e-12)
+    x, _ = ring_samples(mass[:2], grid, 32)
     d = x[0] - x.mean(axis=1)[0]
     e = x[1] - x.mean(axis=1)[1]
     ang = np.degrees(np.abs(np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0])
