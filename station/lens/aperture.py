@@ -45,7 +45,7 @@ import numpy as np
 
 SQRT_2_OVER_PI = float(np.sqrt(2.0 / np.pi))
 EDGE_L1_PER_SIGMA = 0.8  # L1 error of a blurred step edge per unit blur std and edge length
-LLOYD_ITERATIONS = 10  # Lloyd steps after the ring strata (see ring_samples)
+LLOYD_ITERATIONS = 5  # Lloyd steps after the ring strata (see ring_samples)
 NOISE_FLOOR_L1 = 1e-4  # keeps noise-free weights finite
 
 
