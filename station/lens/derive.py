@@ -132,16 +132,17 @@ def aperture_job(geom: LensGeometry, grid: ap.ApertureGrid, cfg: LensFitConfig,
                        footprint_mm(c.depths_mm, zc, geom.camera_matrix), u @ vt, **flags)
 
 
-def pixel_inputs(geom: LensGeometry, pix: np.ndarray) -> dict[str, np.ndarray]:
+def pixel_inputs(geom: LensGeometry, pix: np.ndarray,
+                 cfg: LensFitConfig) -> dict[str, np.ndarray]:
     """The per-pixel inputs of an aperture block for flat pixels ``pix`` (m,): principal ray
-    (``xy_ref``, ``slope``, ``z_ref``; ``at_centre`` at z_O relative to the centre), ``used``
-    (D, m), ``usable`` (m,) and the centroid moments ``mom`` (D, m, 3) LCD px^2."""
+    (``xy_ref``, ``slope``, ``z_ref``; ``at_centre`` on z_O relative to the centre, fitted
+    over the pixel's neighbours: ``local_ray_centres``), ``used`` (D, m), ``usable`` (m,) and
+    the centroid moments ``mom`` (D, m, 3) LCD px^2."""
     c, rays = geom.centroids, geom.rays
     d = len(c.depths_mm)
-    zc = float(geom.centre.position[2])
     xy_ref, slope, z_ref = rays.xy_ref[pix], rays.slope[pix], rays.z_ref[pix]
     return {"xy_ref": xy_ref, "slope": slope, "z_ref": z_ref,
-            "at_centre": xy_ref + slope * (zc - z_ref)[:, None] - geom.centre.position[:2],
+            "at_centre": local_ray_centres(geom, pix, cfg.ray_window_px),
             "used": rays.used[:, pix], "usable": rays.usable[pix],
             "mom": c.moments_px2.reshape(d, -1, 3)[:, pix].astype(np.float64)}
 
@@ -186,8 +187,13 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
             h = ltc[i, loc].astype(np.float64)
             st = window_stats(np.where(used[:, None, None], h, np.nan), noise[i, loc])
             hh = np.where(st.region, h, 0.0)
+            # each depth's LTC is placed by its own centroid onto the principal ray at the
+            # centre's plane: the depths' noisy residuals (x |s_i| ~ 5 at the extreme
+            # depths) neither shift nor blur the fused distribution
             at_depth = inp["xy_ref"][idx] + inp["slope"][idx] * (job.depths_mm[i]
                                                                  - inp["z_ref"][idx])[:, None]
+            own = (st.centroid + origin[i, loc]) * c_pitch
+            at_depth = np.where(np.isfinite(own), own, at_depth)
             m = ap.resample(hh, origin[i, loc], at_depth, inp["at_centre"][idx], s[i], c_pitch,
                             grid, job.rot2, cfg.supersample)
             cov_i = m.sum(axis=(1, 2))
@@ -204,7 +210,10 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
         tot = wd.sum(axis=1)
         fz = acc / np.where(tot > 0, tot, 1.0)[:, None, None]
         ok_c = tot > 0
-        mean_c, cov_c = _moments(fz, wd, ok_c, grid, c_pitch * s, fp * s, cfg.deblur)
+        _, cov_c = _moments(fz, wd, ok_c, grid, c_pitch * s, fp * s, cfg.deblur)
+        # the samples' centroid is the principal ray on the centre's plane (camera axes):
+        # the fit over all depths and the pixel's neighbours, not the fused grid's mean
+        mean_c = inp["at_centre"][idx] @ job.rot2.T
         out["weight"][idx], out["coverage"][idx] = wd, coverage
         out["mean"][idx], out["cov"][idx] = mean_c, cov_c
         if job.keep_fused:
@@ -288,7 +297,7 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
         pix = pixels[sel]
         r0, c0 = pix[0] // w_cam // tr * tr, pix[0] % w_cam // tc * tc
         res = aperture_block(volume, job, r0, min(h_cam, r0 + tr), c0, min(w_cam, c0 + tc),
-                             pix, pixel_inputs(geom, pix))
+                             pix, pixel_inputs(geom, pix, cfg))
         for name in out:
             out[name][sel] = res[name]
         if fused is not None:
@@ -450,7 +459,7 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
             for r0, r1, c0, c1, jv, iu in blocks:
                 pix = (nv[jv][:, None] * w + nu[iu][None, :]).ravel()
                 yield ((jv, iu), aperture_block,
-                       (volume, job, r0, r1, c0, c1, pix, pixel_inputs(geom, pix)))
+                       (volume, job, r0, r1, c0, c1, pix, pixel_inputs(geom, pix, cfg)))
 
         def on_result(key, res) -> None:
             jv, iu = key
