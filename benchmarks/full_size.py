@@ -31,6 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 FULL_H = 2168
+LENS_DEPTHS = (60.0, 260.0, 100.0, 140.0, 180.0, 220.0)  # the first --lens-depths are used
 CONFIG = """
 backend = "fake"
 depths_mm = {depths}
@@ -58,8 +59,9 @@ def peak_mb() -> float:
     return max(own, kids) / 1024.0
 
 
-def stage(name: str, out: Path, rows: int, workers: int | None) -> dict:
+def stage(name: str, out: Path, rows: int, workers: int | None, depths: int = 2) -> dict:
     from station.api import acquire, load_config, open_bench
+    from station.ltc.parallel import default_workers
     from station.acquisition.acquire import pattern_plan
 
     cfg_path = out / "bench.toml"
@@ -95,18 +97,74 @@ def stage(name: str, out: Path, rows: int, workers: int | None) -> dict:
                    engine=s["engine"])
     elif name == "truth":
         res.update(centroid_error(cfg, out / "ltc.zarr", rows))
+    elif name == "lens_store":
+        write_true_store(cfg, out / "lens_ltc.zarr", depths=sorted(LENS_DEPTHS[:depths]))
     elif name == "lens":
         from station.api import derive_lens
 
-        write_true_store(cfg, out / "lens_ltc.zarr")
+        tree = TreePeak()
         t = time.perf_counter()
         # two depths cannot fit the focus: give the bench's (from its pupil, the centre)
         r = derive_lens(out / "lens_ltc.zarr", progress=False,
-                        focus_distance_mm=_bench(cfg).config.focus_distance_mm)
+                        focus_distance_mm=_bench(cfg).config.focus_distance_mm,
+                        out=out / "lens.npz", workers=workers)
         res["lens_seconds"] = time.perf_counter() - t
+        res["lens_pixels_per_second"] = 4096 * rows / res["lens_seconds"]
         res["lens_pixels_usable"] = r.summary()["pixels_usable"]
+        res["lens_file_mb"] = (out / "lens.npz").stat().st_size / 1e6
+        res["lens_workers"] = workers or default_workers()
+        res.update(tree.stop())
+        return res
     res[f"{name}_peak_mb"] = peak_mb()
     return res
+
+
+class TreePeak:
+    """Peak resident memory of this process and every descendant (worker processes of any
+    engine, forkserver children included): each process's own peak (VmHWM) polled from
+    /proc, summed. The sum is an upper bound on the peak of the whole job."""
+
+    def __init__(self, every_s: float = 0.5) -> None:
+        import threading
+
+        self.peaks: dict[int, float] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(every_s,), daemon=True)
+        self._thread.start()
+
+    def _descendants(self) -> list[int]:
+        parent: dict[int, int] = {}
+        for d in os.listdir("/proc"):
+            if d.isdigit():
+                try:
+                    with open(f"/proc/{d}/stat") as f:
+                        parent[int(d)] = int(f.read().rsplit(")", 1)[1].split()[1])
+                except (OSError, IndexError, ValueError):
+                    pass
+        out, todo = [], [os.getpid()]
+        while todo:
+            p = todo.pop()
+            out.append(p)
+            todo += [c for c, q in parent.items() if q == p]
+        return out
+
+    def _run(self, every_s: float) -> None:
+        while not self._stop.wait(every_s):
+            for pid in self._descendants():
+                try:
+                    with open(f"/proc/{pid}/status") as f:
+                        kb = next(int(x.split()[1]) for x in f if x.startswith("VmHWM"))
+                except (OSError, StopIteration):
+                    continue
+                self.peaks[pid] = max(self.peaks.get(pid, 0.0), kb / 1024.0)
+
+    def stop(self) -> dict:
+        self._stop.set()
+        self._thread.join()
+        me = os.getpid()
+        others = sorted((v for p, v in self.peaks.items() if p != me), reverse=True)
+        return {"lens_parent_peak_mb": peak_mb(), "lens_other_process_peaks_mb": others[:4],
+                "lens_peak_mb": peak_mb() + sum(others)}
 
 
 def _bench(cfg):
@@ -186,9 +244,18 @@ def main() -> None:
     ap.add_argument("--dask-workers", type=int, default=8, help="N for the projection")
     ap.add_argument("--stage", help=argparse.SUPPRESS)
     ap.add_argument("--skip-lens", action="store_true")
+    ap.add_argument("--lens-only", action="store_true",
+                    help="only the lens stage (at every --lens-rows)")
+    ap.add_argument("--lens-rows", type=int, nargs="+", default=[64, 256],
+                    help="crop heights of the lens stage (memory flat in sensor size: compare)")
+    ap.add_argument("--lens-depths", type=int, default=2, choices=range(2, 7),
+                    help="depths of the lens stage's LTC store")
     a = ap.parse_args()
     if a.stage:
-        print(json.dumps(stage(a.stage, a.out, a.rows, a.workers)))
+        print(json.dumps(stage(a.stage, a.out, a.rows, a.workers, a.lens_depths)))
+        return
+    if a.lens_only:
+        print(json.dumps(lens_stages(a), indent=2))
         return
     if a.out.exists():
         shutil.rmtree(a.out)
@@ -197,8 +264,7 @@ def main() -> None:
     (a.out / "bench.toml").write_text(CONFIG.format(depths=[140.0], r0=r0, r1=r0 + a.rows))
     res: dict = {"rows": a.rows, "width": 4096, "cores": os.cpu_count(),
                  "date": time.strftime("%Y-%m-%d")}
-    stages = ["capture", "acquire", "read", "reconstruct", "truth"] + ([] if a.skip_lens
-                                                                      else ["lens"])
+    stages = ["capture", "acquire", "read", "reconstruct", "truth"]
     for name in stages:
         cmd = [sys.executable, __file__, "--out", str(a.out), "--rows", str(a.rows),
                "--stage", name] + (["--workers", str(a.workers)] if a.workers else [])
@@ -223,7 +289,54 @@ def main() -> None:
     res["projected_six_depths_reconstruct_dask_h"] = {
         "workers": n, "hours": 6 * max(read_full, recon_full * (os.cpu_count() or 1) / n)
         / 3600, "measured_engine": here}
+    if not a.skip_lens:
+        res.update(lens_stages(a))
     print(json.dumps(res, indent=2))
+
+
+def _run_stage(a, name: str, out: Path, rows: int) -> dict:
+    cmd = [sys.executable, __file__, "--out", str(out), "--rows", str(rows), "--stage", name,
+           "--lens-depths", str(a.lens_depths)] + (["--workers", str(a.workers)] if a.workers
+                                                   else [])
+    t = time.perf_counter()
+    got = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    if got.returncode:
+        sys.exit(f"stage {name} failed:\n{got.stderr[-3000:]}")
+    part = json.loads(got.stdout.strip().splitlines()[-1])
+    print(f"{name} ({rows} rows): {time.perf_counter() - t:.1f} s {json.dumps(part)}",
+          file=sys.stderr, flush=True)
+    return part
+
+
+def lens_stages(a) -> dict:
+    """The lens with default settings (grid step 1, K = 32, streamed to its file) on LTC
+    stores of ``--lens-depths`` depths at each ``--lens-rows`` crop height, each in its own
+    process; projects the full sensor (six depths: time x 6 / depths) and its peak memory
+    (a line through the measured peaks against rows, at 2168 rows)."""
+    runs = []
+    for rows in a.lens_rows:
+        out = a.out / f"lens_{rows}"
+        if out.exists():
+            shutil.rmtree(out)
+        out.mkdir(parents=True)
+        r0 = (FULL_H - rows) // 2
+        (out / "bench.toml").write_text(CONFIG.format(depths=[140.0], r0=r0, r1=r0 + rows))
+        _run_stage(a, "lens_store", out, rows)
+        part = _run_stage(a, "lens", out, rows)
+        part["rows"] = rows
+        runs.append(part)
+        shutil.rmtree(out / "lens_ltc.zarr")
+    res: dict = {"lens_depths": a.lens_depths, "lens_runs": runs}
+    fast = max(runs, key=lambda q: q["rows"])
+    res["lens_projected_full_s"] = (4096 * FULL_H / fast["lens_pixels_per_second"]
+                                    * 6 / a.lens_depths)
+    if len(runs) > 1:
+        rows = np.array([q["rows"] for q in runs], dtype=float)
+        mb = np.array([q["lens_peak_mb"] for q in runs])
+        slope, icpt = np.polyfit(rows, mb, 1)
+        res["lens_peak_mb_per_row"] = float(slope)
+        res["lens_projected_full_peak_mb"] = float(icpt + slope * FULL_H)
+    return res
 
 
 if __name__ == "__main__":

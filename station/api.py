@@ -116,13 +116,20 @@ def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,
                 interpolation: str = "bilinear", centre: str = "auto",
                 focus_distance_mm: float | None = None, rig: str | Path | None = None,
                 rig_camera: str | None = None, figures: str | Path | None = None,
-                progress: bool = True) -> LensResult:
+                progress: bool = True, out: str | Path | None = None,
+                workers: int | None = 1, dask: bool = False,
+                scheduler: str | None = None) -> LensResult:
     """The measured lens of an LTC store: principal rays, optical centre, focus, and K
     aperture samples per node pixel. ``result.lens`` is a :class:`sim.MeasuredLens`
     (``save(path)`` / ``MeasuredLens.load(path)``); ``result.summary()`` reports it.
 
     rig, rig_camera : a rig file (``sim.Rig``) giving the camera matrix K, used instead of
         the store's ``camera_matrix``; figures : a folder for the PNG figures.
+    out : write the lens file there while the nodes are derived (memory does not grow with
+        the sensor; ``result.lens`` is then None and ``result.lens_path`` the file).
+    workers : processes (default 1: this process; None: every core); dask : on a local
+        Dask cluster of ``workers`` processes; scheduler : an existing Dask cluster's
+        address. Every choice gives the same lens, bit for bit.
     """
     from pydantic import ValidationError
 
@@ -130,6 +137,7 @@ def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,
     from station.lens.derive import derive_lens as _derive
     from station.lens.figures import write_figures
     from station.lens.geometry import LensFitConfig
+    from station.ltc.parallel import Engine
     from station.ltc.store import open_ltc_volume
 
     try:
@@ -139,7 +147,8 @@ def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,
         raise UsageError(format_validation_error("lens settings", exc)) from exc
     volume = open_ltc_volume(ltc)
     K, dist = _rig_camera(rig, rig_camera, volume.camera_size)
-    result = _derive(volume, cfg, K, dist, progress=progress)
+    with Engine(workers, dask=dask, scheduler=scheduler) as engine:
+        result = _derive(volume, cfg, K, dist, progress=progress, engine=engine, out=out)
     if figures is not None:
         result.figures = write_figures(volume, result, figures)
     return result

@@ -199,10 +199,10 @@ class Sequence:
         s = self.config.sequence
         figures = self.out / "figures"
         _remove(figures)
+        # written as the nodes are derived (temporary name, then renamed into place)
         result = derive_lens(self.out / "ltc.zarr", samples=s.lens_samples,
                              grid_step=s.lens_grid_step, figures=figures,
-                             progress=self.progress)
-        _atomic(self.out / "lens.npz", lambda tmp: result.lens.save(tmp), suffix=".npz")
+                             progress=self.progress, out=self.out / "lens.npz")
         summary = result.summary()
         return {k: summary[k] for k in ("optical_centre_mm", "focus_distance_mm",
                                         "pixels_usable", "pixels", "notes")}

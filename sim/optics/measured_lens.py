@@ -310,6 +310,179 @@ def save_lens(path: str | Path, lens: MeasuredLens) -> Path:
     return path
 
 
+class LensFileWriter:
+    """Writes a lens file (format 1, the layout ``save_lens`` writes) node block by node block,
+    so that a lens of any size is never held in memory: the per-node arrays go to ``.npy``
+    files in ``<path>.partial/`` as blocks arrive (any order), then ``close`` validates the
+    scalar fields and copies everything into one ZIP64 ``.npz`` (members stored, not
+    compressed), fsyncs it and renames it to ``path``. ``abort`` removes what was written.
+
+    node_u, node_v : node pixel columns and rows; samples : K.
+    """
+
+    NAMES = ("aperture_x_mm", "aperture_y_mm", "weights")
+    COPY_BYTES = 1 << 24
+
+    def __init__(self, path: str | Path, node_u: np.ndarray, node_v: np.ndarray,
+                 samples: int) -> None:
+        self.path = Path(path)
+        self.node_u = np.asarray(node_u, dtype=np.float64)
+        self.node_v = np.asarray(node_v, dtype=np.float64)
+        self.shape = (len(self.node_v), len(self.node_u), int(samples))
+        self.part = self.path.with_name(self.path.name + ".partial")
+        if self.part.exists():
+            import shutil
+
+            shutil.rmtree(self.part)
+        self.part.mkdir(parents=True)
+        self._files = {}
+        self._data_at = {}
+        for name in self.NAMES:
+            f = open(self.part / f"{name}.npy", "w+b")
+            np.lib.format.write_array_header_2_0(
+                f, {"descr": "<f8", "fortran_order": False, "shape": self.shape})
+            self._data_at[name] = f.tell()
+            f.truncate(self._data_at[name] + 8 * int(np.prod(self.shape)))
+            self._files[name] = f
+
+    def _offset(self, name: str, j: int, i: int) -> int:
+        return self._data_at[name] + 8 * (j * self.shape[1] + i) * self.shape[2]
+
+    def write_nodes(self, j0: int, i0: int, x: np.ndarray, y: np.ndarray,
+                    w: np.ndarray) -> None:
+        """Samples of the nodes [j0 : j0 + nj, i0 : i0 + ni]: x, y mm and weights, each
+        (nj, ni, K). Weights must be finite, >= 0 and sum to 1 per node."""
+        w = np.asarray(w, dtype=np.float64)
+        k = self.shape[2]
+        if w.ndim != 3 or w.shape[2] != k:
+            raise LensFileError(f"{self.path}: node block of shape {w.shape}, expected (.., .., "
+                                f"{k})")
+        for name, a in zip(self.NAMES, (x, y, w)):
+            _finite(name, np.asarray(a))
+        if np.any(w < 0) or np.any(np.abs(w.sum(axis=2) - 1.0) > WEIGHT_SUM_TOL):
+            raise LensFileError(f"{self.path}: field 'weights' of nodes from row {j0}, col {i0} "
+                                "are negative or do not sum to 1")
+        for name, a in zip(self.NAMES, (x, y, w)):
+            a = np.ascontiguousarray(a, dtype="<f8")
+            f = self._files[name]
+            for r in range(a.shape[0]):
+                os.pwrite(f.fileno(), a[r].tobytes(), self._offset(name, j0 + r, i0))
+
+    def copy_nodes(self, dst: np.ndarray, src: np.ndarray) -> None:
+        """Node (flat index) ``dst[n]`` takes the samples of node ``src[n]``, read back from
+        the written ones (sources must not be among the destinations)."""
+        nbytes = 8 * self.shape[2]
+        gu = self.shape[1]
+        for name in self.NAMES:
+            fd = self._files[name].fileno()
+            for d, s in zip(np.asarray(dst).tolist(), np.asarray(src).tolist()):
+                buf = os.pread(fd, nbytes, self._offset(name, s // gu, s % gu))
+                os.pwrite(fd, buf, self._offset(name, d // gu, d % gu))
+
+    def close(self, *, focus_distance_mm: float, optical_centre_mm: np.ndarray,
+              camera_size: tuple[int, int], transmittance: np.ndarray,
+              interpolation: str = "bilinear", camera_matrix: np.ndarray | None = None,
+              dist_coeffs: np.ndarray | None = None, metadata: dict | None = None) -> Path:
+        """Validate the scalar fields, write the ``.npz`` and return its path."""
+        gv, gu, _ = self.shape
+        # the scalar fields, validated by a one-node stand-in (the per-node arrays were
+        # checked per block); then the node positions and the transmittance themselves
+        lens = MeasuredLens(focus_distance_mm, optical_centre_mm, camera_size, [0.0], [0.0],
+                            np.zeros((1, 1, 1)), np.zeros((1, 1, 1)), np.ones((1, 1, 1)),
+                            np.ones((1, 1)), interpolation, camera_matrix, dist_coeffs,
+                            metadata or {})
+        w, h = lens.camera_size
+        for name, a, size in (("node_u", self.node_u, w), ("node_v", self.node_v, h)):
+            _finite(name, a)
+            if a.ndim != 1 or len(a) < 1 or np.any(np.diff(a) <= 0) or a[0] < 0 \
+                    or a[-1] > size - 1:
+                raise LensFileError(f"{self.path}: field '{name}' must increase strictly within "
+                                    f"[0, {size - 1}]")
+        transmittance = np.asarray(transmittance, dtype=np.float64)
+        if transmittance.shape != (gv, gu):
+            raise LensFileError(f"{self.path}: field 'transmittance' must have shape ({gv}, "
+                                f"{gu}), got {transmittance.shape}")
+        _finite("transmittance", transmittance)
+        if np.any(transmittance < 0):
+            raise LensFileError(f"{self.path}: field 'transmittance' has negative values")
+        small = {
+            "format": np.array(FORMAT),
+            "format_version": np.array(FORMAT_VERSION, dtype=np.int64),
+            "focus_distance_mm": np.array(lens.focus_distance_mm),
+            "optical_centre_mm": lens.optical_centre_mm,
+            "camera_size": np.array(lens.camera_size, dtype=np.int64),
+            "node_u": self.node_u,
+            "node_v": self.node_v,
+        }
+        tail = {"transmittance": transmittance,
+                "interpolation": np.array(lens.interpolation),
+                "metadata_json": np.array(json.dumps(lens.metadata))}
+        if lens.camera_matrix is not None:
+            tail["camera_matrix"] = lens.camera_matrix
+        if lens.dist_coeffs is not None:
+            tail["dist_coeffs"] = lens.dist_coeffs
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        with open(tmp, "wb") as raw:
+            with zipfile.ZipFile(raw, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+                for name, a in small.items():
+                    with zf.open(f"{name}.npy", "w", force_zip64=True) as m:
+                        np.lib.format.write_array(m, np.asanyarray(a), allow_pickle=False)
+                for name in self.NAMES:
+                    f = self._files[name]
+                    f.flush()
+                    f.seek(0)
+                    with zf.open(f"{name}.npy", "w", force_zip64=True) as m:
+                        while chunk := f.read(self.COPY_BYTES):
+                            m.write(chunk)
+                for name, a in tail.items():
+                    with zf.open(f"{name}.npy", "w", force_zip64=True) as m:
+                        np.lib.format.write_array(m, np.asanyarray(a), allow_pickle=False)
+            raw.flush()
+            os.fsync(raw.fileno())
+        os.replace(tmp, self.path)
+        self.abort()
+        return self.path
+
+    def abort(self) -> None:
+        """Close and remove the partial files."""
+        import shutil
+
+        for f in self._files.values():
+            f.close()
+        self._files = {}
+        shutil.rmtree(self.part, ignore_errors=True)
+        self.path.with_name(self.path.name + ".tmp").unlink(missing_ok=True)
+
+
+def read_lens_nodes(path: str | Path,
+                    nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Samples x, y mm and weights (n, K) of flat node indices ``nodes`` (row-major over
+    (Gv, Gu)) of a lens file, times its transmittance, reading only those nodes where the
+    members are stored uncompressed (``LensFileWriter``), the whole arrays otherwise."""
+    nodes = np.asarray(nodes, dtype=np.int64).ravel()
+    out = []
+    with zipfile.ZipFile(path) as zf:
+        for name in ("aperture_x_mm", "aperture_y_mm", "weights", "transmittance"):
+            with zf.open(f"{name}.npy") as f:
+                version = np.lib.format.read_magic(f)
+                read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                        else np.lib.format.read_array_header_2_0)
+                shape, fortran, dtype = read(f)
+                per = int(np.prod(shape[2:], dtype=np.int64)) if len(shape) > 2 else 1
+                if zf.getinfo(f"{name}.npy").compress_type != zipfile.ZIP_STORED or fortran:
+                    a = np.lib.format.read_array(zf.open(f"{name}.npy")).reshape(-1, per)
+                    out.append(a[nodes])
+                    continue
+                start = f.tell()
+                rows = []
+                for n in nodes.tolist():
+                    f.seek(start + n * per * dtype.itemsize)
+                    rows.append(np.frombuffer(f.read(per * dtype.itemsize), dtype=dtype))
+                out.append(np.array(rows, dtype=np.float64).reshape(len(nodes), per))
+    x, y, w, t = out
+    return x, y, w * t
+
+
 def _scalar(data: dict, name: str, kind: type):
     a = data[name]
     if a.shape != ():

@@ -1,7 +1,10 @@
 """Derive the measured lens (principal rays, optical centre, aperture samples) from an LTC store.
 
 Centroids, principal rays, optical centre, focus, the LTC at the optical centre and K aperture
-samples per pixel; writes the lens model file (.npz, docs/formats.md). The camera matrix comes
+samples per pixel; writes the lens model file (.npz, docs/formats.md) as the nodes are derived,
+so memory does not grow with the sensor. Runs on every core (default), in this process
+(--workers 1), on a local Dask cluster (--dask) or an existing one (--scheduler); all give the
+same file bit for bit. The camera matrix comes
 from the store's camera_matrix attribute or from --rig RIG --rig-camera NAME (a rig file).
 """
 
@@ -33,6 +36,13 @@ def arguments(p: argparse.ArgumentParser) -> None:
                    "auto (pinhole when K is known)")
     p.add_argument("--rig", type=Path, help="rig calibration (JSON/YAML) giving K")
     p.add_argument("--rig-camera", help="camera name in --rig (default: the first camera)")
+    p.add_argument("--workers", type=at_least(1), default=None, metavar="N",
+                   help="worker processes (default: every core; 1: in this process)")
+    p.add_argument("--dask", action="store_true",
+                   help="compute on a local Dask cluster of --workers processes")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="compute on an existing Dask cluster (e.g. tcp://host:8786); the LTC "
+                   "store must be on a path every worker can read")
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -45,8 +55,8 @@ def run(args: argparse.Namespace) -> dict:
                          interpolation=args.interpolation, centre=args.centre,
                          focus_distance_mm=args.focus_mm, rig=args.rig,
                          rig_camera=args.rig_camera, figures=args.figures,
-                         progress=not args.quiet)
-    result.lens.save(args.out)
+                         progress=not args.quiet, out=args.out, workers=args.workers,
+                         dask=args.dask, scheduler=args.scheduler)
     report = {**result.summary(), "out": str(args.out),
               "figures": [str(f) for f in result.figures]}
     return report

@@ -25,13 +25,15 @@ non-negative weights summing to 1 (``fusion_weights``): with no noise the sharpe
 alone; with noise a blend. (By noise alone, depths near focus, whose LTC is a few large
 boxes with little noise, would win while being the blurriest.)
 
-K samples: weighted k-means (Lloyd) over the cells, started from cells at evenly spaced
-quantiles of the raster-order cumulative mass (deterministic), keeps the first moment
-exactly; an affine map about the mean then gives the samples the target covariance exactly
-(the grid covariance plus the cell's own ``cell^2/12``, minus the known box blurs, so the
-samples describe the aperture, not the measurement's pixels). Finally the samples are put in
-a canonical order (``canonical_order``) so that bilinear interpolation between nodes blends
-like with like.
+K samples (``ring_samples``): equal-mass polar strata about the mean in whitened
+coordinates (rings by radius, sectors by angle from a golden-angle offset per ring), each
+sample its stratum's centroid, refined by a few weighted Lloyd (k-means) steps over the
+cells; sample j is the same part of the aperture at every node, so bilinear interpolation
+between nodes blends like with like. (It replaced weighted k-means from raster-quantile
+seeds plus an optimal-assignment reordering per node (scipy, a Python loop over nodes).)
+An affine map about the mean then gives the samples the target covariance exactly (the grid
+covariance plus the cell's own ``cell^2/12``, minus the known box blurs, so the samples
+describe the aperture, not the measurement's pixels).
 """
 
 from __future__ import annotations
@@ -39,12 +41,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
-from sim.optics.lens import sunflower_disk
 
 SQRT_2_OVER_PI = float(np.sqrt(2.0 / np.pi))
 EDGE_L1_PER_SIGMA = 0.8  # L1 error of a blurred step edge per unit blur std and edge length
+LLOYD_ITERATIONS = 5  # Lloyd steps after the ring strata (see ring_samples)
 NOISE_FLOOR_L1 = 1e-4  # keeps noise-free weights finite
 
 
@@ -112,24 +113,25 @@ def resample(
     ratio : scalar or (n,) signed scale; rotation2 : (2, 2) station-to-camera rotation of
     aperture-plane vectors (identity if None).
     """
-    n, p = h.shape[0], h.shape[-1]
+    from station.lens.kernels import resample_kernel
+
+    h = np.ascontiguousarray(h, dtype=np.float64)
+    n = h.shape[0]
     pts = grid.points(sub).reshape(-1, 2)  # camera-frame aperture coordinates
+    rot = np.eye(2) if rotation2 is None else np.asarray(rotation2, dtype=np.float64)
     if rotation2 is not None:
-        pts = pts @ np.asarray(rotation2)  # p_station = R2^T p_cam, row-vector form
+        pts = pts @ rot  # p_station = R2^T p_cam, row-vector form
     s = np.broadcast_to(np.asarray(ratio, dtype=np.float64), (n,))
-    inv = 1.0 / s[:, None]
-    col = np.floor((ray_at_depth_mm[:, :1] + (pts[None, :, 0] - ray_at_centre_mm[:, :1]) * inv)
-                   / pitch_mm + 0.5).astype(np.int64) - origin[:, :1]
-    row = np.floor((ray_at_depth_mm[:, 1:] + (pts[None, :, 1] - ray_at_centre_mm[:, 1:]) * inv)
-                   / pitch_mm + 0.5).astype(np.int64) - origin[:, 1:]
-    inside = (col >= 0) & (col < p) & (row >= 0) & (row < p)
-    flat = np.where(inside, row * p + col, 0) + (np.arange(n) * p * p)[:, None]
-    val = np.where(inside, h.reshape(-1)[flat], 0.0)
-    box = (pitch_mm * s) ** 2  # (n,) LCD pixel area on the aperture plane
-    dens = val / box[:, None]
-    g = grid.cells
-    cell_area = grid.cell_mm**2
-    return dens.reshape(n, g, sub, g, sub).mean(axis=(2, 4)) * cell_area
+    out = np.zeros((n, grid.cells, grid.cells))
+    step = grid.cell_mm / sub
+    resample_kernel(h, np.ascontiguousarray(origin, dtype=np.int64),
+                    np.ascontiguousarray(ray_at_depth_mm, dtype=np.float64),
+                    np.ascontiguousarray(ray_at_centre_mm, dtype=np.float64),
+                    np.ascontiguousarray(1.0 / s), np.ascontiguousarray((pitch_mm * s) ** 2),
+                    np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
+                    float(pitch_mm), grid.cells, sub, grid.cell_mm**2, rot,
+                    -grid.half_width_mm + 0.5 * step, step, out)
+    return out
 
 
 def depth_errors(
@@ -188,86 +190,14 @@ def fusion_weights(blur: np.ndarray, noise: np.ndarray, available: np.ndarray) -
 
 def grid_moments(mass: np.ndarray, grid: ApertureGrid) -> tuple[np.ndarray, np.ndarray]:
     """Mean (n, 2) and covariance (n, 2, 2) of normalised grid masses (n, G, G)."""
-    pts = grid.points().reshape(-1, 2)
-    m = mass.reshape(len(mass), -1)
-    tot = m.sum(axis=1, keepdims=True)
-    m = m / np.where(tot > 0, tot, 1.0)
-    mean = m @ pts
-    d = pts[None] - mean[:, None]
-    cov = np.einsum("nk,nki,nkj->nij", m, d, d)
-    return mean, cov
+    from station.lens.kernels import moments_kernel
 
-
-def kmeans_samples(
-    mass: np.ndarray, grid: ApertureGrid, k: int, iterations: int = 30
-) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted k-means of grid masses (n, G, G) into k samples: positions (n, k, 2), weights
-    (n, k) summing to 1. An empty cluster is re-seeded at the cell that costs most (mass x
-    squared distance); one still empty at the end (fewer occupied cells than k) keeps
-    weight 0. Negative masses count as 0."""
-    if k < 1:
-        raise ValueError(f"kmeans_samples: need k >= 1 samples, got {k}")
     n = len(mass)
-    pts = grid.points().reshape(-1, 2)
-    m = np.maximum(mass.reshape(n, -1), 0.0)
-    tot = m.sum(axis=1)
-    if np.any(tot <= 0):
-        raise ValueError(f"kmeans_samples: {int((tot <= 0).sum())} distribution(s) have no "
-                         "positive mass")
-    m = m / tot[:, None]
-    cdf = np.cumsum(m, axis=1)
-    q = (np.arange(k) + 0.5) / k
-    first = np.minimum((cdf[:, :, None] < q[None, None, :]).sum(axis=1), len(pts) - 1)
-    centres = pts[first]  # (n, k, 2)
-    active = m.any(axis=0)  # cells with mass somewhere in this batch
-    pts, m = pts[active], m[:, active]
-    px, py = pts[:, 0].astype(np.float32), pts[:, 1].astype(np.float32)
-    rows = np.arange(n)[:, None]
-    mx, my = (m * pts[None, :, 0]).ravel(), (m * pts[None, :, 1]).ravel()
-    lab_prev = None
-    for _ in range(iterations):
-        cx = centres[..., 0].astype(np.float32)[:, None, :]
-        cy = centres[..., 1].astype(np.float32)[:, None, :]
-        d2 = (px[None, :, None] - cx) ** 2
-        d2 += (py[None, :, None] - cy) ** 2  # (n, cells, k)
-        lab = d2.argmin(axis=2)
-        if lab_prev is not None and np.array_equal(lab, lab_prev):
-            break  # assignments stable: the centres are the means of this assignment
-        lab_prev = lab
-        key = (rows * k + lab).ravel()
-        wsum = np.bincount(key, weights=m.ravel(), minlength=n * k).reshape(n, k)
-        sx = np.bincount(key, weights=mx, minlength=n * k).reshape(n, k)
-        sy = np.bincount(key, weights=my, minlength=n * k).reshape(n, k)
-        safe = np.where(wsum > 0, wsum, 1.0)
-        new = np.where((wsum > 0)[..., None], np.stack([sx, sy], axis=-1) / safe[..., None],
-                       centres)
-        empty = wsum <= 0
-        if empty.any():  # re-seed one empty cluster per pixel at its costliest cell
-            who = np.flatnonzero(empty.any(axis=1))
-            cost = m[who] * np.take_along_axis(d2[who], lab[who, :, None], axis=2)[..., 0]
-            new[who, empty[who].argmax(axis=1)] = pts[cost.argmax(axis=1)]
-        centres = new
-    return centres, wsum / wsum.sum(axis=1, keepdims=True)
-
-
-def canonical_order(x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Reorder samples x (n, k, 2), weights (n, k) so that sample j of every node sits near
-    point j of one reference pattern (a Vogel spiral of unit covariance) in the node's
-    whitened coordinates: optimal assignment (Hungarian) per node. Nodes of similar
-    distributions then agree on what sample j is, so blending sample j of neighbouring
-    nodes (bilinear interpolation) does not shrink the distribution."""
-    n, k = w.shape
-    ref = sunflower_disk(k) * 2.0  # the unit disk's Vogel spiral has per-axis variance 1/4
-    mu = np.einsum("nk,nki->ni", w, x)
-    d = x - mu[:, None]
-    c = np.einsum("nk,nki,nkj->nij", w, d, d) + 1e-12 * np.eye(2)
-    white = np.einsum("nij,nkj->nki", _sqrtm(c, inverse=True), d)
-    cost = ((white[:, :, None, :] - ref[None, None, :, :]) ** 2).sum(-1)  # (n, sample, ref)
-    order = np.empty((n, k), dtype=np.int64)
-    for i in range(n):
-        rows, cols = linear_sum_assignment(cost[i])
-        order[i, cols] = rows
-    return np.take_along_axis(x, order[..., None], axis=1), np.take_along_axis(w, order, axis=1)
+    m = np.ascontiguousarray(np.asarray(mass, dtype=np.float64).reshape(n, grid.cells,
+                                                                         grid.cells))
+    mean, cov = np.empty((n, 2)), np.empty((n, 2, 2))
+    moments_kernel(m, grid.centres_mm, mean, cov)
+    return mean, cov
 
 
 def _sqrtm(c: np.ndarray, inverse: bool = False) -> np.ndarray:
@@ -275,6 +205,55 @@ def _sqrtm(c: np.ndarray, inverse: bool = False) -> np.ndarray:
     val = np.maximum(val, 1e-18)
     f = val**-0.5 if inverse else np.sqrt(val)
     return np.einsum("nij,nj,nkj->nik", vec, f, vec)
+
+
+def ring_counts(k: int) -> np.ndarray:
+    """Samples per ring of ``ring_samples``: R = round(sqrt(k / pi)) rings (at least 1), ring
+    i holding about k (2 i + 1) / R^2 (equal areas per sample for a uniform disk)."""
+    r = max(1, int(round(np.sqrt(k / np.pi))))
+    c = np.maximum(1, np.round(k * (2 * np.arange(r) + 1) / r**2)).astype(np.int64)
+    while c.sum() != k:  # round-off goes to the outer rings
+        i = int(np.argmax(c)) if c.sum() > k else len(c) - 1
+        c[i] += 1 if c.sum() < k else -1
+    return c[c > 0]
+
+
+def ring_samples(mass: np.ndarray, grid: ApertureGrid, k: int,
+                 iterations: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """K samples of grid masses (n, G, G) by equal-mass polar strata: positions (n, k, 2) mm
+    and weights (n, k) summing to 1 (each about 1/k). About the distribution's mean, in
+    coordinates whitened by its covariance, the cells are cut into rings of equal mass per
+    sample (``ring_counts``) by radius and each ring into sectors of equal mass by angle,
+    starting at a golden-angle offset per ring (so no two rings line up); a cell's mass is
+    split where a boundary falls inside it, and a sample is its stratum's centroid. The
+    first moment is kept exactly, the samples spread like a Vogel spiral over a disk (no
+    lattice: many distinct positions along every direction), and sample j is the same
+    stratum at every node, so bilinear blending of neighbouring nodes blends like with
+    like. Then ``iterations`` (default ``LLOYD_ITERATIONS``) weighted Lloyd (k-means) steps
+    over the cells move each sample to the centroid of the cells nearest to it (first
+    moment still exact; weights then unequal; sample j keeps its number). Negative masses
+    count as 0."""
+    from station.lens.kernels import lloyd_kernel, rings_kernel
+
+    if k < 1:
+        raise ValueError(f"ring_samples: need k >= 1 samples, got {k}")
+    n = len(mass)
+    m = np.maximum(np.asarray(mass, dtype=np.float64).reshape(n, grid.cells, grid.cells), 0.0)
+    tot = m.sum(axis=(1, 2))
+    if np.any(tot <= 0):
+        raise ValueError(f"ring_samples: {int((tot <= 0).sum())} distribution(s) have no "
+                         "positive mass")
+    m = np.ascontiguousarray(m / tot[:, None, None])
+    mean, cov = grid_moments(m, grid)
+    white = _sqrtm(cov + np.eye(2) * grid.cell_mm**2 / 12.0, inverse=True)
+    counts = ring_counts(k)
+    offsets = np.arange(len(counts)) * np.pi * (3.0 - np.sqrt(5.0))
+    x, w = np.empty((n, k, 2)), np.empty((n, k))
+    rings_kernel(m, grid.centres_mm, mean, np.ascontiguousarray(white), counts, offsets, x, w)
+    iterations = LLOYD_ITERATIONS if iterations is None else iterations
+    if iterations:
+        lloyd_kernel(m, grid.centres_mm, x, w, iterations)
+    return x, w / w.sum(axis=1, keepdims=True)
 
 
 def match_moments(

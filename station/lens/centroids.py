@@ -30,8 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from tqdm import tqdm
-from scipy import ndimage
 
+from station.lens.kernels import stats_kernel
 from station.ltc.store import LtcVolume, LtcVolumeError
 
 STATUS_OK = 0
@@ -40,7 +40,6 @@ STATUS_TRUNCATED = 2  # the region reaches the window border: LTC folded or cut 
 NOISE_SIGMAS = 3.0  # region threshold on the 3x3-smoothed weights, in their noise stds
 PEAK_FRACTION = 0.02  # ...and at least this fraction of the smoothed peak
 REGION_MARGIN_PX = 2  # the region (moments, aperture) is the core grown by this, LCD px
-READ_BUDGET_BYTES = 1 << 30  # LTC windows of every depth read at once (store dtype), bytes
 WINDOWS_PER_BATCH = 4096  # windows analysed at once (temporaries ~ 10 x this x P^2 x 8 B)
 
 
@@ -90,54 +89,13 @@ def window_stats(
     _check_windows(h, sigma, where, name)
     signal = np.isfinite(h).reshape(n, -1).all(axis=1)
     hz = np.where(signal[:, None, None], h, 0.0)
-    sm = ndimage.uniform_filter(hz, size=(1, 3, 3), mode="constant")
-    peak = sm.reshape(n, -1).max(axis=1)
-    thr = np.maximum(NOISE_SIGMAS * np.where(signal, sigma, 0.0) / 3.0, PEAK_FRACTION * peak)
-    above = (sm > thr[:, None, None]) & signal[:, None, None] & (peak > 0)[:, None, None]
-    labels, _ = ndimage.label(above, structure=np.array([np.zeros((3, 3)), np.ones((3, 3)),
-                                                         np.zeros((3, 3))], dtype=bool))
-    ipk = sm.reshape(n, -1).argmax(axis=1)
-    lab_pk = labels.reshape(n, -1)[np.arange(n), ipk]
-    core = (labels == lab_pk[:, None, None]) & (lab_pk > 0)[:, None, None]
-    # truncated: weights clearly above the noise (unsmoothed) on the window's border
-    raw_thr = np.maximum(NOISE_SIGMAS * np.where(signal, sigma, 0.0),
-                         PEAK_FRACTION * hz.reshape(n, -1).max(axis=1))
-    strong = core & (hz > raw_thr[:, None, None])
-    edge = (strong[:, 0].any(1) | strong[:, -1].any(1) | strong[:, :, 0].any(1)
-            | strong[:, :, -1].any(1))
-    disk = np.hypot(*np.mgrid[-REGION_MARGIN_PX:REGION_MARGIN_PX + 1,
-                              -REGION_MARGIN_PX:REGION_MARGIN_PX + 1]) <= REGION_MARGIN_PX + 0.5
-    region = ndimage.binary_dilation(core, structure=disk[None]) if n else core
-    hr = np.where(region, hz, 0.0)
-    s = hr.sum(axis=(1, 2))
-    npx = region.sum(axis=(1, 2))
-    # signal: the region's sum clearly above its noise (and positive when noise-free)
-    ok = signal & (lab_pk > 0) & (s > NOISE_SIGMAS * sigma * np.sqrt(np.maximum(npx, 1)))
-    safe = np.where(ok, s, 1.0)
-    y, x = np.mgrid[0:p, 0:p].astype(np.float64)
-    cx = (hr * x).sum(axis=(1, 2)) / safe
-    cy = (hr * y).sum(axis=(1, 2)) / safe
-    dx = np.where(region, x - cx[:, None, None], 0.0)
-    dy = np.where(region, y - cy[:, None, None], 0.0)
-    mxx = (hr * dx * dx).sum(axis=(1, 2)) / safe
-    myy = (hr * dy * dy).sum(axis=(1, 2)) / safe
-    mxy = (hr * dx * dy).sum(axis=(1, 2)) / safe
-    sig = np.where(ok, sigma, 0.0) / safe
-    std = np.stack([sig * np.sqrt((dx * dx).sum(axis=(1, 2))),
-                    sig * np.sqrt((dy * dy).sum(axis=(1, 2)))], axis=1)
-    r2 = dx * dx + dy * dy
-    tr = mxx + myy
-    tr_std = sig * np.sqrt((np.where(region, r2 - tr[:, None, None], 0.0) ** 2).sum(axis=(1, 2)))
-    status = np.where(ok, np.where(edge, STATUS_TRUNCATED, STATUS_OK), STATUS_NO_SIGNAL)
-    nan2 = np.where(ok[:, None], 0.0, np.nan)
-    return WindowStats(
-        centroid=np.stack([cx, cy], axis=1) + nan2,
-        centroid_std=std + nan2,
-        moments=np.stack([mxx, myy, mxy], axis=1) + nan2[:, :1],
-        trace_std=tr_std + nan2[:, 0],
-        region=region & ok[:, None, None],
-        status=status.astype(np.int8),
-    )
+    cen, std = np.empty((n, 2)), np.empty((n, 2))
+    mom, tr_std = np.empty((n, 3)), np.empty(n)
+    region, status = np.empty((n, p, p), dtype=bool), np.empty(n, dtype=np.int8)
+    stats_kernel(hz, sigma, signal, NOISE_SIGMAS, PEAK_FRACTION, REGION_MARGIN_PX,
+                 cen, std, mom, tr_std, region, status)
+    return WindowStats(centroid=cen, centroid_std=std, moments=mom, trace_std=tr_std,
+                       region=region, status=status)
 
 
 @dataclass(frozen=True)
@@ -175,59 +133,65 @@ class Centroids:
         return self.std_lcd_px * self.pitch_mm
 
 
-def rows_per_read(volume: LtcVolume) -> int:
-    """Camera rows read at once: as many as fit ``READ_BUDGET_BYTES`` with the windows of
-    every depth in the store's dtype, rounded down to a divisor of the store's chunk rows
-    (or a multiple of them), so each stored chunk is decoded as few times as possible."""
-    d, p = len(volume.depths_mm), volume.ltc.shape[-1]
-    item = np.dtype(getattr(volume.ltc, "dtype", np.float64)).itemsize
-    rows = max(1, READ_BUDGET_BYTES // (d * volume.camera_size[0] * p * p * item))
-    c = volume.chunk_rows
-    if rows >= c:
-        return rows - rows % c
-    while c % rows:
-        rows -= 1
-    return rows
-
-
 def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
-                      progress: bool = False) -> Centroids:
-    """Centroids of all pixels at all depths, reading one depth of a chunk-aligned block of
-    camera rows at a time in the store's dtype (default: the store's chunk rows) and
-    processing ``WINDOWS_PER_BATCH`` windows at once, so memory does not grow with the
-    sensor and each stored chunk is decoded once. ``progress``: a bar over row blocks."""
+                      progress: bool = False, engine=None) -> Centroids:
+    """Centroids of all pixels at all depths, one depth of one stored chunk of camera rows
+    and columns (default: the store's chunk; ``rows_per_tile`` overrides the rows) per
+    task, ``WINDOWS_PER_BATCH`` windows at once, so memory does not grow with the sensor
+    and each stored chunk is decoded once. engine : where the tasks run
+    (``station.ltc.parallel.Engine``; default: in this process), bit-identical results
+    whatever the engine. ``progress``: a bar over the tasks."""
+    from station.ltc.parallel import Engine, run_ordered
+
     d = len(volume.depths_mm)
     w, h = volume.camera_size
+    chunks = getattr(volume.ltc, "chunks", None)
     rows = rows_per_tile or volume.chunk_rows
+    cols = int(chunks[2]) if chunks else w
     f4 = np.float32  # uncertainties and moments: 7 digits are plenty, half the memory
     out = {"xy": np.full((d, h, w, 2), np.nan), "std": np.full((d, h, w, 2), np.nan, f4),
            "mom": np.full((d, h, w, 3), np.nan, f4), "tstd": np.full((d, h, w), np.nan, f4),
            "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
-    for r0 in tqdm(range(0, h, rows), desc="lens: centroids", unit="block",
-                   disable=None if progress else True):
-        r1 = min(h, r0 + rows)
-        for i in range(d):
-            part = centroid_rows(volume, i, r0, r1)
-            for key, value in part.items():
-                out[key][i, r0:r1] = value
+    tasks = [((i, r0, min(h, r0 + rows), c0, min(w, c0 + cols)))
+             for r0 in range(0, h, rows) for c0 in range(0, w, cols) for i in range(d)]
+    bar = tqdm(total=len(tasks), desc="lens: centroids", unit="block",
+               disable=None if progress else True)
+
+    def on_result(key, part) -> None:
+        i, r0, r1, c0, c1 = key
+        for name, value in part.items():
+            out[name][i, r0:r1, c0:c1] = value
+        bar.update()
+
+    own = engine is None
+    engine = engine or Engine(1)
+    try:
+        run_ordered(engine, ((t, centroid_rows, (volume,) + t) for t in tasks), on_result)
+    finally:
+        bar.close()
+        if own:
+            engine.close()
     return Centroids(out["xy"], out["std"], out["mom"], out["tstd"], out["status"],
                      volume.depths_mm.copy(), float(volume.pitch_mm))
 
 
-def centroid_rows(volume: LtcVolume, depth: int, r0: int, r1: int) -> dict[str, np.ndarray]:
-    """Centroid statistics of camera rows ``r0:r1`` at one depth: ``xy`` (rows, W, 2) LCD
-    px, ``std`` (rows, W, 2), ``mom`` (rows, W, 3), ``tstd`` (rows, W), ``status``
-    (rows, W) int8. A pure function of the store: every engine computes blocks with it."""
-    w = volume.camera_size[0]
-    ltc = np.asarray(volume.ltc[depth, r0:r1])
-    origin = np.asarray(volume.origin[depth, r0:r1], dtype=np.int64)
-    noise = np.asarray(volume.noise[depth, r0:r1], dtype=np.float64).ravel()
+def centroid_rows(volume: LtcVolume, depth: int, r0: int, r1: int, c0: int = 0,
+                  c1: int | None = None) -> dict[str, np.ndarray]:
+    """Centroid statistics of camera rows ``r0:r1`` (columns ``c0:c1``, default all) at one
+    depth: ``xy`` (rows, cols, 2) LCD px, ``std`` (rows, cols, 2), ``mom`` (rows, cols, 3),
+    ``tstd`` (rows, cols), ``status`` (rows, cols) int8. A pure function of the store: every
+    engine computes blocks with it."""
+    c1 = volume.camera_size[0] if c1 is None else c1
+    w = c1 - c0
+    ltc = np.asarray(volume.ltc[depth, r0:r1, c0:c1])
+    origin = np.asarray(volume.origin[depth, r0:r1, c0:c1], dtype=np.int64)
+    noise = np.asarray(volume.noise[depth, r0:r1, c0:c1], dtype=np.float64).ravel()
     p = ltc.shape[-1]
     flat = ltc.reshape(-1, p, p)
     parts = []
     for k in range(0, len(flat), WINDOWS_PER_BATCH):
         j = np.arange(k, min(k + WINDOWS_PER_BATCH, len(flat)))
-        where = np.stack([np.full(len(j), depth), r0 + j // w, j % w], axis=1)
+        where = np.stack([np.full(len(j), depth), r0 + j // w, c0 + j % w], axis=1)
         parts.append(window_stats(flat[j].astype(np.float64), noise[j], where=where,
                                   name=volume.name))
     shp = (r1 - r0, w)

@@ -21,7 +21,6 @@ nearest node that has one; the file's metadata lists how many were filled.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,9 +28,10 @@ import numpy as np
 from scipy import ndimage
 from tqdm import tqdm
 
-from sim.optics.measured_lens import MeasuredLens
+from sim.optics.measured_lens import LensFileWriter, MeasuredLens, read_lens_nodes
 from station.lens import aperture as ap
-from station.lens.centroids import rows_per_read, window_stats
+from station.lens.centroids import window_stats
+from station.ltc.parallel import Engine, run_ordered
 from station.ltc.store import LtcVolume
 from station.lens.geometry import (
     LensFitConfig,
@@ -44,6 +44,7 @@ from station.lens.rays import FLAG_BAD_FIT, FLAG_FEW_DEPTHS, FLAG_OUTLIER
 
 GRID_MARGIN = 1.2  # aperture grid half-width over the largest pupil extent seen
 EXTENT_PERCENTILE = 99.5
+GRID_PIXELS = 1 << 18  # pixels per block of the grid extent's temporaries
 MIN_COVERAGE = 0.5  # a depth whose resampled LTC falls mostly off the grid is not fused
 
 
@@ -68,35 +69,164 @@ class ApertureSet:
 
 
 def aperture_grid(geom: LensGeometry, cfg: LensFitConfig) -> ap.ApertureGrid:
-    """A grid covering every usable pixel's scaled LTC (robust maximum extent, with margin)."""
+    """A grid covering every usable pixel's scaled LTC (robust maximum extent, with margin);
+    computed in pixel blocks, so its temporaries do not grow with the sensor."""
     c, rays = geom.centroids, geom.rays
     d = len(c.depths_mm)
     zc = float(geom.centre.position[2])
     s = ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, zc)
-    use = rays.used & rays.usable[None]  # not empty: the centre needed usable rays
-    mom = c.moments_px2.reshape(d, -1, 3) * c.pitch_mm**2 * (s**2)[:, None, None]
-    lam = 0.5 * (mom[..., 0] + mom[..., 1]) + np.hypot(0.5 * (mom[..., 0] - mom[..., 1]),
-                                                       mom[..., 2])
-    a = rays.xy_at(zc) - geom.centre.position[:2]
-    reach = np.abs(a).max(axis=1)[None] + 2.0 * np.sqrt(np.maximum(lam, 0.0))
-    reach = reach + 0.5 * c.pitch_mm * np.abs(s)[:, None]
-    half = GRID_MARGIN * float(np.percentile(reach[use], EXTENT_PERCENTILE))
+    moments = c.moments_px2.reshape(d, -1, 3)
+    n = moments.shape[1]
+    parts = []
+    for a0 in range(0, n, GRID_PIXELS):
+        sl = slice(a0, min(n, a0 + GRID_PIXELS))
+        use = rays.used[:, sl] & rays.usable[None, sl]  # not empty: the centre needed rays
+        mom = moments[:, sl] * c.pitch_mm**2 * (s**2)[:, None, None]
+        lam = 0.5 * (mom[..., 0] + mom[..., 1]) + np.hypot(0.5 * (mom[..., 0] - mom[..., 1]),
+                                                           mom[..., 2])
+        a = (rays.xy_ref[sl] + rays.slope[sl] * (zc - rays.z_ref[sl])[:, None]
+             - geom.centre.position[:2])
+        reach = np.abs(a).max(axis=1)[None] + 2.0 * np.sqrt(np.maximum(lam, 0.0))
+        reach = reach + 0.5 * c.pitch_mm * np.abs(s)[:, None]
+        parts.append(reach[use])
+    half = GRID_MARGIN * float(np.percentile(np.concatenate(parts), EXTENT_PERCENTILE))
     return ap.ApertureGrid(half, cfg.aperture_cells)
 
 
-def _row_blocks(pixels: np.ndarray, width: int,
-                max_rows: int) -> Iterator[tuple[int, int, np.ndarray]]:
-    """Blocks of at most ``max_rows`` camera rows holding the pixels: (r0, r1, indices)."""
-    rows = pixels // width
-    start = 0
-    order = np.argsort(rows, kind="stable")
-    while start < len(order):
-        r0 = rows[order[start]]
-        stop = start
-        while stop < len(order) and rows[order[stop]] < r0 + max_rows:
-            stop += 1
-        yield int(r0), int(rows[order[stop - 1]]) + 1, order[start:stop]
-        start = stop
+def tile_shape(volume: LtcVolume) -> tuple[int, int]:
+    """Camera rows and columns of one stored chunk of ``ltc`` (64 x 64 for in-memory arrays):
+    the blocks the lens passes read, so each chunk is decoded once per pass."""
+    chunks = getattr(volume.ltc, "chunks", None)
+    return (int(chunks[1]), int(chunks[2])) if chunks else (64, 64)
+
+
+@dataclass(frozen=True)
+class ApertureJob:
+    """What every aperture block needs besides its own pixels (small; sent to each task).
+
+    ratio : (D,) scale to the aperture plane; footprint_mm : (D,); rot2 : (2, 2) in-plane
+    station-to-camera rotation; samples : draw the K samples of the good nodes;
+    keep_fused, keep_depths : also return the fused (m, G, G) / per-depth (m, D, G, G)
+    distributions.
+    """
+
+    grid: ap.ApertureGrid
+    cfg: LensFitConfig
+    depths_mm: np.ndarray
+    pitch_mm: float
+    ratio: np.ndarray
+    footprint_mm: np.ndarray
+    rot2: np.ndarray
+    samples: bool = False
+    keep_fused: bool = False
+    keep_depths: bool = False
+
+
+def aperture_job(geom: LensGeometry, grid: ap.ApertureGrid, cfg: LensFitConfig,
+                 **flags: bool) -> ApertureJob:
+    c = geom.centroids
+    zc = float(geom.centre.position[2])
+    u, _, vt = np.linalg.svd(geom.rotation[:2, :2])
+    return ApertureJob(grid, cfg, c.depths_mm.copy(), float(c.pitch_mm),
+                       ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, zc),
+                       footprint_mm(c.depths_mm, zc, geom.camera_matrix), u @ vt, **flags)
+
+
+def pixel_inputs(geom: LensGeometry, pix: np.ndarray,
+                 cfg: LensFitConfig) -> dict[str, np.ndarray]:
+    """The per-pixel inputs of an aperture block for flat pixels ``pix`` (m,): principal ray
+    (``xy_ref``, ``slope``, ``z_ref``; ``at_centre`` on z_O relative to the centre, fitted
+    over the pixel's neighbours: ``local_ray_centres``), ``used`` (D, m), ``usable`` (m,) and
+    the centroid moments ``mom`` (D, m, 3) LCD px^2."""
+    c, rays = geom.centroids, geom.rays
+    d = len(c.depths_mm)
+    xy_ref, slope, z_ref = rays.xy_ref[pix], rays.slope[pix], rays.z_ref[pix]
+    return {"xy_ref": xy_ref, "slope": slope, "z_ref": z_ref,
+            "at_centre": local_ray_centres(geom, pix, cfg.ray_window_px),
+            "used": rays.used[:, pix], "usable": rays.usable[pix],
+            "mom": c.moments_px2.reshape(d, -1, 3)[:, pix].astype(np.float64)}
+
+
+def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: int, c1: int,
+                   pix: np.ndarray, inp: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Scale, resample and fuse the LTC of flat pixels ``pix`` (m,), all inside camera rows
+    ``r0:r1`` and columns ``c0:c1``, onto the aperture plane; with ``job.samples`` also the
+    K samples of each good node (usable, fused). A pure function of its inputs: every
+    engine computes blocks with it. Returns ``weight`` (m, D), ``coverage`` (m, D), ``ok``
+    (m,), ``mean`` (m, 2), ``cov`` (m, 2, 2); ``x`` (m, K, 2), ``w`` (m, K) (0 where not
+    good) with samples; ``fused`` / ``per_depth`` when kept."""
+    cfg, grid = job.cfg, job.grid
+    c_pitch, s, fp = job.pitch_mm, job.ratio, job.footprint_mm
+    d, n, g = len(job.depths_mm), len(pix), grid.cells
+    w_cam = volume.camera_size[0]
+    ltc = np.asarray(volume.ltc[:, r0:r1, c0:c1])  # store dtype: converted per node chunk
+    origin = np.asarray(volume.origin[:, r0:r1, c0:c1], dtype=np.int64)
+    noise = np.asarray(volume.noise[:, r0:r1, c0:c1], dtype=np.float64)
+    ltc = ltc.reshape(d, -1, *ltc.shape[-2:])
+    origin = origin.reshape(d, -1, 2)
+    noise = noise.reshape(d, -1)
+    local = (pix // w_cam - r0) * (c1 - c0) + (pix % w_cam - c0)
+    out = {"weight": np.zeros((n, d)), "coverage": np.zeros((n, d)), "mean": np.zeros((n, 2)),
+           "cov": np.zeros((n, 2, 2))}
+    if job.samples:
+        out["x"], out["w"] = np.zeros((n, cfg.samples, 2)), np.zeros((n, cfg.samples))
+    if job.keep_fused:
+        out["fused"] = np.zeros((n, g, g))
+    if job.keep_depths:
+        out["per_depth"] = np.zeros((n, d, g, g))
+    for k0 in range(0, n, cfg.nodes_per_chunk):
+        idx = np.arange(k0, min(n, k0 + cfg.nodes_per_chunk))
+        loc = local[idx]
+        usable = inp["usable"][idx]
+        m_all = np.zeros((len(idx), d, g, g))
+        coverage = np.zeros((len(idx), d))
+        for i in range(d):
+            used = inp["used"][i, idx] & usable
+            if not used.any():
+                continue
+            h = ltc[i, loc].astype(np.float64)
+            st = window_stats(np.where(used[:, None, None], h, np.nan), noise[i, loc])
+            hh = np.where(st.region, h, 0.0)
+            # each depth's LTC is placed by its own centroid onto the principal ray at the
+            # centre's plane: the depths' noisy residuals (x |s_i| ~ 5 at the extreme
+            # depths) neither shift nor blur the fused distribution
+            at_depth = inp["xy_ref"][idx] + inp["slope"][idx] * (job.depths_mm[i]
+                                                                 - inp["z_ref"][idx])[:, None]
+            own = (st.centroid + origin[i, loc]) * c_pitch
+            at_depth = np.where(np.isfinite(own), own, at_depth)
+            m = ap.resample(hh, origin[i, loc], at_depth, inp["at_centre"][idx], s[i], c_pitch,
+                            grid, job.rot2, cfg.supersample)
+            cov_i = m.sum(axis=(1, 2))
+            coverage[:, i] = np.where(used, cov_i, 0.0)
+            m_all[:, i] = m / np.where(cov_i > 0, cov_i, 1.0)[:, None, None]
+        mm = inp["mom"][:, idx] * (c_pitch * s)[:, None, None] ** 2
+        none = ~np.isfinite(mm[..., 0]).any(axis=0)  # no depth with signal: any cov
+        mm[:, none] = [1.0, 1.0, 0.0]
+        cov2 = np.nanmedian(np.stack([mm[..., 0], mm[..., 2], mm[..., 2], mm[..., 1]],
+                                     axis=-1), axis=0).reshape(-1, 2, 2)
+        blur, nse = ap.depth_errors(noise[:, loc].T, s, c_pitch, fp, cov2, grid.cell_mm)
+        wd = ap.fusion_weights(blur, nse, coverage > MIN_COVERAGE)
+        acc = np.einsum("nd,ndij->nij", wd, m_all)
+        tot = wd.sum(axis=1)
+        fz = acc / np.where(tot > 0, tot, 1.0)[:, None, None]
+        ok_c = tot > 0
+        _, cov_c = _moments(fz, wd, ok_c, grid, c_pitch * s, fp * s, cfg.deblur)
+        # the samples' centroid is the principal ray on the centre's plane (camera axes):
+        # the fit over all depths and the pixel's neighbours, not the fused grid's mean
+        mean_c = inp["at_centre"][idx] @ job.rot2.T
+        out["weight"][idx], out["coverage"][idx] = wd, coverage
+        out["mean"][idx], out["cov"][idx] = mean_c, cov_c
+        if job.keep_fused:
+            out["fused"][idx] = fz
+        if job.keep_depths:
+            out["per_depth"][idx] = m_all
+        good = ok_c & usable
+        if job.samples and good.any():
+            xs, ws = ap.ring_samples(fz[good], grid, cfg.samples)
+            out["x"][idx[good]] = ap.match_moments(xs, ws, mean_c[good], cov_c[good])
+            out["w"][idx[good]] = ws
+    out["ok"] = out["weight"].sum(axis=1) > 0
+    return out
 
 
 def local_plane_fit(values: np.ndarray, var: np.ndarray, ok: np.ndarray,
@@ -145,93 +275,38 @@ def local_ray_centres(geom: LensGeometry, pixels: np.ndarray, radius_px: int) ->
 def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
                  pixels: np.ndarray, cfg: LensFitConfig | None = None,
                  keep_depths: bool = False, progress: bool = False,
-                 keep_fused: bool = True,
-                 on_chunk: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                     np.ndarray], None] | None = None) -> ApertureSet:
-    """Scale, resample and fuse the LTC of the given flat pixels onto the aperture plane
-    (``progress``: a bar over the row blocks read).
-
-    Streams: camera rows are read in chunk-aligned blocks and nodes fused
-    ``cfg.nodes_per_chunk`` at a time; ``on_chunk(idx, fused, ok, mean, cov)`` is called per
-    chunk with the positions ``idx`` in ``pixels``, their fused distributions (m, G, G) and
-    their ``ok``, ``mean``, ``cov``. ``keep_fused=False`` keeps no (n, G, G) array (``fused``
-    is then None), so memory grows only by (n, 2, 2)-sized arrays with the nodes."""
+                 keep_fused: bool = True) -> ApertureSet:
+    """Scale, resample and fuse the LTC of the given flat pixels onto the aperture plane, in
+    this process, block by block (``aperture_block``); ``progress``: a bar over the blocks.
+    ``keep_fused=False`` keeps no (n, G, G) array (``fused`` is then None)."""
     cfg = cfg or LensFitConfig()
     pixels = np.asarray(pixels, dtype=np.int64).ravel()
-    c, rays = geom.centroids, geom.rays
-    d, n, g = len(c.depths_mm), len(pixels), grid.cells
-    w_cam = volume.camera_size[0]
-    zc = float(geom.centre.position[2])
-    s = ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, zc)
-    fp = footprint_mm(c.depths_mm, zc, geom.camera_matrix)
-    rot2 = geom.rotation[:2, :2]
-    u, _, vt = np.linalg.svd(rot2)
-    rot2 = u @ vt  # in-plane part of the station-to-camera rotation
-    per_depth = np.zeros((n, d, g, g)) if keep_depths else None
-    weight = np.zeros((n, d))
-    coverage = np.zeros((n, d))
+    n, d, g = len(pixels), len(geom.centroids.depths_mm), grid.cells
+    w_cam, h_cam = volume.camera_size
+    job = aperture_job(geom, grid, cfg, keep_fused=keep_fused, keep_depths=keep_depths)
+    tr, tc = tile_shape(volume)
+    key = (pixels // w_cam // tr) * ((w_cam + tc - 1) // tc) + (pixels % w_cam) // tc
+    order = np.argsort(key, kind="stable")
+    bounds = np.flatnonzero(np.diff(key[order])) + 1
+    out = {"weight": np.zeros((n, d)), "coverage": np.zeros((n, d)), "mean": np.zeros((n, 2)),
+           "cov": np.zeros((n, 2, 2))}
     fused = np.zeros((n, g, g)) if keep_fused else None
-    mean, cov = np.zeros((n, 2)), np.zeros((n, 2, 2))
-    mom = c.moments_px2.reshape(d, -1, 3)
-    blocks = list(_row_blocks(pixels, w_cam, rows_per_read(volume)))
-    for r0, r1, sel in tqdm(blocks, desc="lens: aperture", unit="block",
-                            disable=None if progress else True):
-        ltc = np.asarray(volume.ltc[:, r0:r1])  # store dtype: converted per node chunk
-        origin = np.asarray(volume.origin[:, r0:r1], dtype=np.int64)
-        noise = np.asarray(volume.noise[:, r0:r1], dtype=np.float64)
-        ltc = ltc.reshape(d, -1, *ltc.shape[-2:])
-        origin = origin.reshape(d, -1, 2)
-        noise = noise.reshape(d, -1)
-        for k0 in range(0, len(sel), cfg.nodes_per_chunk):
-            idx = sel[k0 : k0 + cfg.nodes_per_chunk]
-            pix = pixels[idx]
-            loc = pix - r0 * w_cam
-            m_all = np.zeros((len(idx), d, g, g))
-            a_c = local_ray_centres(geom, pix, cfg.ray_window_px)
-            for i in range(d):
-                used = rays.used[i, pix] & rays.usable[pix]
-                if not used.any():
-                    continue
-                h = ltc[i, loc].astype(np.float64)
-                st = window_stats(np.where(used[:, None, None], h, np.nan), noise[i, loc])
-                hh = np.where(st.region, h, 0.0)
-                # each depth's LTC is placed by its own centroid onto the principal ray at
-                # the centre's plane: the depths' noisy residuals (x |s_i| ~ 5 at the
-                # extreme depths) neither shift nor blur the fused distribution
-                at_depth = rays.xy_ref[pix] + rays.slope[pix] * (c.depths_mm[i]
-                                                                 - rays.z_ref[pix])[:, None]
-                own = (st.centroid + origin[i, loc]) * c.pitch_mm
-                at_depth = np.where(np.isfinite(own), own, at_depth)
-                m = ap.resample(hh, origin[i, loc], at_depth, a_c, s[i], c.pitch_mm,
-                                grid, rot2, cfg.supersample)
-                cov_i = m.sum(axis=(1, 2))
-                coverage[idx, i] = np.where(used, cov_i, 0.0)
-                m_all[:, i] = m / np.where(cov_i > 0, cov_i, 1.0)[:, None, None]
-            mm = mom[:, pix] * (c.pitch_mm * s)[:, None, None] ** 2
-            none = ~np.isfinite(mm[..., 0]).any(axis=0)  # no depth with signal: any cov
-            mm[:, none] = [1.0, 1.0, 0.0]
-            cov2 = np.nanmedian(np.stack([mm[..., 0], mm[..., 2], mm[..., 2], mm[..., 1]],
-                                         axis=-1), axis=0).reshape(-1, 2, 2)
-            blur, nse = ap.depth_errors(noise[:, loc].T, s, c.pitch_mm, fp, cov2, grid.cell_mm)
-            wd = ap.fusion_weights(blur, nse, coverage[idx] > MIN_COVERAGE)
-            weight[idx] = wd
-            acc = np.einsum("nd,ndij->nij", wd, m_all)
-            tot = wd.sum(axis=1)
-            fz = acc / np.where(tot > 0, tot, 1.0)[:, None, None]
-            if fused is not None:
-                fused[idx] = fz
-            if per_depth is not None:
-                per_depth[idx] = m_all
-            ok_c = wd.sum(axis=1) > 0
-            _, cov_c = _moments(fz, wd, ok_c, grid, c.pitch_mm * s, fp * s, cfg.deblur)
-            # the samples' centroid is the principal ray on the centre's plane (camera axes):
-            # the fit over all depths and the pixel's neighbours, not the fused grid's mean
-            mean_c = a_c @ rot2.T
-            mean[idx], cov[idx] = mean_c, cov_c
-            if on_chunk is not None:
-                on_chunk(idx, fz, ok_c, mean_c, cov_c)
-    ok = weight.sum(axis=1) > 0
-    return ApertureSet(pixels, per_depth, weight, coverage, fused, ok, mean, cov)
+    per_depth = np.zeros((n, d, g, g)) if keep_depths else None
+    for sel in tqdm(np.split(order, bounds) if n else [], desc="lens: aperture", unit="block",
+                    disable=None if progress else True):
+        pix = pixels[sel]
+        r0, c0 = pix[0] // w_cam // tr * tr, pix[0] % w_cam // tc * tc
+        res = aperture_block(volume, job, r0, min(h_cam, r0 + tr), c0, min(w_cam, c0 + tc),
+                             pix, pixel_inputs(geom, pix, cfg))
+        for name in out:
+            out[name][sel] = res[name]
+        if fused is not None:
+            fused[sel] = res["fused"]
+        if per_depth is not None:
+            per_depth[sel] = res["per_depth"]
+    ok = out["weight"].sum(axis=1) > 0
+    return ApertureSet(pixels, per_depth, out["weight"], out["coverage"], fused, ok,
+                       out["mean"], out["cov"])
 
 
 def _moments(fused: np.ndarray, weight: np.ndarray, ok: np.ndarray, grid: ap.ApertureGrid,
@@ -260,17 +335,32 @@ def node_positions(size: int, step: int) -> np.ndarray:
 
 @dataclass
 class LensResult:
-    """The derivation's result: geometry, grid, nodes, fused distributions, the lens."""
+    """The derivation's result: geometry, grid, nodes, fused distributions, the lens.
+
+    Derived to a file (``derive_lens(..., out=path)``): ``lens`` and ``apertures`` are None
+    (nothing per node is held in memory) and ``lens_path`` is the file written.
+    """
 
     config: LensFitConfig
     geometry: LensGeometry
     grid: ap.ApertureGrid
     node_u: np.ndarray
     node_v: np.ndarray
-    apertures: ApertureSet
-    lens: MeasuredLens
+    apertures: ApertureSet | None
+    lens: MeasuredLens | None
     filled_nodes: int
     figures: list[Path] = field(default_factory=list)
+    lens_path: Path | None = None
+
+    def samples_at(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Aperture samples x, y mm and weights (n, K) of pixels uv (n, 2): the lens's own
+        interpolation in memory; from the written file, the nearest node's."""
+        if self.lens is not None:
+            return self.lens.samples_at(uv)
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        i = np.abs(uv[:, 0, None] - self.node_u[None]).argmin(axis=1)
+        j = np.abs(uv[:, 1, None] - self.node_v[None]).argmin(axis=1)
+        return read_lens_nodes(self.lens_path, j * len(self.node_u) + i)
 
     def summary(self) -> dict:
         """A JSON-able report of what was measured."""
@@ -299,7 +389,7 @@ class LensResult:
             "pixels_outlier_removed": int(((fl & FLAG_OUTLIER) > 0).sum()),
             "pixels_bad_fit": int(((fl & FLAG_BAD_FIT) > 0).sum()),
             "depths_mm": g.centroids.depths_mm.tolist(),
-            "samples": self.lens.samples,
+            "samples": self.config.samples,
             "nodes": [len(self.node_v), len(self.node_u)],
             "nodes_filled": self.filled_nodes,
             "aperture_half_width_mm": self.grid.half_width_mm,
@@ -315,74 +405,139 @@ class LensResult:
 
 def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,
                 K: np.ndarray | None = None, dist: np.ndarray | None = None,
-                progress: bool = False) -> LensResult:
+                progress: bool = False, engine: Engine | None = None,
+                out: str | Path | None = None) -> LensResult:
     """The measured lens of an LTC volume (see the module docstrings for every step);
-    ``progress`` shows bars over the centroid and aperture passes."""
+    ``progress`` shows bars over the centroid and aperture passes.
+
+    engine : where the centroid and aperture blocks are computed (``station.ltc.parallel``;
+    default: in this process); every engine gives the same lens bit for bit.
+    out : write the lens file there as nodes are produced (``LensFileWriter``) instead of
+    building it in memory: memory then does not grow with the number of nodes, and the
+    result has ``lens_path`` instead of ``lens`` and ``apertures``.
+    """
     cfg = config or LensFitConfig()
-    geom = fit_geometry(volume, cfg, K, dist, progress=progress)
+    own = engine is None
+    engine = engine or Engine(1)
+    try:
+        return _derive(volume, cfg, K, dist, progress, engine, out)
+    finally:
+        if own:
+            engine.close()
+
+
+def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engine: Engine,
+            out: str | Path | None) -> LensResult:
+    geom = fit_geometry(volume, cfg, K, dist, progress=progress, engine=engine)
     grid = aperture_grid(geom, cfg)
     w, h = volume.camera_size
     nu, nv = node_positions(w, cfg.grid_step), node_positions(h, cfg.grid_step)
-    pix = (nv[:, None] * w + nu[None, :]).ravel()
-    x = np.zeros((len(pix), cfg.samples, 2))
-    wk = np.zeros((len(pix), cfg.samples))
-    usable = geom.rays.usable[pix]
-    buf: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-
-    def sample(flush: bool = False) -> None:
-        """K samples of the buffered good nodes, ``nodes_per_chunk`` at a time in node order."""
-        while buf and (flush or sum(len(b[0]) for b in buf) >= cfg.nodes_per_chunk):
-            sl, fz, mu, cv = (np.concatenate(a) for a in zip(*buf))
-            buf.clear()
-            take = cfg.nodes_per_chunk
-            if len(sl) > take:
-                buf.append((sl[take:], fz[take:], mu[take:], cv[take:]))
-            sl, fz, mu, cv = sl[:take], fz[:take], mu[:take], cv[:take]
-            xs, ws = ap.kmeans_samples(fz, grid, cfg.samples, cfg.kmeans_iterations)
-            x[sl], wk[sl] = ap.canonical_order(ap.match_moments(xs, ws, mu, cv), ws)
-
-    def on_chunk(idx, fz, ok, mu, cv) -> None:
-        keep = ok & usable[idx]
-        if keep.any():
-            buf.append((idx[keep], fz[keep], mu[keep], cv[keep]))
-            sample()
-
-    aps = aperture_set(volume, geom, grid, pix, cfg, progress=progress, keep_fused=False,
-                       on_chunk=on_chunk)
-    sample(flush=True)
-    good = aps.ok & usable
-    if not good.any():
-        raise LensFitError(f"{volume.name}: no node pixel has a usable LTC at any depth")
     shape = (len(nv), len(nu))
-    bad = ~good.reshape(shape)
-    if bad.any():
-        near = ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)
-        flat = (near[0] * len(nu) + near[1]).ravel()
-        fill = np.flatnonzero(bad.ravel())  # in place: the sources are good nodes
-        x[fill], wk[fill] = x[flat[fill]], wk[flat[fill]]
-    gain = np.where(geom.centroids.valid, _gain(volume), np.nan)
-    tg = np.nanmedian(np.where(np.isfinite(gain).any(axis=0), gain, 0.0), axis=0)
-    tg = np.nan_to_num(tg)
-    norm = float(ndimage.median_filter(tg, size=3).max())
-    trans = (tg / norm if norm > 0 else np.ones_like(tg))[nv][:, nu]
-    meta = {"source": volume.name, "config": cfg.model_dump(mode="json"),
-            "summary_at_fit": None}
-    lens = MeasuredLens(
-        focus_distance_mm=geom.focus_distance_mm, optical_centre_mm=geom.centre.position,
-        camera_size=volume.camera_size, node_u=nu.astype(np.float64),
-        node_v=nv.astype(np.float64), aperture_x_mm=x[..., 0].reshape(shape + (-1,)),
-        aperture_y_mm=x[..., 1].reshape(shape + (-1,)), weights=wk.reshape(shape + (-1,)),
-        transmittance=trans, interpolation=cfg.interpolation,
-        camera_matrix=geom.camera_matrix, dist_coeffs=geom.dist_coeffs, metadata=meta,
-    )
-    result = LensResult(cfg, geom, grid, nu, nv, aps, lens, int(bad.sum()))
-    meta["summary_at_fit"] = result.summary()
-    return result
+    k = cfg.samples
+    writer = LensFileWriter(out, nu, nv, k) if out is not None else None
+    try:
+        good = np.zeros(shape, dtype=bool)
+        if writer is None:
+            x = np.zeros(shape + (k, 2))
+            wk = np.zeros(shape + (k,))
+            parts = {"weight": np.zeros(shape + (len(volume.depths_mm),)),
+                     "coverage": np.zeros(shape + (len(volume.depths_mm),)),
+                     "mean": np.zeros(shape + (2,)), "cov": np.zeros(shape + (2, 2))}
+        job = aperture_job(geom, grid, cfg, samples=True)
+        tr, tc = tile_shape(volume)
+        blocks = []
+        for r0 in range(0, h, tr):
+            jv = np.flatnonzero((nv >= r0) & (nv < r0 + tr))
+            for c0 in range(0, w, tc):
+                iu = np.flatnonzero((nu >= c0) & (nu < c0 + tc))
+                if len(jv) and len(iu):
+                    blocks.append((r0, min(h, r0 + tr), c0, min(w, c0 + tc), jv, iu))
+        bar = tqdm(total=len(blocks), desc="lens: aperture", unit="block",
+                   disable=None if progress else True)
+
+        def tasks():
+            for r0, r1, c0, c1, jv, iu in blocks:
+                pix = (nv[jv][:, None] * w + nu[iu][None, :]).ravel()
+                yield ((jv, iu), aperture_block,
+                       (volume, job, r0, r1, c0, c1, pix, pixel_inputs(geom, pix, cfg)))
+
+        def on_result(key, res) -> None:
+            jv, iu = key
+            sub = (len(jv), len(iu))
+            g = (res["ok"] & res["w"].any(axis=1)).reshape(sub)
+            good[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = g
+            xs, ws = res["x"].reshape(sub + (k, 2)), res["w"].reshape(sub + (k,))
+            if writer is None:
+                x[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = xs
+                wk[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = ws
+                for name, a in parts.items():
+                    a[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = res[name].reshape(
+                        sub + a.shape[2:])
+            else:  # nodes not good get a placeholder, replaced by a neighbour's below
+                ws = np.where(g[..., None], ws, 1.0 / k)
+                writer.write_nodes(jv[0], iu[0], xs[..., 0], xs[..., 1], ws)
+            bar.update()
+
+        run_ordered(engine, tasks(), on_result)
+        bar.close()
+        if not good.any():
+            raise LensFitError(f"{volume.name}: no node pixel has a usable LTC at any depth")
+        bad = ~good
+        if bad.any():
+            near = ndimage.distance_transform_edt(bad, return_distances=False,
+                                                  return_indices=True)
+            flat = (near[0] * len(nu) + near[1]).ravel()
+            del near
+            fill = np.flatnonzero(bad.ravel())  # the sources are good nodes
+            if writer is None:
+                x.reshape(-1, k, 2)[fill] = x.reshape(-1, k, 2)[flat[fill]]
+                wk.reshape(-1, k)[fill] = wk.reshape(-1, k)[flat[fill]]
+            else:
+                writer.copy_nodes(fill, flat[fill])
+            del flat
+        trans = _transmittance(volume, geom.centroids.valid, nu, nv)
+        meta = {"source": volume.name, "config": cfg.model_dump(mode="json"),
+                "summary_at_fit": None}
+        fields_ = dict(focus_distance_mm=geom.focus_distance_mm,
+                       optical_centre_mm=geom.centre.position, camera_size=volume.camera_size,
+                       transmittance=trans, interpolation=cfg.interpolation,
+                       camera_matrix=geom.camera_matrix, dist_coeffs=geom.dist_coeffs,
+                       metadata=meta)
+        if writer is None:
+            lens = MeasuredLens(node_u=nu.astype(np.float64), node_v=nv.astype(np.float64),
+                                aperture_x_mm=x[..., 0], aperture_y_mm=x[..., 1], weights=wk,
+                                **fields_)
+            pix = (nv[:, None] * w + nu[None, :]).ravel()
+            aps = ApertureSet(pix, None, parts["weight"].reshape(len(pix), -1),
+                              parts["coverage"].reshape(len(pix), -1), None,
+                              parts["weight"].reshape(len(pix), -1).sum(axis=1) > 0,
+                              parts["mean"].reshape(-1, 2), parts["cov"].reshape(-1, 2, 2))
+            result = LensResult(cfg, geom, grid, nu, nv, aps, lens, int(bad.sum()))
+            meta["summary_at_fit"] = result.summary()
+            return result
+        result = LensResult(cfg, geom, grid, nu, nv, None, None, int(bad.sum()),
+                            lens_path=Path(out))
+        meta["summary_at_fit"] = result.summary()
+        writer.close(**fields_)
+        writer = None
+        return result
+    finally:
+        if writer is not None:
+            writer.abort()
 
 
-def _gain(volume: LtcVolume) -> np.ndarray:
+def _transmittance(volume: LtcVolume, valid: np.ndarray, nu: np.ndarray,
+                   nv: np.ndarray) -> np.ndarray:
+    """Relative transmittance of the nodes (Gv, Gu): each pixel's median gain over its
+    valid depths, over the sensor's maximum after a 3 x 3 median (read in row blocks)."""
     w, h = volume.camera_size
-    out = np.empty((len(volume.depths_mm), h, w))
-    for r0 in range(0, h, 64):
-        out[:, r0 : r0 + 64] = np.asarray(volume.gain[:, r0 : r0 + 64], dtype=np.float64)
-    return out
+    tg = np.zeros((h, w))
+    rows = tile_shape(volume)[0]
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        gain = np.where(valid[:, r0:r1], np.asarray(volume.gain[:, r0:r1], dtype=np.float64),
+                        np.nan)
+        tg[r0:r1] = np.nan_to_num(np.nanmedian(
+            np.where(np.isfinite(gain).any(axis=0), gain, 0.0), axis=0))
+    norm = float(ndimage.median_filter(tg, size=3).max())
+    return (tg / norm if norm > 0 else np.ones_like(tg))[nv][:, nu]

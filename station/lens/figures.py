@@ -103,7 +103,7 @@ def aperture_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path:
     pix = chosen_pixels(volume.camera_size)
     flat = np.array([_flat(uv, w) for uv in pix.values()])
     aps = aperture_set(volume, g, result.grid, flat, result.config)
-    x, y, wk = result.lens.samples_at(np.array(list(pix.values()), dtype=np.float64))
+    x, y, wk = result.samples_at(np.array(list(pix.values()), dtype=np.float64))
     hw = result.grid.half_width_mm
     fig = Figure(figsize=(3.6 * len(pix), 3.6), dpi=DPI)
     axes = fig.subplots(1, len(pix), squeeze=False)[0]
@@ -117,7 +117,7 @@ def aperture_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path:
         ax.set_xlabel("x_k, mm")
         ax.set_ylabel("y_k, mm")
     fig.suptitle(f"LTC at the optical centre (z_f = {g.focus_distance_mm:.2f} mm); "
-                 f"circles: {result.lens.samples} samples", fontsize=9)
+                 f"circles: {result.config.samples} samples", fontsize=9)
     fig.tight_layout()
     fig.savefig(path)
     return path

@@ -71,8 +71,7 @@ class LensFitConfig(BaseModel):
                                "own ray)")
     deblur: bool = Field(True, description="remove the known LCD-pixel and camera-pixel box "
                          "variances from the samples' second moments")
-    kmeans_iterations: int = Field(30, ge=1, description="Lloyd iterations")
-    nodes_per_chunk: int = Field(64, ge=1, description="node pixels processed together")
+    nodes_per_chunk: int = Field(256, ge=1, description="node pixels processed together")
 
 
 @dataclass(frozen=True)
@@ -172,11 +171,12 @@ def _focus_plane(fit: FocusFit | None, z_f_config: float | None, centre_z: float
 
 def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
                  K: np.ndarray | None = None, dist: np.ndarray | None = None,
-                 progress: bool = False) -> LensGeometry:
+                 progress: bool = False, engine=None) -> LensGeometry:
     """Centroids, principal rays, focus plane and optical centre of an LTC volume.
 
     K, dist : camera matrix and distortion; default: the volume's (``camera_matrix``).
-    progress : a progress bar over the centroid pass.
+    progress : a progress bar over the centroid pass; engine : where the centroid pass
+    runs (``station.ltc.parallel.Engine``; default: in this process).
     """
     cfg = config or LensFitConfig()
     K = volume.camera_matrix if K is None else np.asarray(K, dtype=np.float64)
@@ -184,7 +184,7 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
     if cfg.centre_method == "pinhole" and K is None:
         raise LensFitError(f"{volume.name}: centre_method 'pinhole' needs the camera matrix K "
                            "(store attribute camera_matrix, or --rig)")
-    c = compute_centroids(volume, progress=progress)
+    c = compute_centroids(volume, progress=progress, engine=engine)
     d = len(c.depths_mm)
     n = c.status[0].size
     parts = []  # per pixel, so fitted in blocks: temporaries do not grow with the sensor

@@ -1,0 +1,452 @@
+"""Compiled (numba) kernels of the lens derivation: the same formulas as the numpy reference
+code they replace (``station.lens.centroids.window_stats``, ``station.lens.aperture.resample``),
+one window or node at a time so nothing grows with the batch.
+
+``stats_kernel`` computes what ``window_stats`` documents (3 x 3 box smoothing, the
+8-connected region above the threshold that holds the smoothed peak, grown by a disk of
+radius ``REGION_MARGIN_PX + 0.5``; centroid, moments and their noise); only the order of
+floating-point sums differs from the numpy version (tests compare them within 1e-12).
+``resample_kernel`` is ``aperture.resample`` (nearest LCD pixel at each sub-cell centre).
+``rings_kernel`` and ``lloyd_kernel`` draw K aperture samples (``aperture.ring_samples``);
+``moments_kernel`` is ``aperture.grid_moments``.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True)
+def stats_kernel(h, sigma, signal, noise_sigmas, peak_fraction, margin,
+                 centroid, centroid_std, moments, trace_std, region_out, status_out):
+    """Per window n: h (n, P, P) float64 (NaN windows already zeroed), sigma (n,), signal (n,)
+    bool; writes centroid (n, 2), centroid_std (n, 2), moments (n, 3), trace_std (n,),
+    region_out (n, P, P) bool, status_out (n,) int8 (0 ok, 1 no signal, 2 truncated)."""
+    n, p = h.shape[0], h.shape[1]
+    sm = np.empty((p, p))
+    tmp = np.empty((p, p))
+    above = np.empty((p, p), dtype=np.bool_)
+    core = np.empty((p, p), dtype=np.bool_)
+    region = np.empty((p, p), dtype=np.bool_)
+    stack = np.empty(p * p, dtype=np.int64)
+    r2m = (margin + 0.5) ** 2
+    for k in range(n):
+        hz = h[k]
+        sig_k = sigma[k] if signal[k] else 0.0
+        # separable 3-tap box, zero outside (uniform_filter mode "constant"): rows then columns
+        for i in range(p):
+            for j in range(p):
+                a = hz[i - 1, j] if i > 0 else 0.0
+                c = hz[i + 1, j] if i < p - 1 else 0.0
+                tmp[i, j] = (a + hz[i, j] + c) / 3.0
+        peak = -np.inf
+        ipk = 0
+        rawmax = -np.inf
+        for i in range(p):
+            for j in range(p):
+                a = tmp[i, j - 1] if j > 0 else 0.0
+                c = tmp[i, j + 1] if j < p - 1 else 0.0
+                v = (a + tmp[i, j] + c) / 3.0
+                sm[i, j] = v
+                if v > peak:
+                    peak = v
+                    ipk = i * p + j
+                if hz[i, j] > rawmax:
+                    rawmax = hz[i, j]
+        thr = max(noise_sigmas * sig_k / 3.0, peak_fraction * peak)
+        for i in range(p):
+            for j in range(p):
+                above[i, j] = (sm[i, j] > thr) and signal[k] and peak > 0
+                core[i, j] = False
+        lab = above[ipk // p, ipk % p]
+        if lab:  # flood fill (8-connected) from the peak
+            top = 0
+            stack[0] = ipk
+            core[ipk // p, ipk % p] = True
+            top = 1
+            while top > 0:
+                top -= 1
+                q = stack[top]
+                qi, qj = q // p, q % p
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        ii, jj = qi + di, qj + dj
+                        if 0 <= ii < p and 0 <= jj < p and above[ii, jj] and not core[ii, jj]:
+                            core[ii, jj] = True
+                            stack[top] = ii * p + jj
+                            top += 1
+        raw_thr = max(noise_sigmas * sig_k, peak_fraction * rawmax)
+        edge = False
+        for i in range(p):
+            for j in range(p):
+                if (i == 0 or i == p - 1 or j == 0 or j == p - 1) and core[i, j] \
+                        and hz[i, j] > raw_thr:
+                    edge = True
+        # region: core dilated by the disk (each core pixel paints its disk)
+        for i in range(p):
+            for j in range(p):
+                region[i, j] = False
+        for i in range(p):
+            for j in range(p):
+                if not core[i, j]:
+                    continue
+                for di in range(-margin, margin + 1):
+                    ii = i + di
+                    if ii < 0 or ii >= p:
+                        continue
+                    for dj in range(-margin, margin + 1):
+                        jj = j + dj
+                        if 0 <= jj < p and di * di + dj * dj <= r2m:
+                            region[ii, jj] = True
+        s = 0.0
+        sx = 0.0
+        sy = 0.0
+        npx = 0
+        for i in range(p):
+            for j in range(p):
+                if region[i, j]:
+                    v = hz[i, j]
+                    s += v
+                    sx += v * j
+                    sy += v * i
+                    npx += 1
+        ok = signal[k] and lab and s > noise_sigmas * sigma[k] * np.sqrt(max(npx, 1))
+        safe = s if ok else 1.0
+        cx = sx / safe
+        cy = sy / safe
+        mxx = 0.0
+        myy = 0.0
+        mxy = 0.0
+        sdx = 0.0
+        sdy = 0.0
+        for i in range(p):
+            for j in range(p):
+                if region[i, j]:
+                    v = hz[i, j]
+                    dx = j - cx
+                    dy = i - cy
+                    mxx += v * dx * dx
+                    myy += v * dy * dy
+                    mxy += v * dx * dy
+                    sdx += dx * dx
+                    sdy += dy * dy
+        mxx /= safe
+        myy /= safe
+        mxy /= safe
+        tr = mxx + myy
+        st = 0.0
+        for i in range(p):
+            for j in range(p):
+                if region[i, j]:
+                    dx = j - cx
+                    dy = i - cy
+                    e = dx * dx + dy * dy - tr
+                    st += e * e
+        sig = (sigma[k] if ok else 0.0) / safe
+        if ok:
+            centroid[k, 0] = cx
+            centroid[k, 1] = cy
+            centroid_std[k, 0] = sig * np.sqrt(sdx)
+            centroid_std[k, 1] = sig * np.sqrt(sdy)
+            moments[k, 0] = mxx
+            moments[k, 1] = myy
+            moments[k, 2] = mxy
+            trace_std[k] = sig * np.sqrt(st)
+            status_out[k] = 2 if edge else 0
+        else:
+            centroid[k, 0] = np.nan
+            centroid[k, 1] = np.nan
+            centroid_std[k, 0] = np.nan
+            centroid_std[k, 1] = np.nan
+            moments[k, 0] = np.nan
+            moments[k, 1] = np.nan
+            moments[k, 2] = np.nan
+            trace_std[k] = np.nan
+            status_out[k] = 1
+        for i in range(p):
+            for j in range(p):
+                region_out[k, i, j] = region[i, j] and ok
+
+
+OFFSET_I = 1 << 20  # added before truncating LCD coordinates (|index| << 2^20), exact in float64
+OFFSET = float(OFFSET_I)
+
+
+@numba.njit(cache=True, nogil=True)
+def resample_kernel(h, origin, ray_d, ray_c, inv, box, ptx, pty, pitch_mm, g, sub, cell_area,
+                    rot, first, pts_cam_step, out):
+    """out[k] (G, G) += masses of window h[k] (P, P) (see ``aperture.resample``): sub-cell
+    centres ptx, pty ((G sub)^2,) station-frame mm, ``p_station = R2^T p_cam`` with
+    rot = R2; the camera-frame sub-cell centres are ``first + i pts_cam_step`` along each
+    axis; inv (n,) = 1 / ratio; box (n,) the LCD pixel's area on the aperture plane."""
+    n, p = h.shape[0], h.shape[-1]
+    gs = g * sub
+    norm = 1.0 / (sub * sub)
+    sc = pts_cam_step  # sub-cell pitch, mm
+    colb = np.empty(gs)
+    rowb = np.empty(gs)
+    cell = np.arange(gs) // sub  # output cell of each sub-cell index (no division per point)
+    for k in range(n):
+        ox, oy = origin[k, 0], origin[k, 1]
+        # the window's nonzero weights: only sub-cells that can land on them are visited
+        # (the others add 0); their box, mapped back to the aperture, bounds the loop
+        cmin, cmax, rmin, rmax = p, -1, p, -1
+        for r in range(p):
+            for c in range(p):
+                if h[k, r, c] != 0.0:
+                    cmin, cmax = min(cmin, c), max(cmax, c)
+                    rmin, rmax = min(rmin, r), max(rmax, r)
+        if cmax < 0:
+            continue
+        s_k = 1.0 / inv[k]
+        xa = ray_c[k, 0] + ((cmin + ox - 0.5) * pitch_mm - ray_d[k, 0]) * s_k
+        xb = ray_c[k, 0] + ((cmax + 1 + ox - 0.5) * pitch_mm - ray_d[k, 0]) * s_k
+        ya = ray_c[k, 1] + ((rmin + oy - 0.5) * pitch_mm - ray_d[k, 1]) * s_k
+        yb = ray_c[k, 1] + ((rmax + 1 + oy - 0.5) * pitch_mm - ray_d[k, 1]) * s_k
+        # station-frame box -> camera frame (p_cam = R2 p_station): bounding box of corners
+        umin, umax, vmin, vmax = np.inf, -np.inf, np.inf, -np.inf
+        for xs in (xa, xb):
+            for ys in (ya, yb):
+                u = rot[0, 0] * xs + rot[0, 1] * ys
+                v = rot[1, 0] * xs + rot[1, 1] * ys
+                umin, umax = min(umin, u), max(umax, u)
+                vmin, vmax = min(vmin, v), max(vmax, v)
+        b0 = max(0, int(np.floor((umin - first) / sc)) - 2)
+        b1 = min(gs, int(np.ceil((umax - first) / sc)) + 3)
+        a0 = max(0, int(np.floor((vmin - first) / sc)) - 2)
+        a1 = min(gs, int(np.ceil((vmax - first) / sc)) + 3)
+        # LCD column and row (+ 0.5) are affine in the camera-frame sub-cell indices (a, b):
+        # p_station = R2^T p_cam, so col = ccol + ca a + cb b (likewise row)
+        ax, ay = inv[k] / pitch_mm, inv[k] / pitch_mm
+        bx = (ray_d[k, 0] - ray_c[k, 0] * inv[k]) / pitch_mm + 0.5
+        by = (ray_d[k, 1] - ray_c[k, 1] * inv[k]) / pitch_mm + 0.5
+        hb = 1.0 / box[k] * norm
+        for b in range(b0, b1):
+            xb = first + b * sc
+            colb[b] = rot[0, 0] * xb * ax + OFFSET
+            rowb[b] = rot[0, 1] * xb * ay + OFFSET
+        for a in range(a0, a1):
+            ya = first + a * sc
+            cya = rot[1, 0] * ya * ax + bx
+            rya = rot[1, 1] * ya * ay + by
+            oa = out[k, a // sub]
+            hk = h[k]
+            for b in range(b0, b1):
+                # floor by truncation of a positive number (OFFSET >> any LCD index)
+                col = np.int64(colb[b] + cya) - OFFSET_I - ox
+                row = np.int64(rowb[b] + rya) - OFFSET_I - oy
+                if 0 <= col < p and 0 <= row < p:
+                    oa[cell[b]] += hk[row, col] * hb
+        for a in range(g):
+            for b in range(g):
+                out[k, a, b] *= cell_area
+
+
+@numba.njit(cache=True, nogil=True)
+def moments_kernel(mass, centres, mean, cov):
+    """Mean (n, 2) and covariance (n, 2, 2) of grid masses (n, G, G) normalised per node,
+    cell centres ``centres`` (G,) mm along both axes (see ``aperture.grid_moments``)."""
+    n, g = mass.shape[0], mass.shape[1]
+    for k in range(n):
+        tot = 0.0
+        for a in range(g):
+            for b in range(g):
+                tot += mass[k, a, b]
+        if tot <= 0:
+            tot = 1.0
+        mx = 0.0
+        my = 0.0
+        for a in range(g):
+            for b in range(g):
+                q = mass[k, a, b] / tot
+                mx += q * centres[b]
+                my += q * centres[a]
+        sxx = 0.0
+        syy = 0.0
+        sxy = 0.0
+        for a in range(g):
+            dy = centres[a] - my
+            for b in range(g):
+                q = mass[k, a, b] / tot
+                dx = centres[b] - mx
+                sxx += q * dx * dx
+                syy += q * dy * dy
+                sxy += q * dx * dy
+        mean[k, 0], mean[k, 1] = mx, my
+        cov[k, 0, 0], cov[k, 1, 1] = sxx, syy
+        cov[k, 0, 1], cov[k, 1, 0] = sxy, sxy
+
+
+@numba.njit(cache=True, nogil=True)
+def rings_kernel(mass, centres, mean, white, counts, offsets, out_xy, out_w):
+    """Equal-mass polar strata of grid masses (n, G, G) (normalised, >= 0) about their mean
+    (n, 2) in whitened coordinates (``white`` (n, 2, 2) = cov^-1/2): rings of mass
+    counts[i] / K (cells sorted by whitened radius), each cut into counts[i] sectors of equal
+    mass by whitened angle from ``offsets[i]`` (radians). A cell's mass is split where a
+    boundary falls inside it. Writes each stratum's centroid (cell centres ``centres`` (G,)
+    mm) to out_xy (n, K, 2) and its mass to out_w (n, K), ring by ring, sector by sector."""
+    n, g = mass.shape[0], mass.shape[1]
+    nr = len(counts)
+    k = out_w.shape[1]
+    ncell = g * g
+    px = np.empty(ncell)
+    py = np.empty(ncell)
+    rad = np.empty(ncell)
+    ang = np.empty(ncell)
+    mm = np.empty(ncell)
+    piece_cell = np.empty(ncell + nr, dtype=np.int64)
+    piece_mass = np.empty(ncell + nr)
+    piece_ring = np.empty(ncell + nr, dtype=np.int64)
+    for m in range(n):
+        na = 0
+        for a in range(g):
+            for b in range(g):
+                v = mass[m, a, b]
+                if v > 0:
+                    x, y = centres[b], centres[a]
+                    dx, dy = x - mean[m, 0], y - mean[m, 1]
+                    zx = white[m, 0, 0] * dx + white[m, 0, 1] * dy
+                    zy = white[m, 1, 0] * dx + white[m, 1, 1] * dy
+                    px[na], py[na], mm[na] = x, y, v
+                    rad[na] = zx * zx + zy * zy
+                    ang[na] = np.arctan2(zy, zx)
+                    na += 1
+        order = np.argsort(rad[:na], kind="mergesort")
+        # rings: walk the cells outwards, cutting at cumulative masses sum(counts[:i+1]) / K
+        np_ = 0
+        ring = 0
+        cum_count = counts[0]
+        target = cum_count / k
+        acc = 0.0
+        for t in range(na):
+            c = order[t]
+            left = mm[c]
+            while left > 0:
+                room = target - acc if ring < nr - 1 else left
+                take = min(left, room)
+                if take > 0:
+                    piece_cell[np_], piece_mass[np_], piece_ring[np_] = c, take, ring
+                    np_ += 1
+                    acc += take
+                    left -= take
+                if left > 0 and ring < nr - 1:
+                    ring += 1
+                    cum_count += counts[ring]
+                    target = cum_count / k
+        # sectors: within each ring (its pieces are contiguous: the walk went outwards), by
+        # angle from the ring's offset
+        first = 0
+        q0 = 0
+        for r in range(nr):
+            q1 = q0
+            while q1 < np_ and piece_ring[q1] == r:
+                q1 += 1
+            ns = q1 - q0
+            tot = 0.0
+            ks = np.empty(ns)
+            for t in range(ns):
+                q = q0 + t
+                a2 = ang[piece_cell[q]] - offsets[r]
+                ks[t] = a2 - 2 * np.pi * np.floor(a2 / (2 * np.pi))
+                tot += piece_mass[q]
+            cnt = counts[r]
+            for j in range(cnt):
+                out_w[m, first + j] = 0.0
+                out_xy[m, first + j, 0] = mean[m, 0]
+                out_xy[m, first + j, 1] = mean[m, 1]
+            if ns == 0:
+                first += cnt
+                q0 = q1
+                continue
+            so = np.argsort(ks, kind="mergesort")
+            sec = 0
+            sec_target = tot / cnt
+            acc = 0.0
+            sx = 0.0
+            sy = 0.0
+            for t in range(ns):
+                q = q0 + so[t]
+                c = piece_cell[q]
+                left = piece_mass[q]
+                while left > 0:
+                    room = sec_target - acc if sec < cnt - 1 else left
+                    take = min(left, room)
+                    if take > 0:
+                        acc += take
+                        sx += take * px[c]
+                        sy += take * py[c]
+                        out_w[m, first + sec] += take
+                        left -= take
+                    if left > 0 and sec < cnt - 1:
+                        w = out_w[m, first + sec]
+                        if w > 0:
+                            out_xy[m, first + sec, 0] = sx / w
+                            out_xy[m, first + sec, 1] = sy / w
+                        sec += 1
+                        sec_target = tot * (sec + 1) / cnt
+                        sx = 0.0
+                        sy = 0.0
+            w = out_w[m, first + sec]
+            if w > 0:
+                out_xy[m, first + sec, 0] = sx / w
+                out_xy[m, first + sec, 1] = sy / w
+            first += cnt
+            q0 = q1
+
+
+@numba.njit(cache=True, nogil=True)
+def lloyd_kernel(mass, centres, x, w, iterations):
+    """Weighted Lloyd (k-means) iterations from the samples x (n, K, 2) mm over the cells of
+    grid masses (n, G, G) (normalised, >= 0; cell centres ``centres`` (G,) mm): each cell
+    goes to its nearest sample, each sample moves to its cells' centroid (one without cells
+    stays, weight 0); stops early when no cell changes sample. Writes x and the samples'
+    masses w (n, K). Sample j stays sample j (its stratum moves, it is not renumbered)."""
+    n, g = mass.shape[0], mass.shape[1]
+    k = x.shape[1]
+    ncell = g * g
+    cx = np.empty(ncell)
+    cy = np.empty(ncell)
+    cm = np.empty(ncell)
+    lab = np.empty(ncell, dtype=np.int64)
+    sx = np.empty(k)
+    sy = np.empty(k)
+    sw = np.empty(k)
+    for m in range(n):
+        na = 0
+        for a in range(g):
+            for b in range(g):
+                v = mass[m, a, b]
+                if v > 0:
+                    cx[na], cy[na], cm[na] = centres[b], centres[a], v
+                    lab[na] = -1
+                    na += 1
+        for it in range(iterations):
+            changed = False
+            for j in range(k):
+                sx[j] = 0.0
+                sy[j] = 0.0
+                sw[j] = 0.0
+            for c in range(na):
+                best = 0
+                bd = np.inf
+                for j in range(k):
+                    dx = cx[c] - x[m, j, 0]
+                    dy = cy[c] - x[m, j, 1]
+                    d = dx * dx + dy * dy
+                    if d < bd:
+                        bd = d
+                        best = j
+                if best != lab[c]:
+                    changed = True
+                    lab[c] = best
+                sx[best] += cm[c] * cx[c]
+                sy[best] += cm[c] * cy[c]
+                sw[best] += cm[c]
+            for j in range(k):
+                w[m, j] = sw[j]
+                if sw[j] > 0:
+                    x[m, j, 0] = sx[j] / sw[j]
+                    x[m, j, 1] = sy[j] / sw[j]
+            if not changed:
+                break
