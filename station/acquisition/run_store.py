@@ -746,6 +746,27 @@ class RunStore:
                                 f"done (first: pattern {missing[0]}); finish it with --resume")
         return self._read_tile(depth, row0, col0, rows, cols, check_index)
 
+    @contextlib.contextmanager
+    def _open_shard(self, path: str | Path, depth: int, pattern: int,
+                    check_index: bool) -> Iterator[int]:
+        """A frame's shard file opened for reading (a file descriptor), refused if missing,
+        of the wrong size or (``check_index``) with a damaged index."""
+        c = self.codec
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except FileNotFoundError:
+            self._corrupt(depth, pattern, "is missing")
+        try:
+            size = os.fstat(fd).st_size
+            if size != c.size:
+                self._corrupt(depth, pattern, f"is truncated or resized ({size} bytes, "
+                                              f"expected {c.size})")
+            if check_index and os.pread(fd, len(c.index), c.size - len(c.index)) != c.index:
+                self._corrupt(depth, pattern, "has a damaged shard index")
+            yield fd
+        finally:
+            os.close(fd)
+
     def _read_tile(self, depth: int, row0: int, col0: int, rows: int, cols: int,
                    check_index: bool) -> Tile:
         c, t = self.codec, self.codec.t
@@ -760,17 +781,7 @@ class RunStore:
         band = np.empty(((cr1 - cr0) * t, k * t), c.dtype)
         for p in range(self.n_patterns):
             path = self._shard_path(depth, p)
-            try:
-                fd = os.open(path, os.O_RDONLY)
-            except FileNotFoundError:
-                self._corrupt(depth, p, "is missing")
-            try:
-                size = os.fstat(fd).st_size
-                if size != c.size:
-                    self._corrupt(depth, p, f"is truncated or resized ({size} bytes, expected "
-                                            f"{c.size})")
-                if check_index and os.pread(fd, len(c.index), c.size - len(c.index)) != c.index:
-                    self._corrupt(depth, p, "has a damaged shard index")
+            with self._open_shard(path, depth, p, check_index) as fd:
                 for cr in range(cr0, cr1):
                     raw = os.pread(fd, k * c.chunk_bytes, (cr * c.nc + cc0) * c.chunk_bytes)
                     if len(raw) != k * c.chunk_bytes:
@@ -782,8 +793,6 @@ class RunStore:
                                                 f"{(cc0 + bad) * t}..)")
                     band[(cr - cr0) * t : (cr - cr0 + 1) * t] = \
                         chunks.transpose(1, 0, 2).reshape(t, k * t)
-            finally:
-                os.close(fd)
             out[p] = band[row0 - cr0 * t : r1 - cr0 * t, col0 - cc0 * t : c1 - cc0 * t]
         return Tile(depth, row0, col0, out)
 
@@ -825,21 +834,9 @@ class RunStore:
         for p in range(n):
             parts = [x for i in range(k) for x in (dest[i, p], crcs[i])]
             path = f"{folder}/{p}/0/0"
-            try:
-                fd = os.open(path, os.O_RDONLY)
-            except FileNotFoundError:
-                self._corrupt(depth, p, "is missing")
-            try:
-                size = os.fstat(fd).st_size
-                if size != c.size:
-                    self._corrupt(depth, p, f"is truncated or resized ({size} bytes, expected "
-                                            f"{c.size})")
-                if check_index and os.pread(fd, len(c.index), c.size - len(c.index)) != c.index:
-                    self._corrupt(depth, p, "has a damaged shard index")
+            with self._open_shard(path, depth, p, check_index) as fd:
                 if os.preadv(fd, parts, offset) != nbytes:
                     self._corrupt(depth, p, "is truncated")
-            finally:
-                os.close(fd)
             for i in range(k):  # while the frame's chunks are in the CPU cache
                 if crc32c(check[i, p]) != stored[i]:
                     self._corrupt(depth, p, f"fails the crc32c of chunk {(cr, cc0 + i)} "

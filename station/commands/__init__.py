@@ -22,16 +22,6 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-# The options several commands share: name -> (flags, argparse keywords, default help).
-SHARED: dict[str, tuple[tuple[str, ...], dict[str, Any], str]] = {
-    "config": (("config",), {"type": Path}, "station config (TOML)"),
-    "out": (("--out",), {"type": Path, "required": True}, "output to create"),
-    "force": (("--force",), {"action": "store_true"}, "overwrite --out if it exists"),
-    "json": (("--json",), {"action": "store_true"}, "print one JSON object"),
-    "quiet": (("--quiet",), {"action": "store_true"}, "no progress bars"),
-}
-
-
 def add_command(sub: argparse._SubParsersAction, name: str, module: ModuleType) -> None:
     """Add the subcommand ``name`` declared by ``module`` (see the package docstring)."""
     summary, _, description = (module.__doc__ or name).strip().partition("\n\n")
@@ -69,3 +59,21 @@ def positive_float(text: str) -> float:
     if not value > 0 or value == float("inf"):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return value
+
+
+# The options several commands share: name -> (flags, argparse keywords, default help).
+SHARED: dict[str, tuple[tuple[str, ...], dict[str, Any], str]] = {
+    "config": (("config",), {"type": Path}, "station config (TOML)"),
+    "out": (("--out",), {"type": Path, "required": True}, "output to create"),
+    "force": (("--force",), {"action": "store_true"}, "overwrite --out if it exists"),
+    "json": (("--json",), {"action": "store_true"}, "print one JSON object"),
+    "quiet": (("--quiet",), {"action": "store_true"}, "no progress bars"),
+    # the compute engines (station.ltc.parallel)
+    "workers": (("--workers",), {"type": at_least(1), "default": None, "metavar": "N"},
+                "worker processes (default: every core; 1: in this process)"),
+    "dask": (("--dask",), {"action": "store_true"},
+             "compute on a local Dask cluster of --workers processes"),
+    "scheduler": (("--scheduler",), {"metavar": "ADDRESS"},
+                  "compute on an existing Dask cluster (e.g. tcp://host:8786); the stores "
+                  "must be on a path every worker can read"),
+}

@@ -17,7 +17,10 @@ from station.commands import at_least
 from station.errors import check_output
 
 
-OPTIONS = {"out": "lens model file to write (.npz)", "force": None, "json": None, "quiet": None}
+OPTIONS = {"out": "lens model file to write (.npz)", "force": None, "json": None, "quiet": None,
+           "workers": None, "dask": None,
+           "scheduler": "compute on an existing Dask cluster (e.g. tcp://host:8786); the LTC "
+                        "store must be on a path every worker can read"}
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
@@ -36,13 +39,6 @@ def arguments(p: argparse.ArgumentParser) -> None:
                    "auto (pinhole when K is known)")
     p.add_argument("--rig", type=Path, help="rig calibration (JSON/YAML) giving K")
     p.add_argument("--rig-camera", help="camera name in --rig (default: the first camera)")
-    p.add_argument("--workers", type=at_least(1), default=None, metavar="N",
-                   help="worker processes (default: every core; 1: in this process)")
-    p.add_argument("--dask", action="store_true",
-                   help="compute on a local Dask cluster of --workers processes")
-    p.add_argument("--scheduler", metavar="ADDRESS",
-                   help="compute on an existing Dask cluster (e.g. tcp://host:8786); the LTC "
-                   "store must be on a path every worker can read")
 
 
 def run(args: argparse.Namespace) -> dict:

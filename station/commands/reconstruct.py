@@ -16,20 +16,15 @@ from station.commands import at_least
 from station.errors import UsageError, check_output
 
 OPTIONS = {"out": "LTC store to create (LTC.zarr)", "force": "replace --out if it exists",
-           "json": None, "quiet": None}
+           "json": None, "quiet": None, "workers": None, "dask": None,
+           "scheduler": "compute on an existing Dask cluster (e.g. tcp://host:8786); the stores "
+                        "must be on a path every worker can read and write"}
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", type=Path, metavar="RUN.zarr", help="run store written by 'ltc acquire'")
     p.add_argument("--resume", action="store_true",
                    help="finish the --out store a killed reconstruction of this run left")
-    p.add_argument("--workers", type=at_least(1), default=None, metavar="N",
-                   help="worker processes (default: every core; 1: in this process)")
-    p.add_argument("--dask", action="store_true",
-                   help="compute on a local Dask cluster of --workers processes")
-    p.add_argument("--scheduler", metavar="ADDRESS",
-                   help="compute on an existing Dask cluster (e.g. tcp://host:8786); the stores "
-                   "must be on a path every worker can read and write")
     p.add_argument("--tile", type=at_least(1), default=None, metavar="N",
                    help="camera tile edge in pixels (default: the run store's chunk)")
 
