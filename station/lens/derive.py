@@ -12,10 +12,10 @@ as good as its centroids extrapolated ~4x from the LCD depths to the centre (~15
 the experiment's benches), and the fused distribution's own mean adds each depth's residual
 times ``|s_i|`` (~5 at the extreme depths): the samples' centroids were ~300-400 um RMS off
 the true lens's, ~30 um with both changes (``benchmarks/README.md``).
-``derive_lens`` runs the whole chain from an LTC volume. With a camera matrix it also fits the
-focus per pupil zone (spherical aberration) from the LTCs at the optical centre
-(``station.lens.zones``) and stores it as the lens file's ``focus_zones_mm``; the samples are
-placed with the single focus (a zone-dependent scale made no measurable difference).
+``derive_lens`` runs the whole chain from an LTC volume. With a camera matrix and
+``LensFitConfig.focus_zones`` it also fits the focus per pupil zone (spherical aberration)
+from the LTCs at the optical centre (``station.lens.zones``) and stores it as the lens
+file's ``focus_zones_mm``.
 
 Nodes: every ``grid_step``-th pixel in u and v, plus the last column and row. A node without
 a usable principal ray (flagged) or without a fused distribution takes the samples of the

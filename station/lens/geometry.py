@@ -71,9 +71,11 @@ class LensFitConfig(BaseModel):
                                "own ray)")
     deblur: bool = Field(True, description="remove the known LCD-pixel and camera-pixel box "
                          "variances from the samples' second moments")
-    focus_zones: bool = Field(True, description="fit a focus distance per pupil zone "
+    focus_zones: bool = Field(False, description="fit a focus distance per pupil zone "
                               "(spherical aberration) from the LTCs at the optical centre and "
-                              "store it as the lens file's focus_zones_mm (needs K)")
+                              "store it as the lens file's focus_zones_mm (needs K). Off: with "
+                              "the station's samples it does not improve the experiment's "
+                              "scanners yet (benchmarks/README.md)")
     pixel_samples: int = Field(0, ge=0, le=16, description="how a camera pixel integrates "
                                "its footprint on the LCD in the focus-zone fit: 0 a box (a "
                                "real camera), n an n x n grid of points (a simulated camera "

@@ -465,9 +465,10 @@ def test_focus_zones_recover_the_spherical_aberration(bench, clean):
     assert np.max(np.abs(table[:, 1] - truth)) < 1.5
     assert table[-1, 1] - table[0, 1] == pytest.approx(c.spherical_mm, abs=1.5)
     assert fit["cost"] < fit["cost_single_focus"]
-    zones = r.lens.focus_zones_mm
-    assert zones is not None and zones.shape == (9, 2)
-    b = r.lens.bundle(np.zeros((1, 2)), np.asarray(g.camera_matrix[:2, 2])[None])
+    assert r.lens.focus_zones_mm is None  # off by default
+    lens = dataclasses.replace(r.lens, focus_zones_mm=table)
+    zones = lens.focus_zones_mm
+    b = lens.bundle(np.zeros((1, 2)), np.asarray(g.camera_matrix[:2, 2])[None])
     rho = np.hypot(b.origins[0, :, 0], b.origins[0, :, 1])
     t = b.directions[0, :, 2]  # rays of the centre pixel cross the axis at their zone's focus
     z_cross = rho / np.hypot(b.directions[0, :, 0], b.directions[0, :, 1]) * t
