@@ -202,6 +202,7 @@ class Sequence:
         # written as the nodes are derived (temporary name, then renamed into place)
         result = derive_lens(self.out / "ltc.zarr", samples=s.lens_samples,
                              grid_step=s.lens_grid_step, figures=figures,
+                             pixel_samples=s.lens_pixel_samples,
                              progress=self.progress, out=self.out / "lens.npz")
         summary = result.summary()
         return {k: summary[k] for k in ("optical_centre_mm", "focus_distance_mm",

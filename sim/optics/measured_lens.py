@@ -1,10 +1,12 @@
 """The measured lens (OPTICS.md 6.5, ARCHITECTURE.md "Lens model"): per pixel, or per node of
 a grid of pixels, K aperture samples ``(x_k, y_k)`` mm on the plane of the optical centre with
-weights ``w_k`` (sum 1), and one focus distance ``z_f``.
+weights ``w_k`` (sum 1), one focus distance ``z_f`` and, optionally, a focus distance per
+pupil zone ``z(rho)`` (spherical aberration: ``focus_zones_mm``).
 
 ``MeasuredLens.bundle(xy_n, uv)`` casts ray k of a pixel from ``(x_k, y_k, 0)`` through the
-pixel's in-focus point ``(x_n z_f, y_n z_f, z_f)`` in the camera frame whose origin is the
-optical centre, with weight ``w_k * transmittance`` (relative transmittance: 1 for the
+pixel's in-focus point ``(x_n z_k, y_n z_k, z_k)`` in the camera frame whose origin is the
+optical centre (``z_k = z_f``, or with ``focus_zones_mm`` the zone's focus at the sample's
+pupil radius ``rho_k = |(x_k, y_k)|``, linear between rows, clamped at the ends), with weight ``w_k * transmittance`` (relative transmittance: 1 for the
 brightest pixels, lower where the lens vignettes). Samples between nodes: ``nearest`` node,
 or ``bilinear`` (sample k of the four surrounding nodes blended; the derivation orders
 samples the same way at every node, so sample k means the same part of the aperture).
@@ -27,6 +29,9 @@ transmittance          (Gv, Gu)        relative transmittance, >= 0
 interpolation          () str          ``"nearest"`` or ``"bilinear"``
 camera_matrix          (3, 3) float    optional: K the model is consistent with
 dist_coeffs            (5,) float      optional: OpenCV distortion with that K
+focus_zones_mm         (Z, 2) float    optional: rows (pupil radius mm, focus distance mm
+                                       from the optical centre), radii strictly increasing
+                                       from >= 0, Z >= 2; absent: every ray aims at z_f
 metadata_json          () str          optional: how it was measured (free JSON)
 =====================  ==============  ===================================================
 """
@@ -52,7 +57,7 @@ INTERPOLATIONS = ("nearest", "bilinear")
 REQUIRED = ("format", "format_version", "focus_distance_mm", "optical_centre_mm", "camera_size",
             "node_u", "node_v", "aperture_x_mm", "aperture_y_mm", "weights", "transmittance",
             "interpolation")
-OPTIONAL = ("camera_matrix", "dist_coeffs", "metadata_json")
+OPTIONAL = ("camera_matrix", "dist_coeffs", "metadata_json", "focus_zones_mm")
 
 
 class LensFileError(ValueError):
@@ -82,10 +87,12 @@ class MeasuredLens:
     camera_matrix: np.ndarray | None = None
     dist_coeffs: np.ndarray | None = None
     metadata: dict = field(default_factory=dict)
+    focus_zones_mm: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name in ("optical_centre_mm", "node_u", "node_v", "aperture_x_mm", "aperture_y_mm",
-                     "weights", "transmittance", "camera_matrix", "dist_coeffs"):
+                     "weights", "transmittance", "camera_matrix", "dist_coeffs",
+                     "focus_zones_mm"):
             if getattr(self, name) is not None:  # own float64 copies
                 object.__setattr__(self, name, np.array(getattr(self, name), dtype=np.float64))
         object.__setattr__(self, "focus_distance_mm", float(self.focus_distance_mm))
@@ -150,6 +157,26 @@ class MeasuredLens:
                 raise LensFileError(f"field 'dist_coeffs' must have 5 values, got "
                                     f"{self.dist_coeffs.shape}")
             _finite("dist_coeffs", self.dist_coeffs)
+        zones = self.focus_zones_mm
+        if zones is not None:
+            if zones.ndim != 2 or zones.shape[1] != 2 or zones.shape[0] < 2:
+                raise LensFileError(f"field 'focus_zones_mm' must have shape (Z >= 2, 2), got "
+                                    f"{zones.shape}")
+            _finite("focus_zones_mm", zones)
+            if zones[0, 0] < 0 or np.any(np.diff(zones[:, 0]) <= 0):
+                raise LensFileError("field 'focus_zones_mm' must have pupil radii (column 0) "
+                                    f"increasing strictly from >= 0, got {zones[:4, 0].tolist()}")
+            if np.any(zones[:, 1] <= 0):
+                raise LensFileError("field 'focus_zones_mm' must have focus distances "
+                                    f"(column 1) > 0, got {zones[:4, 1].tolist()}")
+
+    def aim_depths(self, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray | float:
+        """Focus distance mm that samples at aperture points (x_mm, y_mm) aim at: their zone's
+        (``focus_zones_mm``, by pupil radius) or ``focus_distance_mm``."""
+        if self.focus_zones_mm is None:
+            return self.focus_distance_mm
+        return np.interp(np.hypot(x_mm, y_mm), self.focus_zones_mm[:, 0],
+                         self.focus_zones_mm[:, 1])
 
     def save(self, path: str | Path) -> Path:
         """Write this lens as a lens file (``save_lens``); returns the path written."""
@@ -200,9 +227,9 @@ class MeasuredLens:
             raise LensFileError(f"MeasuredLens.bundle: xy_n has {len(xy_n)} rows but uv has "
                                 f"{len(uv)}")
         x, y, w = self.samples_at(uv)
-        zf = self.focus_distance_mm
+        zf = np.broadcast_to(self.aim_depths(x, y), x.shape)
         aim = np.empty(x.shape + (3,))
-        aim[..., :2] = xy_n[:, None, :] * zf
+        aim[..., :2] = xy_n[:, None, :] * zf[..., None]
         aim[..., 2] = zf
         origins = np.zeros(x.shape + (3,))
         origins[..., 0] = x
@@ -303,6 +330,8 @@ def save_lens(path: str | Path, lens: MeasuredLens) -> Path:
         arrays["camera_matrix"] = lens.camera_matrix
     if lens.dist_coeffs is not None:
         arrays["dist_coeffs"] = lens.dist_coeffs
+    if lens.focus_zones_mm is not None:
+        arrays["focus_zones_mm"] = lens.focus_zones_mm
     with open(path, "wb") as f:
         np.savez_compressed(f, **arrays)
         f.flush()
@@ -382,7 +411,8 @@ class LensFileWriter:
     def close(self, *, focus_distance_mm: float, optical_centre_mm: np.ndarray,
               camera_size: tuple[int, int], transmittance: np.ndarray,
               interpolation: str = "bilinear", camera_matrix: np.ndarray | None = None,
-              dist_coeffs: np.ndarray | None = None, metadata: dict | None = None) -> Path:
+              dist_coeffs: np.ndarray | None = None, metadata: dict | None = None,
+              focus_zones_mm: np.ndarray | None = None) -> Path:
         """Validate the scalar fields, write the ``.npz`` and return its path."""
         gv, gu, _ = self.shape
         # the scalar fields, validated by a one-node stand-in (the per-node arrays were
@@ -390,7 +420,7 @@ class LensFileWriter:
         lens = MeasuredLens(focus_distance_mm, optical_centre_mm, camera_size, [0.0], [0.0],
                             np.zeros((1, 1, 1)), np.zeros((1, 1, 1)), np.ones((1, 1, 1)),
                             np.ones((1, 1)), interpolation, camera_matrix, dist_coeffs,
-                            metadata or {})
+                            metadata or {}, focus_zones_mm)
         w, h = lens.camera_size
         for name, a, size in (("node_u", self.node_u, w), ("node_v", self.node_v, h)):
             _finite(name, a)
@@ -421,6 +451,8 @@ class LensFileWriter:
             tail["camera_matrix"] = lens.camera_matrix
         if lens.dist_coeffs is not None:
             tail["dist_coeffs"] = lens.dist_coeffs
+        if lens.focus_zones_mm is not None:
+            tail["focus_zones_mm"] = lens.focus_zones_mm
         tmp = self.path.with_name(self.path.name + ".tmp")
         with open(tmp, "wb") as raw:
             with zipfile.ZipFile(raw, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
@@ -524,7 +556,8 @@ def load_lens(path: str | Path) -> MeasuredLens:
             except json.JSONDecodeError as exc:
                 raise LensFileError(f"field 'metadata_json' is not JSON ({exc})") from exc
         for name in ("node_u", "node_v", "aperture_x_mm", "aperture_y_mm", "weights",
-                     "transmittance", "optical_centre_mm", "camera_matrix", "dist_coeffs"):
+                     "transmittance", "optical_centre_mm", "camera_matrix", "dist_coeffs",
+                     "focus_zones_mm"):
             dtype = data[name].dtype if name in data else np.dtype(float)
             if not (np.issubdtype(dtype, np.floating) or np.issubdtype(dtype, np.integer)):
                 raise LensFileError(f"field '{name}' must be real numbers, got dtype {dtype}")
@@ -544,7 +577,7 @@ def load_lens(path: str | Path) -> MeasuredLens:
             weights=data["weights"], transmittance=data["transmittance"],
             interpolation=_scalar(data, "interpolation", str),
             camera_matrix=data.get("camera_matrix"), dist_coeffs=data.get("dist_coeffs"),
-            metadata=meta,
+            metadata=meta, focus_zones_mm=data.get("focus_zones_mm"),
         )
     except LensFileError as exc:
         raise LensFileError(f"{path}: {exc}") from exc

@@ -223,6 +223,10 @@ class SequenceConfig(_Strict):
                         "alignment report (align.json) before acquiring")
     lens_samples: int = Field(32, ge=1, description="aperture samples K per node pixel")
     lens_grid_step: int = Field(1, ge=1, description="lens node spacing, camera pixels")
+    lens_pixel_samples: int = Field(0, ge=0, le=16, description="how a camera pixel "
+                                    "integrates its LCD footprint in the lens fit: 0 a box "
+                                    "(a real camera), n an n x n point grid (a simulated "
+                                    "camera rendered with n x n subpixels)")
 
 
 class StationConfig(_Strict):

@@ -47,6 +47,7 @@ SPHERE_DIAMETER_MM = 50.8007
 BALLBAR_LENGTH_MM = 209.8219
 BALLBAR_BALL_MM = 38.1
 FOCAL_MM = 16.0  # the reference system's lens (OPTICS.md section 1)
+BENCH_SUBPIXELS = 2  # the fake benches sample each camera pixel on a 2 x 2 grid
 REFERENCE_PITCH_UM = 3.45  # the reference cameras' pixel pitch (sim.optics.rig)
 SHELL_MM = 2.0  # points this close to a true sphere go to its fit
 MODELS = ("real", "ltc", "gaussian", "pinhole")
@@ -208,7 +209,9 @@ def station_config(cfg: ExperimentConfig, rig, index: int):
         # the check code proves the frame order on real hardware; here it would only mask pixels
         "frame_check": {"enabled": False},
         "sequence": {"align": False, "lens_samples": cfg.lens_samples,
-                     "lens_grid_step": cfg.lens_grid_step},
+                     "lens_grid_step": cfg.lens_grid_step,
+                     # the bench renders each camera pixel as BENCH_SUBPIXELS^2 points
+                     "lens_pixel_samples": BENCH_SUBPIXELS},
         "fake": {
             "seed": cfg.seed + index, "stage_maxspeed_mm_s": 1000.0,
             "stage_accel_mm_s2": 10000.0,
@@ -221,7 +224,7 @@ def station_config(cfg: ExperimentConfig, rig, index: int):
                 "vignetting_radius_ratio": lens.vignetting_radius_ratio,
                 "spherical_mm": lens.spherical_mm, "coma_mm": 0.0,
                 "lcd_distance_at_zero_mm": cfg.lcd_distance_at_zero_mm,
-                "tilt_deg": [0.0, 0.0], "subpixels": 2,
+                "tilt_deg": [0.0, 0.0], "subpixels": BENCH_SUBPIXELS,
                 # the real scanner's lens, sampled as the real scanner samples it: the LTC the
                 # station measures is then the lens's own, not a 200-sample hard-edged
                 # rendering of it (whose principal rays sit ~70 um RMS off the converged

@@ -12,7 +12,10 @@ as good as its centroids extrapolated ~4x from the LCD depths to the centre (~15
 the experiment's benches), and the fused distribution's own mean adds each depth's residual
 times ``|s_i|`` (~5 at the extreme depths): the samples' centroids were ~300-400 um RMS off
 the true lens's, ~30 um with both changes (``benchmarks/README.md``).
-``derive_lens`` runs the whole chain from an LTC volume.
+``derive_lens`` runs the whole chain from an LTC volume. With a camera matrix and
+``LensFitConfig.focus_zones`` it also fits the focus per pupil zone (spherical aberration)
+from the LTCs at the optical centre (``station.lens.zones``) and stores it as the lens
+file's ``focus_zones_mm``.
 
 Nodes: every ``grid_step``-th pixel in u and v, plus the last column and row. A node without
 a usable principal ray (flagged) or without a fused distribution takes the samples of the
@@ -41,6 +44,7 @@ from station.lens.geometry import (
     footprint_mm,
 )
 from station.lens.rays import FLAG_BAD_FIT, FLAG_FEW_DEPTHS, FLAG_OUTLIER
+from station.lens.zones import fit_focus_zones
 
 GRID_MARGIN = 1.2  # aperture grid half-width over the largest pupil extent seen
 EXTENT_PERCENTILE = 99.5
@@ -129,7 +133,8 @@ def aperture_job(geom: LensGeometry, grid: ap.ApertureGrid, cfg: LensFitConfig,
     u, _, vt = np.linalg.svd(geom.rotation[:2, :2])
     return ApertureJob(grid, cfg, c.depths_mm.copy(), float(c.pitch_mm),
                        ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, zc),
-                       footprint_mm(c.depths_mm, zc, geom.camera_matrix), u @ vt, **flags)
+                       footprint_mm(c.depths_mm, zc, geom.camera_matrix, cfg.pixel_samples), u @ vt,
+                       **flags)
 
 
 def pixel_inputs(geom: LensGeometry, pix: np.ndarray,
@@ -437,6 +442,7 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
     writer = LensFileWriter(out, nu, nv, k) if out is not None else None
     try:
         good = np.zeros(shape, dtype=bool)
+        cov = np.zeros(shape + (2, 2))  # the nodes' target covariances: the zone fit's start
         if writer is None:
             x = np.zeros(shape + (k, 2))
             wk = np.zeros(shape + (k,))
@@ -466,6 +472,7 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
             sub = (len(jv), len(iu))
             g = (res["ok"] & res["w"].any(axis=1)).reshape(sub)
             good[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = g
+            cov[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = res["cov"].reshape(sub + (2, 2))
             xs, ws = res["x"].reshape(sub + (k, 2)), res["w"].reshape(sub + (k,))
             if writer is None:
                 x[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = xs
@@ -496,13 +503,23 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
                 writer.copy_nodes(fill, flat[fill])
             del flat
         trans = _transmittance(volume, geom.centroids.valid, nu, nv)
+        zones, zone_fit = None, None
+        if cfg.focus_zones and geom.camera_matrix is not None:
+            pix = (nv[:, None] * w + nu[None, :]).ravel()
+            found = fit_focus_zones(volume, float(geom.centre.position[2]), geom.camera_matrix,
+                                    geom.focus_distance_mm,
+                                    _centre_radius_mm(cov.reshape(-1, 2, 2), good.ravel(), pix,
+                                                      geom),
+                                    pixel_samples=cfg.pixel_samples)
+            if found is not None:
+                zones, zone_fit = found
         meta = {"source": volume.name, "config": cfg.model_dump(mode="json"),
-                "summary_at_fit": None}
+                "summary_at_fit": None, "focus_zone_fit": zone_fit}
         fields_ = dict(focus_distance_mm=geom.focus_distance_mm,
                        optical_centre_mm=geom.centre.position, camera_size=volume.camera_size,
                        transmittance=trans, interpolation=cfg.interpolation,
                        camera_matrix=geom.camera_matrix, dist_coeffs=geom.dist_coeffs,
-                       metadata=meta)
+                       metadata=meta, focus_zones_mm=zones)
         if writer is None:
             lens = MeasuredLens(node_u=nu.astype(np.float64), node_v=nv.astype(np.float64),
                                 aperture_x_mm=x[..., 0], aperture_y_mm=x[..., 1], weights=wk,
@@ -524,6 +541,17 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
     finally:
         if writer is not None:
             writer.abort()
+
+
+def _centre_radius_mm(cov: np.ndarray, good: np.ndarray, pix: np.ndarray,
+                      geom: LensGeometry) -> float:
+    """A start for the pupil radius, mm: the uniform disk's ``sqrt(2 trace(cov))`` of the
+    samples' target covariance (n, 2, 2) at the good node nearest the principal point."""
+    w = geom.camera_size[0]
+    uv = np.stack([pix % w, pix // w], axis=1).astype(np.float64)
+    c = geom.camera_matrix[:2, 2] if geom.camera_matrix is not None else uv.mean(axis=0)
+    j = int(np.argmin(np.where(good, np.hypot(*(uv - c).T), np.inf)))
+    return float(np.sqrt(2.0 * np.trace(cov[j])))
 
 
 def _transmittance(volume: LtcVolume, valid: np.ndarray, nu: np.ndarray,

@@ -71,6 +71,15 @@ class LensFitConfig(BaseModel):
                                "own ray)")
     deblur: bool = Field(True, description="remove the known LCD-pixel and camera-pixel box "
                          "variances from the samples' second moments")
+    focus_zones: bool = Field(False, description="fit a focus distance per pupil zone "
+                              "(spherical aberration) from the LTCs at the optical centre and "
+                              "store it as the lens file's focus_zones_mm (needs K). Off: with "
+                              "the station's samples it does not improve the experiment's "
+                              "scanners yet (benchmarks/README.md)")
+    pixel_samples: int = Field(0, ge=0, le=16, description="how a camera pixel integrates "
+                               "its footprint on the LCD in the focus-zone fit: 0 a box (a "
+                               "real camera), n an n x n grid of points (a simulated camera "
+                               "rendered with n x n subpixels)")
     nodes_per_chunk: int = Field(256, ge=1, description="node pixels processed together")
 
 
@@ -85,23 +94,28 @@ class FocusFit:
     spread_mm: float
 
 
-def footprint_mm(depths_mm: np.ndarray, centre_z_mm: float, K: np.ndarray | None) -> np.ndarray:
-    """Camera-pixel footprint on the LCD (D,) mm: distance / focal length in pixels (0 if no K)."""
+def footprint_mm(depths_mm: np.ndarray, centre_z_mm: float, K: np.ndarray | None,
+                 pixel_samples: int = 0) -> np.ndarray:
+    """Camera-pixel footprint on the LCD (D,) mm: distance / focal length in pixels (0 if no
+    K), as the width of the box with the pixel's blur variance: the footprint itself for a
+    box pixel (``pixel_samples = 0``), ``sqrt(1 - 1/n^2)`` of it for a pixel sampled as an
+    n x n point grid (``LensFitConfig.pixel_samples``)."""
     if K is None:
         return np.zeros(len(depths_mm))
     f = np.sqrt(K[0, 0] * K[1, 1])
-    return np.abs(np.asarray(depths_mm) - centre_z_mm) / f
+    shrink = 1.0 if pixel_samples == 0 else np.sqrt(1.0 - 1.0 / pixel_samples**2)
+    return shrink * np.abs(np.asarray(depths_mm) - centre_z_mm) / f
 
 
 def fit_focus_plane(c: Centroids, usable: np.ndarray, centre_z_mm: float,
-                    K: np.ndarray | None) -> FocusFit | None:
+                    K: np.ndarray | None, pixel_samples: int = 0) -> FocusFit | None:
     """Per-pixel quadratic fit of the de-blurred LTC second moment over depth; None if fewer
     than 3 depths or no pixel gives a minimum."""
     d = len(c.depths_mm)
     if d < 3:
         return None
     p2 = c.pitch_mm**2
-    fp = footprint_mm(c.depths_mm, centre_z_mm, K)
+    fp = footprint_mm(c.depths_mm, centre_z_mm, K, pixel_samples)
     tr = (c.moments_px2[..., 0] + c.moments_px2[..., 1]).reshape(d, -1) * p2
     tr = tr - 2 * LCD_BIN_VAR * p2 - 2 * (fp**2 / 12.0)[:, None]
     var = (c.trace_std_px2.reshape(d, -1) * p2) ** 2 + (TRACE_REL_FLOOR * tr) ** 2 + 1e-12
@@ -207,7 +221,7 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
     except RayFitError as exc:
         raise LensFitError(f"{volume.name}: {exc}") from exc
     z_c = float(centre_rays.position[2])
-    fit = fit_focus_plane(c, usable, z_c, K)
+    fit = fit_focus_plane(c, usable, z_c, K, cfg.pixel_samples)
     zf_cfg = cfg.focus_distance_mm
     plane, plane_var = _focus_plane(fit, zf_cfg, z_c, volume.name)
     centre, rot, pin = centre_rays, np.eye(3), None
@@ -220,7 +234,8 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
             for _ in range(30):  # fixed point: footprint and z_f depend on the centre
                 pin, rot = pinhole_centre(rays, usable, uv, K, dist, plane, plane_var,
                                           centre_rays)
-                fit = fit_focus_plane(c, usable, float(pin.position[2]), K)
+                fit = fit_focus_plane(c, usable, float(pin.position[2]), K,
+                                      cfg.pixel_samples)
                 new_plane, plane_var = _focus_plane(fit, zf_cfg, float(pin.position[2]),
                                                     volume.name)
                 moved = abs(new_plane - plane)

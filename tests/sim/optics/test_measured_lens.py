@@ -186,6 +186,13 @@ def _neg(a):
         ({"camera_matrix": np.full((3, 3), np.nan)}, "field 'camera_matrix' has 9 NaN"),
         ({"dist_coeffs": np.zeros(4)}, "field 'dist_coeffs' must have 5 values"),
         ({"dist_coeffs": np.full(5, np.inf)}, "field 'dist_coeffs' has 5 NaN or infinite"),
+        ({"focus_zones_mm": np.zeros(3)}, r"field 'focus_zones_mm' must have shape \(Z >= 2, 2\)"),
+        ({"focus_zones_mm": np.array([[0.0, 250.0], [0.0, 251.0]])},
+         "field 'focus_zones_mm' must have pupil radii"),
+        ({"focus_zones_mm": np.array([[0.0, 250.0], [2.0, -1.0]])},
+         "field 'focus_zones_mm' must have focus distances"),
+        ({"focus_zones_mm": np.array([[0.0, np.nan], [2.0, 1.0]])},
+         "field 'focus_zones_mm' has 1 NaN"),
     ],
 )
 def test_value_errors_name_file_and_field(tmp_path, over, message):
@@ -230,3 +237,24 @@ def test_gaussian_baseline_takes_the_second_moment_at_the_optical_centre():
     b = g.bundle(np.zeros((1, 2)))
     w, xy = b.weights[0], b.origins[0, :, :2]
     assert np.mean(w @ xy**2) == pytest.approx(a * a / 2, rel=1e-9)  # per-axis variance
+
+
+def test_focus_zones_aim_each_sample_at_its_zone_and_round_trip(tmp_path):
+    """With ``focus_zones_mm`` ray k crosses the pixel's line of sight at the focus of its
+    pupil radius (linear between rows, clamped beyond them); the table round-trips, and a
+    file without it aims every ray at ``focus_distance_mm``."""
+    zones = np.array([[0.0, 240.0], [2.0, 250.0], [4.0, 270.0]])
+    lens = make_lens(focus_zones_mm=zones)
+    back = load_lens(save_lens(tmp_path / "lens.npz", lens))
+    np.testing.assert_array_equal(back.focus_zones_mm, zones)
+    assert load_lens(save_lens(tmp_path / "plain.npz", make_lens())).focus_zones_mm is None
+    uv = np.array([[4.0, 8.0], [12.0, 0.0]])
+    xy_n = pixel_to_normalized(uv, K)
+    b = back.bundle(xy_n, uv)
+    rho = np.hypot(b.origins[..., 0], b.origins[..., 1])
+    z_k = np.interp(rho, zones[:, 0], zones[:, 1])
+    assert rho.max() > 4.0 and rho.min() < 2.0  # samples in both rows' spans and beyond
+    for i in range(2):
+        for k in range(5):
+            p = hit_plane(b.origins[i, k], b.directions[i, k], z_k[i, k])
+            np.testing.assert_allclose(p, xy_n[i] * z_k[i, k], atol=1e-9)

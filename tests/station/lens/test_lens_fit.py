@@ -444,3 +444,32 @@ def test_local_plane_fit_passes_a_linear_field_and_averages_the_noise():
     assert np.std((out - field)[inner]) < 0.15
     assert np.std(out - field) < 0.25
     np.testing.assert_array_equal(local_plane_fit(values, var, ok, (w, h), pixels, 0), values)
+
+
+def test_focus_zones_recover_the_spherical_aberration(bench, clean):
+    """The focus per pupil zone, fitted to the LTCs at the optical centre with the bench's
+    2 x 2 pixel sampling, follows the true ``z_f + spherical (rho / rho_max)^2`` (250 ->
+    256 mm) and finds the pupil radius; the lens file carries the table and its rays aim at
+    their zone's focus."""
+    from station.lens.zones import fit_focus_zones
+
+    vol, r = clean
+    c, g = bench.config, r.geometry
+    rim = bench.lens.pupil_radius_mm
+    table, fit = fit_focus_zones(vol, float(g.centre.position[2]), g.camera_matrix,
+                                 g.focus_distance_mm, 0.9 * rim, pixel_samples=2)
+    truth = c.focus_distance_mm + c.spherical_mm * (table[:, 0] / rim) ** 2
+    print(f"\nfocus zones: rho {np.round(table[:, 0], 2)} mm\n fitted {np.round(table[:, 1], 2)}"
+          f"\n true   {np.round(truth, 2)}; radius {fit['radius_mm']:.3f} (true {rim}) mm")
+    assert abs(fit["radius_mm"] - rim) < 0.05 * rim
+    assert np.max(np.abs(table[:, 1] - truth)) < 1.5
+    assert table[-1, 1] - table[0, 1] == pytest.approx(c.spherical_mm, abs=1.5)
+    assert fit["cost"] < fit["cost_single_focus"]
+    assert r.lens.focus_zones_mm is None  # off by default
+    lens = dataclasses.replace(r.lens, focus_zones_mm=table)
+    zones = lens.focus_zones_mm
+    b = lens.bundle(np.zeros((1, 2)), np.asarray(g.camera_matrix[:2, 2])[None])
+    rho = np.hypot(b.origins[0, :, 0], b.origins[0, :, 1])
+    t = b.directions[0, :, 2]  # rays of the centre pixel cross the axis at their zone's focus
+    z_cross = rho / np.hypot(b.directions[0, :, 0], b.directions[0, :, 1]) * t
+    np.testing.assert_allclose(z_cross, np.interp(rho, zones[:, 0], zones[:, 1]), rtol=1e-9)
