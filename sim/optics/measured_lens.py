@@ -308,30 +308,32 @@ def _bracket(nodes: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return i, (xc - nodes[i]) / (nodes[i + 1] - nodes[i])
 
 
+def _header(lens: MeasuredLens, node_u: np.ndarray, node_v: np.ndarray) -> dict:
+    """The lens file's members before the per-sample arrays (format, scalars, nodes)."""
+    return {"format": np.array(FORMAT),
+            "format_version": np.array(FORMAT_VERSION, dtype=np.int64),
+            "focus_distance_mm": np.array(lens.focus_distance_mm),
+            "optical_centre_mm": lens.optical_centre_mm,
+            "camera_size": np.array(lens.camera_size, dtype=np.int64),
+            "node_u": node_u, "node_v": node_v}
+
+
+def _trailer(lens: MeasuredLens, transmittance: np.ndarray) -> dict:
+    """The lens file's members after the per-sample arrays (the optional ones if set)."""
+    out = {"transmittance": transmittance, "interpolation": np.array(lens.interpolation),
+           "metadata_json": np.array(json.dumps(lens.metadata))}
+    for name in ("camera_matrix", "dist_coeffs", "focus_zones_mm"):
+        if getattr(lens, name) is not None:
+            out[name] = getattr(lens, name)
+    return out
+
+
 def save_lens(path: str | Path, lens: MeasuredLens) -> Path:
     """Write a measured lens as one ``.npz`` (no pickle); returns the path written."""
     path = Path(path)
-    arrays = {
-        "format": np.array(FORMAT),
-        "format_version": np.array(FORMAT_VERSION, dtype=np.int64),
-        "focus_distance_mm": np.array(lens.focus_distance_mm),
-        "optical_centre_mm": lens.optical_centre_mm,
-        "camera_size": np.array(lens.camera_size, dtype=np.int64),
-        "node_u": lens.node_u,
-        "node_v": lens.node_v,
-        "aperture_x_mm": lens.aperture_x_mm,
-        "aperture_y_mm": lens.aperture_y_mm,
-        "weights": lens.weights,
-        "transmittance": lens.transmittance,
-        "interpolation": np.array(lens.interpolation),
-        "metadata_json": np.array(json.dumps(lens.metadata)),
-    }
-    if lens.camera_matrix is not None:
-        arrays["camera_matrix"] = lens.camera_matrix
-    if lens.dist_coeffs is not None:
-        arrays["dist_coeffs"] = lens.dist_coeffs
-    if lens.focus_zones_mm is not None:
-        arrays["focus_zones_mm"] = lens.focus_zones_mm
+    arrays = {**_header(lens, lens.node_u, lens.node_v),
+              "aperture_x_mm": lens.aperture_x_mm, "aperture_y_mm": lens.aperture_y_mm,
+              "weights": lens.weights, **_trailer(lens, lens.transmittance)}
     with open(path, "wb") as f:
         np.savez_compressed(f, **arrays)
         f.flush()
@@ -435,24 +437,8 @@ class LensFileWriter:
         _finite("transmittance", transmittance)
         if np.any(transmittance < 0):
             raise LensFileError(f"{self.path}: field 'transmittance' has negative values")
-        small = {
-            "format": np.array(FORMAT),
-            "format_version": np.array(FORMAT_VERSION, dtype=np.int64),
-            "focus_distance_mm": np.array(lens.focus_distance_mm),
-            "optical_centre_mm": lens.optical_centre_mm,
-            "camera_size": np.array(lens.camera_size, dtype=np.int64),
-            "node_u": self.node_u,
-            "node_v": self.node_v,
-        }
-        tail = {"transmittance": transmittance,
-                "interpolation": np.array(lens.interpolation),
-                "metadata_json": np.array(json.dumps(lens.metadata))}
-        if lens.camera_matrix is not None:
-            tail["camera_matrix"] = lens.camera_matrix
-        if lens.dist_coeffs is not None:
-            tail["dist_coeffs"] = lens.dist_coeffs
-        if lens.focus_zones_mm is not None:
-            tail["focus_zones_mm"] = lens.focus_zones_mm
+        small = _header(lens, self.node_u, self.node_v)
+        tail = _trailer(lens, transmittance)
         tmp = self.path.with_name(self.path.name + ".tmp")
         with open(tmp, "wb") as raw:
             with zipfile.ZipFile(raw, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
