@@ -22,20 +22,12 @@ from sim.render.scene import Scene, SphereObject
 D_SPHERE = 50.8007
 
 
-def _crop(cam, size):
-    uv = cam.project(np.zeros((1, 3)))[0]
-    k = cam.K_array.copy()
-    k[0, 2] -= np.round(uv[0] - (size[0] - 1) / 2)
-    k[1, 2] -= np.round(uv[1] - (size[1] - 1) / 2)
-    return cam.model_copy(update={"K": k.tolist(), "size": size})
-
-
 @pytest.fixture(scope="module")
-def scanner_data(tmp_path_factory):
+def scanner_data(tmp_path_factory, crop):
     """A rig written in stereoCalibrate naming (world = camera 0) and float renders of the
     sphere through it."""
     base = small_rig(0.3)
-    rig = Rig(cameras=[_crop(c, (120, 104)) for c in base.cameras], projector=base.projector)
+    rig = Rig(cameras=[crop(c, (120, 104)) for c in base.cameras], projector=base.projector)
     ps = PhaseShiftSet(periods_px=[576.0, 72.0, 9.0], steps=4)  # 1, 8, 64 fringes
     res = render_views(Scene(objects=[SphereObject()]).trace_geometry(), rig, [PinholeLens()] * 2,
                        ps.images(rig.projector.size),

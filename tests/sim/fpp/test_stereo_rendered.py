@@ -18,19 +18,10 @@ D_SPHERE = 50.8007
 PLANE_Z = 80.0
 
 
-def _crop(cam, size):
-    """A ``size`` window of the sensor around the world origin (the sphere's centre)."""
-    uv = cam.project(np.zeros((1, 3)))[0]
-    k = cam.K_array.copy()
-    k[0, 2] -= np.round(uv[0] - (size[0] - 1) / 2)
-    k[1, 2] -= np.round(uv[1] - (size[1] - 1) / 2)
-    return cam.model_copy(update={"K": k.tolist(), "size": size})
-
-
 @pytest.fixture(scope="module")
-def scene():
+def scene(crop):
     base = small_rig(0.3)  # sphere about 90 px across
-    rig = Rig(cameras=[_crop(c, (128, 112)) for c in base.cameras], projector=base.projector)
+    rig = Rig(cameras=[crop(c, (128, 112)) for c in base.cameras], projector=base.projector)
     w = rig.projector.size[0]
     ps = PhaseShiftSet(periods_px=[float(w), w / 8, w / 64], steps=4)
     geom = Scene(objects=[SphereObject(), PlaneObject(size_mm=(500.0, 400.0),
