@@ -16,7 +16,9 @@ a faithful virtual scanner.
    209.8219 mm ball bar at 2 + 2, and one CAD part (steps, holes, a freeform face).
 4. **Comparison**: each virtual cloud against the real one (mean and RMSE of the signed
    distances by pixel correspondence, unaligned and after ICP), the sphere diameter or ball-bar length against
-   nominal for every scanner, and every scanner's cloud of the CAD part against the CAD mesh.
+   nominal for every scanner (each on its own points: ``size_fit``), each virtual size
+   against the real one on the pixels both clouds share (``shared_size_mm``), and every
+   scanner's cloud of the CAD part against the CAD mesh.
 5. **Report**: ``report.md`` with PNG figures and ``results.json`` with every number.
 
 Everything is written under one folder ``out``: ``experiment.json`` (the config),
@@ -372,24 +374,80 @@ def scene_of(pos: Position, cfg: ExperimentConfig, cad_path: Path | None):
 
 # --- measuring and comparing ------------------------------------------------------------------
 
-def size_error_mm(points: np.ndarray, pos: Position, scene) -> dict:
-    """Sphere: fitted diameter minus nominal; ball bar: fitted centre distance minus nominal
-    (each ball fitted to the points within ``SHELL_MM`` of the true ball; the fit trims
-    3-sigma outliers). Returns ``size_mm`` and the fits' RMS, mm."""
+def _pixel_keys(cloud) -> np.ndarray:
+    """One integer per point naming its rig pixel (camera, v, u) (n,)."""
+    f = cloud.fields
+    return ((np.asarray(f["camera"], np.int64) * 1_000_000 + np.asarray(f["v"], np.int64))
+            * 1_000_000 + np.asarray(f["u"], np.int64))
+
+
+def _size_of(fits: list, pos: Position) -> float:
+    """Sphere: diameter minus nominal; ball bar: centre distance minus nominal, mm."""
+    if pos.kind == "sphere":
+        return float(fits[0].diameter - SPHERE_DIAMETER_MM)
+    return float(np.linalg.norm(fits[0].centre - fits[1].centre) - BALLBAR_LENGTH_MM)
+
+
+@dataclass(frozen=True)
+class SizeFit:
+    """One scanner's size at one position on its own points: per ball the sphere fit and the
+    pixel keys of the points it kept (its inliers); ``size_mm`` against nominal."""
+
+    fits: tuple
+    kept: tuple
+    size_mm: float
+
+
+def size_fit(cloud, pos: Position, scene) -> SizeFit:
+    """The size rule, the same for every scanner: each ball fitted (geometric least squares,
+    ``fit_sphere``: 3-sigma robust trimming) to the cloud's points within ``SHELL_MM`` of the
+    true ball; sphere: fitted diameter minus nominal; ball bar: fitted centre distance minus
+    nominal (mm)."""
     from sim.metrology.spheres import fit_sphere
 
-    fits = []
+    points = np.asarray(cloud.points, dtype=np.float64)
+    keys = _pixel_keys(cloud)
+    fits, kept = [], []
     for cx, cy, cz, r in scene.objects[0].spheres():
         near = np.abs(np.linalg.norm(points - [cx, cy, cz], axis=1) - r) < SHELL_MM
         if near.sum() < 20:
             raise StationError(f"position {pos.name}: only {int(near.sum())} points on a "
                                f"{2 * r:g} mm ball; move it into both cameras' view")
-        fits.append(fit_sphere(points[near]))
-    if pos.kind == "sphere":
-        size = fits[0].diameter - SPHERE_DIAMETER_MM
-    else:
-        size = float(np.linalg.norm(fits[0].centre - fits[1].centre)) - BALLBAR_LENGTH_MM
-    return {"size_mm": float(size), "fit_rms_mm": float(max(f.rms for f in fits))}
+        fit = fit_sphere(points[near])
+        fits.append(fit)
+        kept.append(keys[near][fit.inliers])
+    return SizeFit(tuple(fits), tuple(kept), _size_of(fits, pos))
+
+
+def size_error_mm(own: SizeFit) -> dict:
+    """``size_mm`` (own points against nominal) and the fits' largest RMS, mm."""
+    return {"size_mm": own.size_mm, "fit_rms_mm": float(max(f.rms for f in own.fits))}
+
+
+def shared_size_mm(cloud, own: SizeFit, real, real_own: SizeFit, pos: Position) -> dict:
+    """Sizes of a virtual cloud and the real one compared on the pixels both share: per ball
+    the pixels both scanners' own fits kept (``size_fit``), each cloud refitted there with no
+    further trimming (``fit_sphere(reject_sigma=None)``), so the two sizes differ only by the
+    per-point offsets, not by which points each scanner kept. Returns ``size_shared_mm`` and
+    ``size_shared_real_mm`` (against nominal) and ``size_shared_points``."""
+    from sim.metrology.spheres import fit_sphere
+
+    fits, real_fits, count = [], [], 0
+    pv, kv = np.asarray(cloud.points, np.float64), _pixel_keys(cloud)
+    pr, kr = np.asarray(real.points, np.float64), _pixel_keys(real)
+    for a, b in zip(own.kept, real_own.kept):
+        both = np.intersect1d(a, b)
+        if both.size < 20:
+            raise StationError(f"position {pos.name}: the virtual and real clouds share only "
+                               f"{both.size} pixels on a ball; move it into both cameras' view")
+        iv = np.flatnonzero(np.isin(kv, both))
+        ir = np.flatnonzero(np.isin(kr, both))
+        iv, ir = iv[np.argsort(kv[iv])], ir[np.argsort(kr[ir])]
+        fits.append(fit_sphere(pv[iv], reject_sigma=None))
+        real_fits.append(fit_sphere(pr[ir], reject_sigma=None))
+        count += both.size
+    return {"size_shared_mm": _size_of(fits, pos), "size_shared_real_mm": _size_of(real_fits, pos),
+            "size_shared_points": int(count)}
 
 
 def world_cad_mesh(mesh, pos: Position):
@@ -447,6 +505,7 @@ def compare_position(pos: Position, cfg: ExperimentConfig, scans: dict[str, Scan
            "centre_mm": list(pos.centre_mm), "models": {}}
     maps = {}
     world_mesh = world_cad_mesh(cad_mesh, pos) if pos.kind == "cad" else None
+    real_size = size_fit(real, pos, scene) if pos.kind != "cad" else None
     for name in MODELS:
         cloud = scans[name].cloud
         pts = cloud.points
@@ -456,7 +515,10 @@ def compare_position(pos: Position, cfg: ExperimentConfig, scans: dict[str, Scan
             m["cad"] = distance_stats(d)
             maps[f"cad_{name}"] = (pts, d)
         else:
-            m.update(size_error_mm(pts, pos, scene))
+            own = real_size if name == "real" else size_fit(cloud, pos, scene)
+            m.update(size_error_mm(own))
+            if name != "real":
+                m.update(shared_size_mm(cloud, own, real, real_size, pos))
         if name != "real":
             nn = compare_clouds(pts, real.points, align=False)
             tf = compare_clouds(pts, real.points, align=True).transform
@@ -563,31 +625,42 @@ def position_line(row: dict) -> str:
     parts = [f"{n} {m[n]['mean_mm'] * 1e3:+.1f}/{m[n]['rmse_mm'] * 1e3:.1f} um" for n in VIRTUAL]
     if "size_mm" in m["real"]:
         parts.append("size " + " ".join(f"{n} {m[n]['size_mm'] * 1e3:+.0f}" for n in MODELS)
+                     + " um, on shared pixels ltc - real " + f"{size_vs_real_um(m['ltc']):+.0f}"
                      + " um")
     return head + " " + ", ".join(parts)
+
+
+def size_vs_real_um(m: dict) -> float:
+    """A virtual scanner's size minus the real scanner's, compared on the pixels both clouds
+    share (``shared_size_mm``), um."""
+    return (m["size_shared_mm"] - m["size_shared_real_mm"]) * 1e3
 
 
 def acceptance(rows: list[dict], mean_um: float = 5.0, rmse_um: float = 10.0,
                size_um: float = 20.0) -> dict:
     """The issue's acceptance on the sphere and ball-bar positions: ltc against real (mean
-    within +-mean_um, RMSE <= rmse_um, size within size_um of real's at every position);
-    Gaussian worse than ltc at every large-defocus position in |mean| and size error; and
-    how similar the two are near focus."""
+    within +-mean_um, RMSE <= rmse_um, size within size_um of real's at every position,
+    sizes compared on the pixels both clouds share: ``size_vs_real_um``); Gaussian worse
+    than ltc at every large-defocus position in |mean| and size error; and how similar the
+    two are near focus. ``ltc_worst.size_own_um``: the same on each scanner's own points."""
     sel = [r for r in rows if r["kind"] in ("sphere", "ballbar")]
-    ltc_ok, gauss_worse, worst = [], [], {"mean_um": 0.0, "rmse_um": 0.0, "size_um": 0.0}
+    ltc_ok, gauss_worse = [], []
+    worst = {"mean_um": 0.0, "rmse_um": 0.0, "size_um": 0.0, "size_own_um": 0.0}
     for r in sel:
         m = r["models"]
         l, g, real = m["ltc"], m["gaussian"], m["real"]
-        dl = abs(l["size_mm"] - real["size_mm"]) * 1e3
+        dl = abs(size_vs_real_um(l))
         worst["mean_um"] = max(worst["mean_um"], abs(l["mean_mm"]) * 1e3)
         worst["rmse_um"] = max(worst["rmse_um"], l["rmse_mm"] * 1e3)
         worst["size_um"] = max(worst["size_um"], dl)
+        worst["size_own_um"] = max(worst["size_own_um"],
+                                   abs(l["size_mm"] - real["size_mm"]) * 1e3)
         ok = abs(l["mean_mm"]) * 1e3 <= mean_um and l["rmse_mm"] * 1e3 <= rmse_um \
             and dl <= size_um
         if not ok:
             ltc_ok.append(r["name"])
         if r["defocus"] == "large":
-            dg = abs(g["size_mm"] - real["size_mm"]) * 1e3
+            dg = abs(size_vs_real_um(g))
             if not (abs(g["mean_mm"]) > abs(l["mean_mm"]) and dg > dl):
                 gauss_worse.append(r["name"])
     slight = [r for r in sel if r["defocus"] == "slight"]

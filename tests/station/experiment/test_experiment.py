@@ -72,6 +72,14 @@ def test_the_report_holds_every_table_and_figure(reduced):
     assert set(s1["models"]["real"]) == {"size_um"}
     for cam in data["station"]:
         assert cam["optical_centre_error_mm"] < 1.0 and len(cam["figures"]) == 4
+    # sizes against real on the pixels both clouds share (both own fits' inliers)
+    for r in data["rows"]:
+        if r["kind"] != "cad":
+            for n in ("ltc", "gaussian", "pinhole"):
+                m = r["models"][n]
+                assert 20 <= m["size_shared_points"] <= min(m["points"], r["models"]["real"]["points"])
+    assert data["acceptance"]["ltc_worst"]["size_own_um"] >= 0
+    assert "shared" in text
 
 
 def test_the_cad_part_has_steps_holes_and_a_freeform_face():
