@@ -849,6 +849,34 @@ class RunStore:
             tiles.append(Tile(depth, row0, (cc0 + i) * t, f))
         return tiles
 
+    def prefetch_tile_row(self, depth: int, row0: int, col0: int, n_tiles: int) -> None:
+        """Ask the kernel to start reading, in the background, the bytes that
+        :meth:`read_tile_row` with the same arguments will read (``posix_fadvise``
+        ``WILLNEED`` on each frame's range; nothing where that is not available): the disk
+        then gets every frame's request at once instead of one after the other, and a caller
+        that prefetches the next row of tiles before computing this one reads it from the
+        page cache. A hint only: nothing is checked here (missing or short frames are
+        skipped; :meth:`read_tile_row` refuses them)."""
+        advise = getattr(os, "posix_fadvise", None)
+        c, t = self.codec, self.codec.t
+        if advise is None or row0 % t or col0 % t or not (0 <= row0 < c.h and 0 <= col0 < c.w):
+            return
+        cr, cc0 = row0 // t, col0 // t
+        k = min(n_tiles, c.nc - cc0)
+        offset, nbytes = (cr * c.nc + cc0) * c.chunk_bytes, k * c.chunk_bytes
+        folder = str(self._shard_path(depth, 0).parents[2])
+        for p in range(self.n_patterns):
+            try:
+                fd = os.open(f"{folder}/{p}/0/0", os.O_RDONLY)
+            except OSError:
+                continue
+            try:
+                advise(fd, offset, nbytes, os.POSIX_FADV_WILLNEED)
+            except OSError:
+                pass
+            finally:
+                os.close(fd)
+
     def iter_tiles(self, depth: int, tile_px: int | None = None,
                    block_bytes: int = 256 * 2**20) -> Iterator[Tile]:
         """All frames of ``depth`` over square tiles in row-major order (edge tiles smaller),

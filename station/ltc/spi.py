@@ -21,6 +21,7 @@ propagates to one normalised LTC weight as
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import datetime as _dt
 import threading
 import time
@@ -45,7 +46,7 @@ from station.ltc.store import (
     incomplete_depths,
     mark_depth_complete,
     open_ltc_store,
-    write_ltc_tile,
+    LtcTileWriter,
 )
 from station.acquisition.patterns import (
     FourierPatternSet,
@@ -642,7 +643,7 @@ def reconstruct_tile(
 
 BAND_BYTES = 64 * 2**20  # frames a worker reads at once (one band of tiles side by side)
 
-_OPEN_STORES: dict[str, object] = {}  # per worker process: LTC stores opened for writing
+_OPEN_STORES: dict[str, tuple[str, LtcTileWriter]] = {}  # per worker: path -> (token, writer)
 _RUN_STORES: dict[str, tuple[str, RunStore]] = {}  # per worker process: run path -> (token, store)
 _BUFFERS = threading.local()  # per worker thread: the band buffer, reused from band to band
 
@@ -662,9 +663,11 @@ def _band_job(run_path: str, token: str, depth: int, row0: int, col0: int, n_til
     if held is None or held[0] != token:
         held = _RUN_STORES[run_path] = (token, RunStore.open(run_path))
     store = held[1]
-    out = _OPEN_STORES.get(out_path)
-    if out is None:
-        out = _OPEN_STORES[out_path] = zarr.open_group(out_path, mode="r+")
+    opened = _OPEN_STORES.get(out_path)
+    if opened is None or opened[0] != token:
+        opened = _OPEN_STORES[out_path] = (token, LtcTileWriter(zarr.open_group(out_path,
+                                                                                mode="r+")))
+    out = opened[1]
     if tile_px == store.tile_px:
         shape = (n_tiles, store.n_patterns, tile_px, tile_px)
         buf = getattr(_BUFFERS, "frames", None)
@@ -679,17 +682,36 @@ def _band_job(run_path: str, token: str, depth: int, row0: int, col0: int, n_til
                  for c0 in range(col0, min(col0 + n_tiles * tile_px, w), tile_px)]
     p = plan.fourier.period
     stats = []
-    for i in todo:
-        tile = tiles[i]
-        _, th, tw = tile.frames.shape
-        c0 = tile.col0 - col0
-        blk, st = reconstruct_tile(tile.frames, plan, lut, min_snr,
-                                   code_mask[:th, c0 : c0 + tw])
-        write_ltc_tile(out, depth, tile.row0, tile.col0, ltc=blk.ltc.reshape(th, tw, p, p),
-                       origin=blk.origin.reshape(th, tw, 2), gain=blk.gain.reshape(th, tw),
-                       noise=blk.noise.reshape(th, tw), lcd_xy=blk.lcd_xy.reshape(th, tw, 2))
-        stats.append(st)
+    writing = None  # the previous tile's write, in the writer thread while this one computes
+    try:
+        for i in todo:
+            tile = tiles[i]
+            _, th, tw = tile.frames.shape
+            c0 = tile.col0 - col0
+            blk, st = reconstruct_tile(tile.frames, plan, lut, min_snr,
+                                       code_mask[:th, c0 : c0 + tw])
+            if writing is not None:
+                writing.result()  # at most one tile waits to be written: memory stays flat
+            writing = _writer().submit(
+                out.write, depth, tile.row0, tile.col0, ltc=blk.ltc.reshape(th, tw, p, p),
+                origin=blk.origin.reshape(th, tw, 2), gain=blk.gain.reshape(th, tw),
+                noise=blk.noise.reshape(th, tw), lcd_xy=blk.lcd_xy.reshape(th, tw, 2))
+            stats.append(st)
+    finally:
+        if writing is not None:  # every tile reported is written (an error is raised here)
+            writing.result()
     return stats
+
+
+def _writer() -> cf.ThreadPoolExecutor:
+    """This thread's tile writer: one thread, so a tile's LTC (9.4 MB at P = 24, written
+    into the page cache, or waiting while the kernel throttles dirty pages) is written
+    while the next tile is computed; :func:`_band_job` waits for every write before it
+    returns the tiles' statistics, so a tile is recorded done only once written."""
+    pool = getattr(_BUFFERS, "writer", None)
+    if pool is None:
+        pool = _BUFFERS.writer = cf.ThreadPoolExecutor(1, thread_name_prefix="ltc-writer")
+    return pool
 
 
 def reconstruct(
@@ -756,19 +778,22 @@ def reconstruct(
             code_mask = store.code_mask(di)
 
             def tasks(di=di, code_mask=code_mask):
-                for r0 in range(0, h, t):
+                bands = [(r0, b0, min(band, -(-(w - b0) // t)))
+                         for r0 in range(0, h, t) for b0 in range(0, w, band * t)
+                         if not done[di, r0 // t, b0 // t : b0 // t + band].all()]
+                for i, (r0, b0, n) in enumerate(bands):
+                    # the disk reads this band and the next while the workers compute
+                    # the ones before (for the stored tile size; a hint, nothing else)
+                    for r1, b1, n1 in bands[(i > 0) + i : i + 2] if t == store.tile_px else ():
+                        store.prefetch_tile_row(di, r1, b1, n1)
                     tr = r0 // t
-                    for b0 in range(0, w, band * t):
-                        n = min(band, -(-(w - b0) // t))
-                        todo = [i for i in range(n) if not done[di, tr, b0 // t + i]]
-                        if not todo:
-                            continue
-                        for i in todo:
-                            px_done[0] += min(t, h - r0) * min(t, w - b0 - i * t)
-                        cm = np.ascontiguousarray(code_mask[r0 : r0 + t, b0 : b0 + n * t])
-                        yield ((di, tr, [b0 // t + i for i in todo]), _band_job,
-                               (str(store.path), token, di, r0, b0, n, t, todo, plan, lut,
-                                float(min_snr), cm, str(out_path)))
+                    todo = [k for k in range(n) if not done[di, tr, b0 // t + k]]
+                    for k in todo:
+                        px_done[0] += min(t, h - r0) * min(t, w - b0 - k * t)
+                    cm = np.ascontiguousarray(code_mask[r0 : r0 + t, b0 : b0 + n * t])
+                    yield ((di, tr, [b0 // t + k for k in todo]), _band_job,
+                           (str(store.path), token, di, r0, b0, n, t, todo, plan, lut,
+                            float(min_snr), cm, str(out_path)))
 
             def finished(key, stats) -> None:
                 di_, tr, cols = key
