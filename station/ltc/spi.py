@@ -641,7 +641,9 @@ def reconstruct_tile(
     return blk, stats
 
 
-BAND_BYTES = 64 * 2**20  # frames a worker reads at once (one band of tiles side by side)
+BAND_BYTES = 128 * 2**20  # frames a worker reads at once (one band of tiles side by side):
+# 13 tiles at P = 24, 4-step, uint16; one open and one read per frame serve twice the pixels
+# of 64 MiB (6 tiles): read CPU 1.0-1.2 instead of 1.1-1.5 us per pixel (page cache)
 
 _OPEN_STORES: dict[str, tuple[str, LtcTileWriter]] = {}  # per worker: path -> (token, writer)
 _RUN_STORES: dict[str, tuple[str, RunStore]] = {}  # per worker process: run path -> (token, store)
