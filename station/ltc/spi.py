@@ -732,8 +732,11 @@ def reconstruct(
         LocalCluster of ``workers`` processes; ``scheduler`` an existing Dask cluster.
         Every engine gives bit-identical stores.
     Each worker reads its bands of tiles (``BAND_BYTES`` of frames, one open and read per
-    frame) straight from the run store, then computes and writes them: only tile positions
-    and statistics pass through this process, and the reads run on every worker at once.
+    frame) straight from the run store, then computes them, writing each tile in a writer
+    thread while it computes the next: only tile positions and statistics pass through this
+    process, and the reads run on every worker at once. This process asks the kernel to
+    read each band and the next ahead (``RunStore.prefetch_tile_row``), so the disk works
+    while the workers compute.
     Returns a JSON-able summary; per-depth statistics come from the store's per-tile
     records (``tile_stats``), so a resumed run reports what an uninterrupted one does.
     """
