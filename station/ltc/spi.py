@@ -460,45 +460,38 @@ def unfold(folded: np.ndarray, origin: np.ndarray) -> np.ndarray:
 @numba.njit(cache=True, nogil=True)
 def _window(folded, origin, gain, valid, ltc):  # pragma: no cover - compiled
     """:func:`unfold` divided by the gain (times its reciprocal) into ``ltc`` (n, P, P),
-    float64 or float32 (each value computed in float64, then rounded), NaN where not ``valid``; returns the windows'
-    outer-ring masses (n,) float64: folded (P, P, n) pixel-minor (as the batched inverse DFT
-    leaves it), origin (n, 2) int (x, y), gain (n,), valid (n,) bool. Eight pixels at a
-    time are first gathered pixel-major into a small buffer (each cache line of ``folded``
-    read once), then unfolded from it."""
+    float64 or float32 (each value computed in float64, then rounded), NaN where not
+    ``valid``; returns the windows' outer-ring masses (n,) float64: folded (P, P, n)
+    pixel-minor (as the batched inverse DFT leaves it), origin (n, 2) int (x, y), gain (n,),
+    valid (n,) bool. Pixel after pixel: the P^2 cache lines of ``folded`` a pixel reads hold
+    the next pixels' values too and stay in the L1 cache (36 kB at P = 24, double); each
+    window row is two contiguous runs (no modulo per weight); a multiply per weight, not a
+    divide (0.7 against 2.1 us per pixel)."""
     p, n = folded.shape[0], folded.shape[2]
     ring = np.empty(n)
-    buf = np.empty((8, p, p))
-    for jb in range(0, n, 8):
-        jn = min(8, n - jb)
-        for y in range(p):
-            for x in range(p):
-                for k in range(jn):
-                    buf[k, y, x] = folded[y, x, jb + k]
-        for k in range(jn):
-            j = jb + k
-            if not valid[j]:
-                ltc[j] = np.nan
-                ring[j] = np.nan
-                continue
-            ox, oy = origin[j, 0] % p, origin[j, 1] % p
-            inv = 1.0 / gain[j]  # a multiply per weight: 4x cheaper than a divide
-            for r in range(p):
-                yy = (oy + r) % p
-                for c in range(p - ox):
-                    ltc[j, r, c] = buf[k, yy, ox + c] * inv
-                for c in range(p - ox, p):
-                    ltc[j, r, c] = buf[k, yy, c - (p - ox)] * inv
-            # the outer ring, row by row (the order of a full r-major, c-minor pass)
-            edge = 0.0
-            for r in range(p):
-                yy = (oy + r) % p
-                if r == 0 or r == p - 1:
-                    for c in range(p):
-                        edge += buf[k, yy, (ox + c) % p] * inv
-                else:
-                    edge += buf[k, yy, ox] * inv
-                    edge += buf[k, yy, (ox + p - 1) % p] * inv
-            ring[j] = edge
+    for j in range(n):
+        if not valid[j]:
+            ltc[j] = np.nan
+            ring[j] = np.nan
+            continue
+        ox, oy = origin[j, 0] % p, origin[j, 1] % p
+        inv = 1.0 / gain[j]
+        for r in range(p):
+            yy = (oy + r) % p
+            for c in range(p - ox):
+                ltc[j, r, c] = folded[yy, ox + c, j] * inv
+            for c in range(p - ox, p):
+                ltc[j, r, c] = folded[yy, c - (p - ox), j] * inv
+        edge = 0.0  # the outer ring, in the order of a full r-major, c-minor pass
+        for r in range(p):
+            yy = (oy + r) % p
+            if r == 0 or r == p - 1:
+                for c in range(p):
+                    edge += folded[yy, (ox + c) % p, j] * inv
+            else:
+                edge += folded[yy, ox, j] * inv
+                edge += folded[yy, (ox + p - 1) % p, j] * inv
+        ring[j] = edge
     return ring
 
 
