@@ -500,9 +500,9 @@ def _block_scalars(planes, sigma_d, lcd_xy, p, amplitude, noise_factor, min_snr,
                    min_harmonic, gain, noise, centre, valid,
                    origin):  # pragma: no cover - compiled
     """Per pixel of planes (2 P^2, n), frame noise sigma_d (n,) and coarse centres lcd_xy
-    (n, 2): the gain ``G(0, 0)``, the LTC weight noise (:func:`ltc_noise`), the refined centre (:func:`_refine`), validity and
-    window origin (:func:`centred_origins`), each with the numpy functions' operations in
-    their order, into the given arrays."""
+    (n, 2): the gain ``G(0, 0)``, the LTC weight noise (:func:`ltc_noise`), the refined
+    centre (:func:`_refine`), validity and window origin (:func:`centred_origins`), each
+    with the numpy functions' operations in their order, into the given arrays."""
     pp = p * p
     n = planes.shape[1]
     snr_den = np.sqrt(2.0) * amplitude
