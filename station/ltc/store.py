@@ -206,16 +206,34 @@ def write_ltc_tile(
 
     arrays : by name (``ltc`` (th, tw, P, P), ``origin`` (th, tw, 2), ``gain`` and ``noise``
     (th, tw), ``lcd_xy`` (th, tw, 2)); each is cast to the stored dtype. A tile aligned with
-    the store's chunks rewrites whole chunks only.
+    the store's chunks rewrites whole chunks only. A writer of many tiles keeps one
+    :class:`LtcTileWriter` instead (it looks the arrays up once).
     """
-    for name, value in arrays.items():
-        if name not in ARRAYS + OPTIONAL_ARRAYS:
-            raise LtcStoreError(f"{group.store}: no LTC store array named {name!r}; "
-                                f"expected one of {ARRAYS + OPTIONAL_ARRAYS}")
-        arr = group[name]
-        v = np.asarray(value)
-        if not _write_raw_chunk(group, arr, depth, row0, col0, v):
-            arr[depth, row0 : row0 + v.shape[0], col0 : col0 + v.shape[1]] = v.astype(arr.dtype)
+    LtcTileWriter(group).write(depth, row0, col0, **arrays)
+
+
+class LtcTileWriter:
+    """Writes tiles into one LTC store (:func:`write_ltc_tile`), its arrays looked up once
+    (each zarr lookup reads metadata: ~0.35 ms of CPU, 0.4 us per pixel of a 64 x 64 tile
+    for the five arrays)."""
+
+    def __init__(self, group: zarr.Group) -> None:
+        self.group = group
+        self._arrays: dict[str, zarr.Array] = {}
+
+    def write(self, depth: int, row0: int, col0: int, **arrays: np.ndarray) -> None:
+        """See :func:`write_ltc_tile`."""
+        for name, value in arrays.items():
+            if name not in ARRAYS + OPTIONAL_ARRAYS:
+                raise LtcStoreError(f"{self.group.store}: no LTC store array named {name!r}; "
+                                    f"expected one of {ARRAYS + OPTIONAL_ARRAYS}")
+            arr = self._arrays.get(name)
+            if arr is None:
+                arr = self._arrays[name] = self.group[name]
+            v = np.asarray(value)
+            if not _write_raw_chunk(self.group, arr, depth, row0, col0, v):
+                arr[depth, row0 : row0 + v.shape[0], col0 : col0 + v.shape[1]] = \
+                    v.astype(arr.dtype)
 
 
 def _write_raw_chunk(group: zarr.Group, arr: zarr.Array, depth: int, row0: int, col0: int,

@@ -84,6 +84,20 @@ def _flip_data(path):
     path.write_bytes(bytes(raw))
 
 
+def test_prefetch_is_a_hint_only(run):
+    """Prefetching a row of tiles changes nothing read, and is silent about damage, which the
+    read then refuses."""
+    want = [t.frames.copy() for t in run.read_tile_row(0, 8, 0, 3)]
+    run.prefetch_tile_row(0, 8, 0, 3)
+    for got, w in zip(run.read_tile_row(0, 8, 0, 3), want):
+        np.testing.assert_array_equal(got.frames, w)
+    shard(run, 5).unlink()
+    run.prefetch_tile_row(0, 8, 0, 3)
+    with pytest.raises(FrameCorruptError, match=r"pattern 5\) is marked done but its data is "
+                                                r"missing"):
+        run.read_tile_row(0, 8, 0, 3)
+
+
 def _flip_index(path):
     raw = bytearray(path.read_bytes())
     raw[-10] ^= 0x01
