@@ -71,11 +71,11 @@ class LensFitConfig(BaseModel):
                                "own ray)")
     deblur: bool = Field(True, description="remove the known LCD-pixel and camera-pixel box "
                          "variances from the samples' second moments")
-    deconvolve_iterations: int = Field(0, ge=0, le=1000, description="Richardson-Lucy "
+    deconvolve_iterations: int = Field(20, ge=0, le=1000, description="Richardson-Lucy "
                                        "steps removing the known LCD-pixel and camera-pixel "
                                        "blur from the fused aperture distribution before the "
                                        "samples are drawn (aperture.deblur); 0: off")
-    support_floor: float = Field(0.0, ge=0, lt=1, description="before the samples are "
+    support_floor: float = Field(0.1, ge=0, lt=1, description="before the samples are "
                                  "drawn, the fused aperture distribution is cut to its main "
                                  "body: the connected cells above this fraction of its largest "
                                  "cell (aperture.support_floor); 0: only negative noise cut")
