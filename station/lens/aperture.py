@@ -25,6 +25,16 @@ non-negative weights summing to 1 (``fusion_weights``): with no noise the sharpe
 alone; with noise a blend. (By noise alone, depths near focus, whose LTC is a few large
 boxes with little noise, would win while being the blurriest.)
 
+Before the samples are drawn (``deblur``, ``LensFitConfig.support_floor`` and
+``deconvolve_iterations``), the fused distribution is cut to its main body (the connected
+cells above 10 % of its largest: the LTC's noise over the blur margin, clipped to
+non-negative, was a pedestal of far tails) and the known blur is removed by Richardson-Lucy
+deconvolution with the fusion weights' mixture of the depths' kernels (LCD pixel box
+``pitch |s_i|`` convolved with the camera pixel's footprint ``footprint |s_i|``). Moment
+matching alone shrinks the blurred shape and keeps its tails: on the experiment's benches the
+samples' ``E[rho^4]^(1/4)`` at the centre was 6.9 / 6.4 mm against the true 6.1 / 5.5 mm,
+after the cut and 20 steps 6.0 / 5.4 mm (``benchmarks/README.md``).
+
 K samples (``ring_samples``): equal-mass polar strata about the mean in whitened
 coordinates (rings by radius, sectors by angle from a golden-angle offset per ring), each
 sample its stratum's centroid, refined by a few weighted Lloyd (k-means) steps over the
@@ -279,11 +289,10 @@ def blur_kernels(ratio: np.ndarray, pitch_mm: float, footprint_mm: np.ndarray,
     product of a row with itself."""
     s = np.abs(np.asarray(ratio, dtype=np.float64))
     fp = np.asarray(footprint_mm, dtype=np.float64)
-    if pixel_samples == 0:  # a box footprint as 16 points over it (the box's cell integral)
-        n, full = 16, fp
-    else:
-        n, full = pixel_samples, fp / np.sqrt(1.0 - 1.0 / pixel_samples**2) \
-            if pixel_samples > 1 else fp
+    n, full = 16, fp  # a box footprint as 16 points over it
+    if pixel_samples > 0:  # n x n points over the full footprint (box-equivalent width given)
+        n = pixel_samples
+        full = fp / np.sqrt(1.0 - 1.0 / n**2) if n > 1 else fp
     offs = ((np.arange(n) + 0.5) / n - 0.5)[None] * (full * s)[:, None] / cell_mm  # (D, n)
     width = np.maximum(pitch_mm * s / cell_mm, 1e-6)[:, None, None]  # the box, cells
     k = np.arange(-half_cells, half_cells + 1, dtype=np.float64)[None, None]
@@ -291,7 +300,6 @@ def blur_kernels(ratio: np.ndarray, pitch_mm: float, footprint_mm: np.ndarray,
     hi = np.minimum(k + 0.5, offs[..., None] + width / 2)
     row = (np.clip(hi - lo, 0.0, None) / width).mean(axis=1)
     return row / row.sum(axis=1, keepdims=True)
-
 
 
 def support_floor(mass: np.ndarray, floor: float) -> np.ndarray:
@@ -317,7 +325,6 @@ def support_floor(mass: np.ndarray, floor: float) -> np.ndarray:
     return out
 
 
-
 def deblur(mass: np.ndarray, weight: np.ndarray, grid: ApertureGrid, ratio: np.ndarray,
            pitch_mm: float, footprint_mm: np.ndarray, pixel_samples: int,
            iterations: int, floor: float) -> np.ndarray:
@@ -331,7 +338,9 @@ def deblur(mass: np.ndarray, weight: np.ndarray, grid: ApertureGrid, ratio: np.n
     Moment matching alone (``match_moments`` to the deblurred covariance) shrinks the blurred
     shape and keeps the blur's tails; this restores the shape. RL starts from the cut masses:
     cells outside the body stay empty, mass stays non-negative and sums to 1 (the whole grid
-    counts as observed: cells outside the body are observed empty)."""
+    counts as observed: cells outside the body are observed empty). The kernels are clipped
+    to +-G/2 cells and taken along the grid's axes (the LCD's in-plane rotation against the
+    camera, ``rotation2``, is a small alignment error on a station)."""
     from station.lens.kernels import richardson_lucy_kernel
 
     d = support_floor(mass, floor)
