@@ -25,10 +25,10 @@ non-negative weights summing to 1 (``fusion_weights``): with no noise the sharpe
 alone; with noise a blend. (By noise alone, depths near focus, whose LTC is a few large
 boxes with little noise, would win while being the blurriest.)
 
-Before the samples are drawn (``deblur``, ``LensFitConfig.support_floor`` and
-``deconvolve_iterations``), the fused distribution is cut to its main body (the connected
-cells above 10 % of its largest: the LTC's noise over the blur margin, clipped to
-non-negative, was a pedestal of far tails) and the known blur is removed by Richardson-Lucy
+On request (``deblur``, ``LensFitConfig.support_floor`` and ``deconvolve_iterations``, off by
+default), before the samples are drawn the fused distribution is cut to its main body (the
+connected cells above 10 % of its largest: the LTC's noise over the blur margin, clipped to
+non-negative, is a pedestal of far tails) and the known blur is removed by Richardson-Lucy
 deconvolution with the fusion weights' mixture of the depths' kernels (LCD pixel box
 ``pitch |s_i|`` convolved with the camera pixel's footprint ``footprint |s_i|``). Moment
 matching alone shrinks the blurred shape and keeps its tails: on the experiment's benches the
