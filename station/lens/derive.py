@@ -227,7 +227,10 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
             out["per_depth"][idx] = m_all
         good = ok_c & usable
         if job.samples and good.any():
-            xs, ws = ap.ring_samples(fz[good], grid, cfg.samples)
+            xs, ws = ap.ring_samples(ap.deblur(fz[good], wd[good], grid, s, c_pitch, fp,
+                                               cfg.pixel_samples, cfg.deconvolve_iterations,
+                                               cfg.support_floor),
+                                     grid, cfg.samples)
             out["x"][idx[good]] = ap.match_moments(xs, ws, mean_c[good], cov_c[good])
             out["w"][idx[good]] = ws
     out["ok"] = out["weight"].sum(axis=1) > 0

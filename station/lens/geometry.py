@@ -71,6 +71,17 @@ class LensFitConfig(BaseModel):
                                "own ray)")
     deblur: bool = Field(True, description="remove the known LCD-pixel and camera-pixel box "
                          "variances from the samples' second moments")
+    deconvolve_iterations: int = Field(0, ge=0, le=1000, description="Richardson-Lucy "
+                                       "steps removing the known LCD-pixel and camera-pixel "
+                                       "blur from the fused aperture distribution before the "
+                                       "samples are drawn (aperture.deblur; 20 measured best); "
+                                       "0: off (benchmarks/README.md: the demo gains, the "
+                                       "reduced experiment test's size ordering does not hold)")
+    support_floor: float = Field(0.0, ge=0, lt=1, description="before the samples are "
+                                 "drawn, the fused aperture distribution is cut to its main "
+                                 "body: the connected cells above this fraction of its largest "
+                                 "cell (aperture.support_floor; 0.1 measured); 0: only "
+                                 "negative noise cut (off, as deconvolve_iterations)")
     focus_zones: bool = Field(False, description="fit a focus distance per pupil zone "
                               "(spherical aberration) from the LTCs at the optical centre and "
                               "store it as the lens file's focus_zones_mm (needs K). Off: with "

@@ -450,3 +450,72 @@ def lloyd_kernel(mass, centres, x, w, iterations):
                     x[m, j, 1] = sy[j] / sw[j]
             if not changed:
                 break
+
+
+@numba.njit(cache=True, nogil=True)
+def _mixed_blur(src, w, rows, y0, y1, x0, x1, tmp, out):
+    """out[y0:y1, x0:x1] = sum_i w[i] (rows[i] (x) rows[i]) * src over that box (src is 0
+    outside it); rows (D, 2L+1) symmetric, zero taps and depths skipped."""
+    half = rows.shape[1] // 2
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            out[y, x] = 0.0
+    for i in range(rows.shape[0]):
+        if w[i] <= 0.0:
+            continue
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                a = 0.0
+                for t in range(-half, half + 1):
+                    c = rows[i, t + half]
+                    if c != 0.0 and x0 <= x - t < x1:
+                        a += c * src[y, x - t]
+                tmp[y, x] = a
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                a = 0.0
+                for t in range(-half, half + 1):
+                    c = rows[i, t + half]
+                    if c != 0.0 and y0 <= y - t < y1:
+                        a += c * tmp[y - t, x]
+                out[y, x] += w[i] * a
+
+
+@numba.njit(cache=True, nogil=True)
+def richardson_lucy_kernel(d, w, rows, norm_rows, iterations, x):
+    """``aperture.deblur``'s Richardson-Lucy steps, node by node: d (n, G, G) normalised
+    non-negative data, w (n, D) weights, rows (D, 2L+1) the depths' 1-D blurs, norm_rows
+    (D, G) each blur's mass falling on the grid; writes x (n, G, G). Only the bounding box of
+    a node's data is computed (the estimate stays inside the data's support)."""
+    n, g = d.shape[0], d.shape[1]
+    model = np.zeros((g, g))
+    tmp = np.zeros((g, g))
+    acc = np.zeros((g, g))
+    ratio = np.zeros((g, g))
+    norm = np.zeros((g, g))
+    for k in range(n):
+        x[k] = d[k]
+        y0, y1, x0, x1 = g, 0, g, 0
+        for y in range(g):
+            for c in range(g):
+                if d[k, y, c] > 0.0:
+                    y0, y1 = min(y0, y), max(y1, y + 1)
+                    x0, x1 = min(x0, c), max(x1, c + 1)
+        if y1 <= y0:
+            continue
+        for y in range(y0, y1):
+            for c in range(x0, x1):
+                a = 0.0
+                for i in range(rows.shape[0]):
+                    a += w[k, i] * norm_rows[i, y] * norm_rows[i, c]
+                norm[y, c] = a if a > 1e-12 else 1.0
+        for _ in range(iterations):
+            _mixed_blur(x[k], w[k], rows, y0, y1, x0, x1, tmp, model)
+            for y in range(y0, y1):
+                for c in range(x0, x1):
+                    m = model[y, c]
+                    ratio[y, c] = d[k, y, c] / m if m > 1e-15 else 0.0
+            _mixed_blur(ratio, w[k], rows, y0, y1, x0, x1, tmp, acc)
+            for y in range(y0, y1):
+                for c in range(x0, x1):
+                    x[k, y, c] *= max(acc[y, c], 0.0) / norm[y, c]
