@@ -57,14 +57,17 @@ def section(res: dict, command: str) -> str:
 
 
 def write_readme(text: str, path: Path = README) -> None:
-    """Replace the section starting at ``SECTION`` (up to the next ``## `` heading) with
-    ``text``, or insert it before "## Tracing throughput"; nothing else changes."""
+    """Replace the generated part of the section starting at ``SECTION`` (up to the next
+    ``## `` heading or the first hand-written ``### `` subsection, whose headings are not
+    among the generated tables') with ``text``, or insert it before "## Tracing throughput";
+    nothing else changes (the hand-written analyses after the tables are kept)."""
     lines = path.read_text().splitlines()
     new = text.strip().splitlines() + [""]
+    own = {ln for ln in new if ln.startswith("### ")}
     if SECTION in lines:
         start = lines.index(SECTION)
-        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")),
-                   len(lines))
+        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")
+                    or (lines[i].startswith("### ") and lines[i] not in own)), len(lines))
         lines[start:end] = new
     else:
         at = next((i for i, ln in enumerate(lines) if ln.startswith("## Tracing")), len(lines))
