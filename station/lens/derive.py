@@ -43,7 +43,7 @@ from station.lens.geometry import (
     fit_geometry,
     footprint_mm,
 )
-from station.lens.rays import FLAG_BAD_FIT, FLAG_FEW_DEPTHS, FLAG_OUTLIER
+from station.lens.rays import FLAG_BAD_FIT, FLAG_FEW_DEPTHS, FLAG_OUTLIER, UNUSABLE
 from station.lens.zones import fit_focus_zones
 
 GRID_MARGIN = 1.2  # aperture grid half-width over the largest pupil extent seen
@@ -81,10 +81,11 @@ def aperture_grid(geom: LensGeometry, cfg: LensFitConfig) -> ap.ApertureGrid:
     s = ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, zc)
     moments = c.moments_px2.reshape(d, -1, 3)
     n = moments.shape[1]
+    usable = rays.usable
     parts = []
     for a0 in range(0, n, GRID_PIXELS):
         sl = slice(a0, min(n, a0 + GRID_PIXELS))
-        use = rays.used[:, sl] & rays.usable[None, sl]  # not empty: the centre needed rays
+        use = rays.used[:, sl] & usable[None, sl]  # not empty: the centre needed rays
         mom = moments[:, sl] * c.pitch_mm**2 * (s**2)[:, None, None]
         lam = 0.5 * (mom[..., 0] + mom[..., 1]) + np.hypot(0.5 * (mom[..., 0] - mom[..., 1]),
                                                            mom[..., 2])
@@ -148,7 +149,7 @@ def pixel_inputs(geom: LensGeometry, pix: np.ndarray,
     xy_ref, slope, z_ref = rays.xy_ref[pix], rays.slope[pix], rays.z_ref[pix]
     return {"xy_ref": xy_ref, "slope": slope, "z_ref": z_ref,
             "at_centre": local_ray_centres(geom, pix, cfg.ray_window_px),
-            "used": rays.used[:, pix], "usable": rays.usable[pix],
+            "used": rays.used[:, pix], "usable": (rays.flags[pix] & UNUSABLE) == 0,
             "mom": c.moments_px2.reshape(d, -1, 3)[:, pix].astype(np.float64)}
 
 
@@ -269,12 +270,21 @@ def local_ray_centres(geom: LensGeometry, pixels: np.ndarray, radius_px: int) ->
     """Principal rays of the given flat pixels on the optical centre's plane, minus the
     centre (n, 2) mm, station frame, by ``local_plane_fit`` over ``radius_px``: the ray's
     per-pixel noise (centroid noise magnified ~4x by the extrapolation from the LCD depths
-    to the centre) averages out."""
+    to the centre) averages out. Only the rows the pixels' windows reach are evaluated, so
+    a block's cost does not grow with the sensor."""
     rays = geom.rays
-    zc = float(geom.centre.position[2])
-    own = rays.xy_at(zc) - geom.centre.position[:2]
-    return local_plane_fit(own, rays.var_at(zc), rays.usable, geom.camera_size, pixels,
-                           radius_px)
+    w, h = geom.camera_size
+    pixels = np.asarray(pixels, dtype=np.int64)
+    if not len(pixels):
+        return np.zeros((0, 2))
+    v0 = max(0, int(pixels.min()) // w - radius_px)
+    v1 = min(h, int(pixels.max()) // w + radius_px + 1)
+    band = slice(v0 * w, v1 * w)
+    dz = float(geom.centre.position[2]) - rays.z_ref[band]
+    own = rays.xy_ref[band] + rays.slope[band] * dz[:, None] - geom.centre.position[:2]
+    var = rays.var_ref[band] + dz**2 * rays.var_slope[band]
+    return local_plane_fit(own, var, (rays.flags[band] & UNUSABLE) == 0, (w, v1 - v0),
+                           pixels - v0 * w, radius_px)
 
 
 def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
@@ -442,7 +452,9 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
     writer = LensFileWriter(out, nu, nv, k) if out is not None else None
     try:
         good = np.zeros(shape, dtype=bool)
-        cov = np.zeros(shape + (2, 2))  # the nodes' target covariances: the zone fit's start
+        zoned = cfg.focus_zones and geom.camera_matrix is not None
+        # the nodes' target covariances: the zone fit's start (only then: 32 B per node)
+        cov = np.zeros(shape + (2, 2)) if zoned else None
         if writer is None:
             x = np.zeros(shape + (k, 2))
             wk = np.zeros(shape + (k,))
@@ -472,7 +484,8 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
             sub = (len(jv), len(iu))
             g = (res["ok"] & res["w"].any(axis=1)).reshape(sub)
             good[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = g
-            cov[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = res["cov"].reshape(sub + (2, 2))
+            if cov is not None:
+                cov[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = res["cov"].reshape(sub + (2, 2))
             xs, ws = res["x"].reshape(sub + (k, 2)), res["w"].reshape(sub + (k,))
             if writer is None:
                 x[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = xs
@@ -504,7 +517,7 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
             del flat
         trans = _transmittance(volume, geom.centroids.valid, nu, nv)
         zones, zone_fit = None, None
-        if cfg.focus_zones and geom.camera_matrix is not None:
+        if zoned:
             pix = (nv[:, None] * w + nu[None, :]).ravel()
             found = fit_focus_zones(volume, float(geom.centre.position[2]), geom.camera_matrix,
                                     geom.focus_distance_mm,
