@@ -409,6 +409,8 @@ def lloyd_kernel(mass, centres, x, w, iterations):
     cy = np.empty(ncell)
     cm = np.empty(ncell)
     lab = np.empty(ncell, dtype=np.int64)
+    nl = np.empty(ncell, dtype=np.int64)
+    bd = np.empty(ncell)
     sx = np.empty(k)
     sy = np.empty(k)
     sw = np.empty(k)
@@ -422,21 +424,26 @@ def lloyd_kernel(mass, centres, x, w, iterations):
                     lab[na] = -1
                     na += 1
         for it in range(iterations):
+            # nearest sample of every cell, sample by sample over all cells (a loop the
+            # compiler vectorises); strict < keeps the first nearest, as a per-cell scan does
+            for c in range(na):
+                bd[c] = np.inf
+            for j in range(k):
+                xj, yj = x[m, j, 0], x[m, j, 1]
+                for c in range(na):
+                    dx = cx[c] - xj
+                    dy = cy[c] - yj
+                    d = dx * dx + dy * dy
+                    closer = d < bd[c]
+                    bd[c] = d if closer else bd[c]
+                    nl[c] = j if closer else nl[c]
             changed = False
             for j in range(k):
                 sx[j] = 0.0
                 sy[j] = 0.0
                 sw[j] = 0.0
             for c in range(na):
-                best = 0
-                bd = np.inf
-                for j in range(k):
-                    dx = cx[c] - x[m, j, 0]
-                    dy = cy[c] - x[m, j, 1]
-                    d = dx * dx + dy * dy
-                    if d < bd:
-                        bd = d
-                        best = j
+                best = nl[c]
                 if best != lab[c]:
                     changed = True
                     lab[c] = best
