@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from sim.optics.measured_lens import LensFileWriter, MeasuredLens, read_lens_nodes
 from station.lens import aperture as ap
-from station.lens.centroids import window_stats
+from station.lens.centroids import region_stats
 from station.ltc.parallel import Engine, run_ordered
 from station.ltc.store import LtcVolume
 from station.lens.geometry import (
@@ -190,9 +190,10 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
             used = inp["used"][i, idx] & usable
             if not used.any():
                 continue
-            h = ltc[i, loc].astype(np.float64)
-            st = window_stats(np.where(used[:, None, None], h, np.nan), noise[i, loc])
-            hh = np.where(st.region, h, 0.0)
+            h = ltc[i, loc].astype(np.float64)  # a copy: zeroed in place
+            h[~used] = 0.0  # (NaN where no signal)
+            st = region_stats(h, used, noise[i, loc])
+            h[~st.region] = 0.0
             # each depth's LTC is placed by its own centroid onto the principal ray at the
             # centre's plane: the depths' noisy residuals (x |s_i| ~ 5 at the extreme
             # depths) neither shift nor blur the fused distribution
@@ -200,7 +201,7 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
                                                                  - inp["z_ref"][idx])[:, None]
             own = (st.centroid + origin[i, loc]) * c_pitch
             at_depth = np.where(np.isfinite(own), own, at_depth)
-            m = ap.resample(hh, origin[i, loc], at_depth, inp["at_centre"][idx], s[i], c_pitch,
+            m = ap.resample(h, origin[i, loc], at_depth, inp["at_centre"][idx], s[i], c_pitch,
                             grid, job.rot2, cfg.supersample)
             cov_i = m.sum(axis=(1, 2))
             coverage[:, i] = np.where(used, cov_i, 0.0)
