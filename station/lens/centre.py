@@ -30,6 +30,7 @@ import numpy as np
 from station.lens.rays import FLAG_FEW_DEPTHS, PrincipalRays, RayFitError
 
 HUBER_K = 2.0  # Huber threshold in robust-scale units for the ray intersection
+BLOCK_RAYS = 1 << 18  # rays per block of the intersection's sums
 
 
 @dataclass(frozen=True)
@@ -62,35 +63,58 @@ def intersect_rays(rays: PrincipalRays, use: np.ndarray | None = None,
         raise RayFitError(f"optical centre: {int(ok.sum())} usable principal ray(s); need >= 2 "
                           f"({int((rays.flags & FLAG_FEW_DEPTHS).astype(bool).sum())} pixels "
                           "have too few depths with signal)")
-    # sum_n w_n (I - d_n d_n^T) and its right-hand side without (n, 3, 3) temporaries:
-    # memory per ray stays a few (n, 3) arrays whatever the sensor
-    dirs = rays.directions()[ok]
-    a = np.concatenate([rays.xy_ref[ok], rays.z_ref[ok, None]], axis=1)
-    da = np.einsum("ni,ni->n", dirs, a)
-    robust = np.ones(ok.sum())
+    # sum_n w_n (I - d_n d_n^T) and its right-hand side in blocks of rays, without (n, 3, 3)
+    # temporaries: memory per ray is a few scalars whatever the sensor
+    idx = np.flatnonzero(ok)
+    n = len(idx)
+    blocks = [slice(b, min(n, b + BLOCK_RAYS)) for b in range(0, n, BLOCK_RAYS)]
+
+    def lines(b: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        j = idx[b]
+        d = np.concatenate([rays.slope[j], np.ones((len(j), 1))], axis=1)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        a = np.concatenate([rays.xy_ref[j], rays.z_ref[j, None]], axis=1)
+        return d, a, np.einsum("ni,ni->n", d, a)
+
+    robust = np.ones(n)
+    prior = np.empty(n)
+    dist = np.empty(n)
     z_c = float(np.mean(rays.z_ref[ok]))
     o = np.full(3, np.inf)
+
+    def normal() -> np.ndarray:
+        mat = np.zeros((3, 3))
+        for b in blocks:
+            d, _, _ = lines(b)
+            w = prior[b] * robust[b]
+            mat += np.eye(3) * w.sum() - np.einsum("n,ni,nj->ij", w, d, d)
+        return mat
+
     for _ in range(iterations):
         # a-priori lateral variance of each ray where it passes the current centre
-        prior = 1.0 / (rays.var_ref[ok] + (z_c - rays.z_ref[ok]) ** 2 * rays.var_slope[ok])
-        w = prior * robust
-        mat = np.eye(3) * w.sum() - np.einsum("n,ni,nj->ij", w, dirs, dirs)
-        rhs = np.einsum("n,ni->i", w, a) - np.einsum("n,ni->i", w * da, dirs)
+        j = idx
+        prior[:] = 1.0 / (rays.var_ref[j] + (z_c - rays.z_ref[j]) ** 2 * rays.var_slope[j])
+        mat, rhs = normal(), np.zeros(3)
+        for b in blocks:
+            d, a, da = lines(b)
+            w = prior[b] * robust[b]
+            rhs += np.einsum("n,ni->i", w, a) - np.einsum("n,ni->i", w * da, d)
         o_prev, o = o, np.linalg.solve(mat, rhs)
         z_c = float(o[2])
-        r = (o - a) - dirs * (dirs @ o - da)[:, None]
-        dist = np.linalg.norm(r, axis=1)
-        del r
+        for b in blocks:
+            d, a, da = lines(b)
+            dist[b] = np.linalg.norm((o - a) - d * (d @ o - da)[:, None], axis=1)
         scaled = dist * np.sqrt(prior)
         # a 2-D Gaussian miss has a Rayleigh length, median sigma * sqrt(ln 4)
         scale = np.median(scaled) / np.sqrt(np.log(4.0))
         new = _huber(scaled / max(scale, 1e-300))
+        del scaled
         done = np.allclose(new, robust, atol=1e-10) and np.allclose(o, o_prev, atol=1e-9, rtol=0)
         robust = new
         if done:
             break
     w = prior * robust
-    mat = np.eye(3) * w.sum() - np.einsum("n,ni,nj->ij", w, dirs, dirs)
+    mat = normal()
     dof = max(2 * len(w) - 3, 1)
     s2 = float((w * dist**2).sum() / dof)
     cov = s2 * np.linalg.inv(mat)
