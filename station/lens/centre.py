@@ -146,52 +146,64 @@ def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
     if len(idx) < 3:
         raise RayFitError(f"pinhole optical centre: {len(idx)} usable principal rays; need >= 3")
     n = len(idx)
-    x0, x1 = np.ascontiguousarray(xn[:, 0]), np.ascontiguousarray(xn[:, 1])
-    q = x0 * x0 + x1 * x1
-    data = rays.xy_at(focus_plane_z_mm)[idx]
-    slope = rays.slope[idx]  # d data / d Z_F
-    prior = 1.0 / rays.var_at(focus_plane_z_mm)[idx]
+    blocks = [slice(b, min(n, b + BLOCK_RAYS)) for b in range(0, n, BLOCK_RAYS)]
+    dz = focus_plane_z_mm - rays.z_ref[idx]
+    prior = 1.0 / (rays.var_ref[idx] + dz**2 * rays.var_slope[idx])
+    del dz
 
-    def normal(w: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # rows (1, 0, x0, -x1) for x and (0, 1, x1, x0) for y, both with weight w
-        # np.dot, not @: a 1-D matmul goes through threaded BLAS, whose spinning threads
-        # cost ~15x the CPU time on a shared machine
+    def data(b: slice) -> np.ndarray:  # the in-focus points of a block of rays
+        j = idx[b]
+        return rays.xy_ref[j] + rays.slope[j] * (focus_plane_z_mm - rays.z_ref[j])[:, None]
+
+    def normal(w: np.ndarray, slopes: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        # rows (1, 0, x0, -x1) for x and (0, 1, x1, x0) for y, both with weight w; np.dot,
+        # not @: a 1-D matmul goes through threaded BLAS, whose spinning threads cost ~15x
+        # the CPU time on a shared machine
         dot = np.dot
-        sw, s0, s1, sq = w.sum(), dot(w, x0), dot(w, x1), dot(w, q)
-        ata = np.array([[sw, 0.0, s0, -s1], [0.0, sw, s1, s0], [s0, s1, sq, 0.0],
-                        [-s1, s0, 0.0, sq]])
-        wy0, wy1 = w * y[:, 0], w * y[:, 1]
-        atb = np.array([wy0.sum(), wy1.sum(), dot(wy0, x0) + dot(wy1, x1),
-                        dot(wy1, x0) - dot(wy0, x1)])
+        ata, atb = np.zeros((4, 4)), np.zeros(4)
+        for b in blocks:
+            x0, x1, wb = xn[b, 0], xn[b, 1], w[b]
+            y = rays.slope[idx[b]] if slopes else data(b)
+            sw, s0, s1, sq = wb.sum(), dot(wb, x0), dot(wb, x1), dot(wb, x0 * x0 + x1 * x1)
+            ata += np.array([[sw, 0.0, s0, -s1], [0.0, sw, s1, s0], [s0, s1, sq, 0.0],
+                             [-s1, s0, 0.0, sq]])
+            wy0, wy1 = wb * y[:, 0], wb * y[:, 1]
+            atb += np.array([wy0.sum(), wy1.sum(), dot(wy0, x0) + dot(wy1, x1),
+                             dot(wy1, x0) - dot(wy0, x1)])
         return ata, atb
 
-    def residual(theta: np.ndarray) -> np.ndarray:
-        return np.stack([data[:, 0] - (theta[0] + theta[2] * x0 - theta[3] * x1),
-                         data[:, 1] - (theta[1] + theta[2] * x1 + theta[3] * x0)], axis=1)
+    def miss(theta: np.ndarray) -> np.ndarray:  # squared residual length per ray
+        out = np.empty(n)
+        for b in blocks:
+            x0, x1, y = xn[b, 0], xn[b, 1], data(b)
+            rx = y[:, 0] - (theta[0] + theta[2] * x0 - theta[3] * x1)
+            ry = y[:, 1] - (theta[1] + theta[2] * x1 + theta[3] * x0)
+            out[b] = rx * rx + ry * ry
+        return out
 
     robust = np.ones(n)
     for _ in range(iterations):
-        ata, atb = normal(prior * robust, data)
+        ata, atb = normal(prior * robust)
         theta = np.linalg.solve(ata, atb)
-        r = residual(theta)
-        dist_n = np.hypot(r[:, 0], r[:, 1])
+        dist_n = np.sqrt(miss(theta))
         scaled = dist_n * np.sqrt(prior)
         scale = max(float(np.median(scaled)) / np.sqrt(np.log(4.0)), 1e-300)
         new = np.where(scaled <= HUBER_K * scale, 1.0,
                        HUBER_K * scale / np.maximum(scaled, 1e-300))
+        del scaled
         done = np.allclose(new, robust, atol=1e-10)
         robust = new
         if done:
             break
     w = prior * robust
-    ata, _ = normal(w, data)
+    ata, _ = normal(w)
     ata_inv = np.linalg.inv(ata)
-    s2 = float((w * (r * r).sum(axis=1)).sum()) / max(2 * n - 4, 1)
+    s2 = float((w * dist_n**2).sum()) / max(2 * n - 4, 1)
     ca, cb = theta[2], theta[3]
     z_f = float(np.hypot(ca, cb))
     jac = np.array([ca, cb]) / z_f
     var_zf = float(jac @ (s2 * ata_inv[2:, 2:]) @ jac)
-    dtheta = ata_inv @ normal(w, slope)[1]
+    dtheta = ata_inv @ normal(w, slopes=True)[1]
     dz_o = 1.0 - float(jac @ dtheta[2:])
     cov = np.array(axis.covariance, dtype=np.float64, copy=True)
     cov[2, :] = cov[:, 2] = 0.0
