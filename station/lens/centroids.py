@@ -100,16 +100,18 @@ def window_stats(
 
 def region_stats(h: np.ndarray, use: np.ndarray, sigma: np.ndarray) -> WindowStats:
     """``window_stats`` of windows already checked (the centroid pass checked every one):
-    h (n, P, P) float64 finite where ``use`` (n,), zero elsewhere (no signal); no NaN copy of
-    the windows, no checks (the aperture pass: the same regions and centroids)."""
-    h = np.ascontiguousarray(h, dtype=np.float64)
+    h (n, P, P) float64 C-contiguous, finite where ``use`` (n,), zero elsewhere (no signal);
+    no NaN copy of the windows, no checks (the aperture pass: the same regions and
+    centroids). ``h`` is set to 0 outside each window's region, in place."""
+    if h.dtype != np.float64 or not h.flags.c_contiguous:
+        raise ValueError("region_stats: h must be a C-contiguous float64 array (set in place)")
     sigma = np.ascontiguousarray(sigma, dtype=np.float64).ravel()
     n, p = h.shape[0], h.shape[1]
     cen, std = np.empty((n, 2)), np.empty((n, 2))
     mom, tr_std = np.empty((n, 3)), np.empty(n)
     region, status = np.empty((n, p, p), dtype=bool), np.empty(n, dtype=np.int8)
     stats_kernel(h, sigma, np.ascontiguousarray(use, dtype=bool), NOISE_SIGMAS, PEAK_FRACTION,
-                 REGION_MARGIN_PX, cen, std, mom, tr_std, region, status)
+                 REGION_MARGIN_PX, cen, std, mom, tr_std, region, status, True)
     return WindowStats(centroid=cen, centroid_std=std, moments=mom, trace_std=tr_std,
                        region=region, status=status)
 

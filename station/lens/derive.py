@@ -192,8 +192,7 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
                 continue
             h = ltc[i, loc].astype(np.float64)  # a copy: zeroed in place
             h[~used] = 0.0  # (NaN where no signal)
-            st = region_stats(h, used, noise[i, loc])
-            h[~st.region] = 0.0
+            st = region_stats(h, used, noise[i, loc])  # h: 0 outside each region
             # each depth's LTC is placed by its own centroid onto the principal ray at the
             # centre's plane: the depths' noisy residuals (x |s_i| ~ 5 at the extreme
             # depths) neither shift nor blur the fused distribution

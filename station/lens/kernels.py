@@ -19,10 +19,12 @@ import numpy as np
 
 @numba.njit(cache=True, nogil=True)
 def stats_kernel(h, sigma, signal, noise_sigmas, peak_fraction, margin,
-                 centroid, centroid_std, moments, trace_std, region_out, status_out):
+                 centroid, centroid_std, moments, trace_std, region_out, status_out,
+                 zero_outside=False):
     """Per window n: h (n, P, P) float64 (NaN windows already zeroed), sigma (n,), signal (n,)
     bool; writes centroid (n, 2), centroid_std (n, 2), moments (n, 3), trace_std (n,),
-    region_out (n, P, P) bool, status_out (n,) int8 (0 ok, 1 no signal, 2 truncated)."""
+    region_out (n, P, P) bool, status_out (n,) int8 (0 ok, 1 no signal, 2 truncated);
+    ``zero_outside``: also set h to 0 outside region_out (the aperture pass's windows)."""
     n, p = h.shape[0], h.shape[1]
     sm = np.empty((p, p))
     tmp = np.empty((p, p))
@@ -167,6 +169,8 @@ def stats_kernel(h, sigma, signal, noise_sigmas, peak_fraction, margin,
         for i in range(p):
             for j in range(p):
                 region_out[k, i, j] = region[i, j] and ok
+                if zero_outside and not region_out[k, i, j]:
+                    hz[i, j] = 0.0
 
 
 OFFSET_I = 1 << 20  # added before truncating LCD coordinates (|index| << 2^20), exact in float64
