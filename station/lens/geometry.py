@@ -20,7 +20,7 @@ point.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -28,7 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from sim.optics.projection import pixel_to_normalized
 from station.lens.centre import OpticalCentre, intersect_rays, pinhole_centre
-from station.lens.centroids import Centroids, compute_centroids
+from station.lens.centroids import STATUS_OK, Centroids
 from station.lens.rays import PrincipalRays, RayFitError, fit_principal_rays
 from station.ltc.store import LtcVolume
 
@@ -191,6 +191,70 @@ def _focus_plane(fit: FocusFit | None, z_f_config: float | None, centre_z: float
     return fit.plane_z_mm, fit.plane_std_mm**2
 
 
+def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = False,
+                       engine=None) -> tuple[Centroids, PrincipalRays]:
+    """The centroid pass (``centroid_rows`` per depth of each stored chunk, on ``engine``)
+    with each chunk's principal rays fitted as soon as all its depths have arrived (from
+    the float64 centroids and their stds, which are then dropped): the geometry holds
+    float32 centroids and moments and no centroid std (``Centroids.std_lcd_px`` is None),
+    so memory per pixel stays what the later fits need. Same values as
+    ``compute_centroids`` then ``fit_principal_rays`` (rays are per pixel)."""
+    from tqdm import tqdm
+
+    from station.lens.centroids import STATUS_NO_SIGNAL, centroid_rows
+    from station.ltc.parallel import Engine, run_ordered
+
+    d = len(volume.depths_mm)
+    w, h = volume.camera_size
+    chunks = getattr(volume.ltc, "chunks", None)
+    rows = volume.chunk_rows
+    cols = int(chunks[2]) if chunks else w
+    f4 = np.float32
+    out = {"xy": np.full((d, h, w, 2), np.nan, f4), "mom": np.full((d, h, w, 3), np.nan, f4),
+           "tstd": np.full((d, h, w), np.nan, f4),
+           "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
+    rays = PrincipalRays.empty(d, w * h)
+    z = volume.depths_mm.reshape(d, 1, 1)
+    tasks = [(i, r0, min(h, r0 + rows), c0, min(w, c0 + cols))
+             for r0 in range(0, h, rows) for c0 in range(0, w, cols) for i in range(d)]
+    bar = tqdm(total=len(tasks), desc="lens: centroids", unit="block",
+               disable=None if progress else True)
+    waiting: dict[tuple[int, int], dict[int, dict]] = {}
+
+    def on_result(key, part) -> None:
+        i, r0, r1, c0, c1 = key
+        for name in out:
+            out[name][i, r0:r1, c0:c1] = part[name]
+        got = waiting.setdefault((r0, c0), {})
+        got[i] = part
+        bar.update()
+        if len(got) < d:
+            return
+        del waiting[(r0, c0)]
+        pix = (np.arange(r0, r1)[:, None] * w + np.arange(c0, c1)[None, :]).ravel()
+        xy = np.stack([got[j]["xy"].reshape(-1, 2) for j in range(d)]) * volume.pitch_mm
+        rays.put(pix, fit_principal_rays(
+            np.concatenate([xy, np.broadcast_to(z, xy.shape[:2] + (1,))], axis=-1),
+            # float32 stds, as compute_centroids holds them
+            np.stack([got[j]["std"].reshape(-1, 2) for j in range(d)]).astype(np.float32)
+            * volume.pitch_mm,
+            np.stack([got[j]["status"].ravel() == STATUS_OK for j in range(d)]),
+            min_depths=min(cfg.min_depths, d), outlier_sigma=cfg.outlier_sigma,
+            max_outliers=cfg.max_outliers, floor_mm=cfg.ray_floor_mm))
+
+    own = engine is None
+    engine = engine or Engine(1)
+    try:
+        run_ordered(engine, ((t, centroid_rows, (volume,) + t) for t in tasks), on_result)
+    finally:
+        bar.close()
+        if own:
+            engine.close()
+    c = Centroids(out["xy"], None, out["mom"], out["tstd"], out["status"],
+                  volume.depths_mm.copy(), float(volume.pitch_mm))
+    return c, rays
+
+
 def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
                  K: np.ndarray | None = None, dist: np.ndarray | None = None,
                  progress: bool = False, engine=None) -> LensGeometry:
@@ -206,21 +270,7 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
     if cfg.centre_method == "pinhole" and K is None:
         raise LensFitError(f"{volume.name}: centre_method 'pinhole' needs the camera matrix K "
                            "(store attribute camera_matrix, or --rig)")
-    c = compute_centroids(volume, progress=progress, engine=engine, xy_dtype=np.float32)
-    d = len(c.depths_mm)
-    n = c.status[0].size
-    rays = PrincipalRays.empty(d, n)
-    for a in range(0, n, RAY_FIT_PIXELS):  # temporaries do not grow with the sensor
-        sl = slice(a, min(n, a + RAY_FIT_PIXELS))
-        xy = c.xy_lcd_px.reshape(d, n, 2)[:, sl].astype(np.float64) * c.pitch_mm
-        z = np.broadcast_to(c.depths_mm.reshape(d, 1, 1), xy.shape[:2] + (1,))
-        rays.put(sl, fit_principal_rays(
-            np.concatenate([xy, z], axis=-1),
-            c.std_lcd_px.reshape(d, n, 2)[:, sl] * c.pitch_mm,
-            c.valid.reshape(d, n)[:, sl], min_depths=min(cfg.min_depths, d),
-            outlier_sigma=cfg.outlier_sigma, max_outliers=cfg.max_outliers,
-            floor_mm=cfg.ray_floor_mm))
-    c = replace(c, std_lcd_px=None)  # only the rays needed it
+    c, rays = centroids_and_rays(volume, cfg, progress=progress, engine=engine)
     usable = rays.usable
     notes: list[str] = []
     try:

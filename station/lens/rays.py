@@ -59,9 +59,9 @@ class PrincipalRays:
                    np.empty((d, n, 2), np.float32), np.empty((d, n), bool),
                    np.empty(n, np.int8))
 
-    def put(self, sl: slice, part: "PrincipalRays") -> None:
-        """Copy the rays of a block of pixels ``sl`` from ``part`` (pixel axis: 0 of the
-        per-pixel arrays, 1 of the (D, N, ...) ones)."""
+    def put(self, sl: slice | np.ndarray, part: "PrincipalRays") -> None:
+        """Copy the rays of pixels ``sl`` (a slice or flat indices) from ``part`` (pixel
+        axis: 0 of the per-pixel arrays, 1 of the (D, N, ...) ones)."""
         for f in fields(self):
             dst = getattr(self, f.name)
             if f.name in ("residual", "used"):
