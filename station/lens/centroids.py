@@ -121,8 +121,9 @@ class Centroids:
     """Centroids of every pixel at every depth.
 
     xy_lcd_px : (D, H, W, 2) float64 LCD (x, y) pixels (float32 in a ``LensGeometry``: 2e-4
-    px at 3840 px, far below the centroid noise); std_lcd_px : (D, H, W, 2) float32 (None in
-    a ``LensGeometry``: only the principal-ray fit needs it).
+    px at 3840 px, far below the centroid noise; the rays are fitted from the float64 ones);
+    std_lcd_px : (D, H, W, 2) float32 (None in a ``LensGeometry``: only the principal-ray
+    fit needs it).
     moments_px2 : (D, H, W, 3) float32 m_xx, m_yy, m_xy in LCD px^2; trace_std_px2 :
     (D, H, W) float32 (float32: relative precision 6e-8, far below their noise; half the
     memory of a full-size sensor's six depths).
@@ -154,15 +155,14 @@ class Centroids:
 
 
 def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
-                      progress: bool = False, engine=None,
-                      xy_dtype: type = np.float64) -> Centroids:
+                      progress: bool = False, engine=None) -> Centroids:
     """Centroids of all pixels at all depths, one depth of one stored chunk of camera rows
     and columns (default: the store's chunk; ``rows_per_tile`` overrides the rows) per
     task, ``WINDOWS_PER_BATCH`` windows at once, so memory does not grow with the sensor
     and each stored chunk is decoded once. engine : where the tasks run
     (``station.ltc.parallel.Engine``; default: in this process), bit-identical results
-    whatever the engine. ``progress``: a bar over the tasks. ``xy_dtype``: of the
-    centroids held (float32 halves them: the lens derivation at full size)."""
+    whatever the engine. ``progress``: a bar over the tasks. (The lens derivation runs
+    this pass with its ray fit: ``station.lens.geometry.centroids_and_rays``.)"""
     from station.ltc.parallel import Engine, run_ordered
 
     d = len(volume.depths_mm)
@@ -171,7 +171,7 @@ def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
     rows = rows_per_tile or volume.chunk_rows
     cols = int(chunks[2]) if chunks else w
     f4 = np.float32  # uncertainties and moments: 7 digits are plenty, half the memory
-    out = {"xy": np.full((d, h, w, 2), np.nan, xy_dtype), "std": np.full((d, h, w, 2), np.nan, f4),
+    out = {"xy": np.full((d, h, w, 2), np.nan), "std": np.full((d, h, w, 2), np.nan, f4),
            "mom": np.full((d, h, w, 3), np.nan, f4), "tstd": np.full((d, h, w), np.nan, f4),
            "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
     tasks = [((i, r0, min(h, r0 + rows), c0, min(w, c0 + cols)))
