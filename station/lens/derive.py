@@ -82,9 +82,11 @@ def aperture_grid(geom: LensGeometry, cfg: LensFitConfig) -> ap.ApertureGrid:
     moments = c.moments_px2.reshape(d, -1, 3)
     n = moments.shape[1]
     usable = rays.usable
-    parts = []
-    for a0 in range(0, n, GRID_PIXELS):
-        sl = slice(a0, min(n, a0 + GRID_PIXELS))
+    blocks = [slice(a0, min(n, a0 + GRID_PIXELS)) for a0 in range(0, n, GRID_PIXELS)]
+    # one array of every used (depth, pixel) reach, partitioned in place by the percentile
+    reach_all = np.empty(sum(int((rays.used[:, b] & usable[None, b]).sum()) for b in blocks))
+    at = 0
+    for sl in blocks:
         use = rays.used[:, sl] & usable[None, sl]  # not empty: the centre needed rays
         mom = moments[:, sl] * c.pitch_mm**2 * (s**2)[:, None, None]
         lam = 0.5 * (mom[..., 0] + mom[..., 1]) + np.hypot(0.5 * (mom[..., 0] - mom[..., 1]),
@@ -93,8 +95,11 @@ def aperture_grid(geom: LensGeometry, cfg: LensFitConfig) -> ap.ApertureGrid:
              - geom.centre.position[:2])
         reach = np.abs(a).max(axis=1)[None] + 2.0 * np.sqrt(np.maximum(lam, 0.0))
         reach = reach + 0.5 * c.pitch_mm * np.abs(s)[:, None]
-        parts.append(reach[use])
-    half = GRID_MARGIN * float(np.percentile(np.concatenate(parts), EXTENT_PERCENTILE))
+        got = reach[use]
+        reach_all[at:at + len(got)] = got
+        at += len(got)
+    half = GRID_MARGIN * float(np.percentile(reach_all, EXTENT_PERCENTILE,
+                                             overwrite_input=True))
     return ap.ApertureGrid(half, cfg.aperture_cells)
 
 
@@ -381,8 +386,7 @@ class LensResult:
         """A JSON-able report of what was measured."""
         g = self.geometry
         r = g.rays
-        res = r.residual_norm()
-        res = res[np.isfinite(res) & r.usable[None]]
+        res = _residual_norms(r)
         fl = r.flags
         out = {
             "optical_centre_mm": g.centre.position.tolist(),
@@ -395,8 +399,8 @@ class LensResult:
             "focus_distance_fitted_mm": g.focus_distance_fit_mm,
             "focus_distance_config_mm": g.focus_distance_config_mm,
             "focus_fit_spread_mm": None if g.focus is None else g.focus.spread_mm,
-            "ray_residual_mean_mm": float(res.mean()) if res.size else None,
-            "ray_residual_std_mm": float(res.std()) if res.size else None,
+            "ray_residual_mean_mm": float(res.mean(dtype=np.float64)) if res.size else None,
+            "ray_residual_std_mm": float(res.std(dtype=np.float64)) if res.size else None,
             "ray_residual_count": int(res.size),
             "pixels": len(fl),
             "pixels_usable": int(r.usable.sum()),
@@ -416,6 +420,19 @@ class LensResult:
             out["camera_rotation_deg"] = float(np.degrees(np.arccos(
                 np.clip((np.trace(g.rotation) - 1) / 2, -1, 1))))
         return out
+
+
+def _residual_norms(rays) -> np.ndarray:
+    """The usable rays' residual lengths (float32, flat) of the points in their fits, in
+    pixel blocks (no (D, N) temporaries)."""
+    n = len(rays.flags)
+    usable = rays.usable
+    out = []
+    for a0 in range(0, n, GRID_PIXELS):
+        sl = slice(a0, min(n, a0 + GRID_PIXELS))
+        res = np.linalg.norm(rays.residual[:, sl], axis=-1)
+        out.append(res[rays.used[:, sl] & usable[None, sl] & np.isfinite(res)])
+    return np.concatenate(out)
 
 
 def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,
