@@ -285,9 +285,13 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
     use_pinhole = K is not None and cfg.centre_method != "rays"
     if use_pinhole:
         w = volume.camera_size[0]
-        v, u = np.divmod(np.flatnonzero(usable), w)  # the usable rays' pixels
-        xn = pixel_to_normalized(np.stack([u, v], axis=1).astype(np.float64), K, dist)
-        del u, v
+        idx = np.flatnonzero(usable)  # the usable rays' pixels, normalised in blocks
+        xn = np.empty((len(idx), 2))
+        for a in range(0, len(idx), RAY_FIT_PIXELS):
+            v, u = np.divmod(idx[a:a + RAY_FIT_PIXELS], w)
+            xn[a:a + len(u)] = pixel_to_normalized(np.stack([u, v], axis=1).astype(np.float64),
+                                                   K, dist)
+        del idx
         try:
             for _ in range(30):  # fixed point: footprint and z_f depend on the centre
                 pin, rot = pinhole_centre(rays, usable, xn, plane, plane_var, centre_rays)
