@@ -27,17 +27,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.optics.projection import pixel_to_normalized
 from station.lens.rays import FLAG_FEW_DEPTHS, PrincipalRays, RayFitError
 
 HUBER_K = 2.0  # Huber threshold in robust-scale units for the ray intersection
+BLOCK_RAYS = 1 << 18  # rays per block of the intersection's sums
 
 
 @dataclass(frozen=True)
 class OpticalCentre:
-    """position : (3,) mm station frame; covariance : (3, 3) mm^2; weights : (N,) final
-    robust weights (0 for unused rays); distance : (N,) ray-to-centre distance, mm;
-    method : how it was found."""
+    """position : (3,) mm station frame; covariance : (3, 3) mm^2; weights : (N,) float32
+    final robust weights (0 for unused rays); distance : (N,) float32 ray-to-centre
+    distance, mm; method : how it was found."""
 
     position: np.ndarray
     covariance: np.ndarray
@@ -63,52 +63,80 @@ def intersect_rays(rays: PrincipalRays, use: np.ndarray | None = None,
         raise RayFitError(f"optical centre: {int(ok.sum())} usable principal ray(s); need >= 2 "
                           f"({int((rays.flags & FLAG_FEW_DEPTHS).astype(bool).sum())} pixels "
                           "have too few depths with signal)")
-    dirs = rays.directions()[ok]
-    a = np.concatenate([rays.xy_ref[ok], rays.z_ref[ok, None]], axis=1)
-    m = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]
-    robust = np.ones(ok.sum())
+    # sum_n w_n (I - d_n d_n^T) and its right-hand side in blocks of rays, without (n, 3, 3)
+    # temporaries: memory per ray is a few scalars whatever the sensor
+    idx = np.flatnonzero(ok)
+    n = len(idx)
+    blocks = [slice(b, min(n, b + BLOCK_RAYS)) for b in range(0, n, BLOCK_RAYS)]
+
+    def lines(b: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        j = idx[b]
+        d = np.concatenate([rays.slope[j], np.ones((len(j), 1))], axis=1)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        a = np.concatenate([rays.xy_ref[j], rays.z_ref[j, None]], axis=1)
+        return d, a, np.einsum("ni,ni->n", d, a)
+
+    robust = np.ones(n)
+    prior = np.empty(n)
+    dist = np.empty(n)
     z_c = float(np.mean(rays.z_ref[ok]))
     o = np.full(3, np.inf)
+
+    def normal() -> np.ndarray:
+        mat = np.zeros((3, 3))
+        for b in blocks:
+            d, _, _ = lines(b)
+            w = prior[b] * robust[b]
+            mat += np.eye(3) * w.sum() - np.einsum("n,ni,nj->ij", w, d, d)
+        return mat
+
     for _ in range(iterations):
         # a-priori lateral variance of each ray where it passes the current centre
-        prior = 1.0 / rays.var_at(np.full(len(ok), z_c))[ok]
-        w = prior * robust
-        mat = (w[:, None, None] * m).sum(axis=0)
-        rhs = (w[:, None, None] * m @ a[:, :, None]).sum(axis=0)[:, 0]
+        j = idx
+        prior[:] = 1.0 / (rays.var_ref[j] + (z_c - rays.z_ref[j]) ** 2 * rays.var_slope[j])
+        mat, rhs = normal(), np.zeros(3)
+        for b in blocks:
+            d, a, da = lines(b)
+            w = prior[b] * robust[b]
+            rhs += np.einsum("n,ni->i", w, a) - np.einsum("n,ni->i", w * da, d)
         o_prev, o = o, np.linalg.solve(mat, rhs)
         z_c = float(o[2])
-        r = np.einsum("nij,nj->ni", m, o - a)
-        dist = np.linalg.norm(r, axis=1)
+        for b in blocks:
+            d, a, da = lines(b)
+            dist[b] = np.linalg.norm((o - a) - d * (d @ o - da)[:, None], axis=1)
         scaled = dist * np.sqrt(prior)
         # a 2-D Gaussian miss has a Rayleigh length, median sigma * sqrt(ln 4)
         scale = np.median(scaled) / np.sqrt(np.log(4.0))
         new = _huber(scaled / max(scale, 1e-300))
+        del scaled
         done = np.allclose(new, robust, atol=1e-10) and np.allclose(o, o_prev, atol=1e-9, rtol=0)
         robust = new
         if done:
             break
     w = prior * robust
-    mat = (w[:, None, None] * m).sum(axis=0)
+    mat = normal()
     dof = max(2 * len(w) - 3, 1)
     s2 = float((w * dist**2).sum() / dof)
     cov = s2 * np.linalg.inv(mat)
-    weights = np.zeros(len(ok))
+    weights = np.zeros(len(ok), np.float32)
     weights[ok] = w
-    distance = np.full(len(ok), np.nan)
+    distance = np.full(len(ok), np.nan, np.float32)
     distance[ok] = dist
     return OpticalCentre(o, cov, weights, distance, "principal-ray intersection")
 
 
-def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, uv: np.ndarray, K: np.ndarray,
-                   dist: np.ndarray | None, focus_plane_z_mm: float,
-                   focus_plane_var_mm2: float, axis: OpticalCentre,
+def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
+                   focus_plane_z_mm: float, focus_plane_var_mm2: float, axis: OpticalCentre,
                    iterations: int = 20) -> tuple[OpticalCentre, np.ndarray]:
     """Optical centre consistent with K (see the module docstring).
 
+    xn : (n, 2) the usable pixels' normalised directions from K (``pixel_to_normalized``
+    of their (u, v), in the order of ``np.flatnonzero(usable)``).
     The in-focus points ``A_n`` (principal rays at the focus plane ``Z_F``) must be the
-    pixels' directions ``x_n`` (from K) scaled by z_f about the axis, up to a roll phi:
+    pixels' directions ``x_n`` scaled by z_f about the axis, up to a roll phi:
     ``A_n = o + z_f Rot(phi) x_n``, linear in ``(o_x, o_y, z_f cos phi, z_f sin phi)``
-    (robust: Huber-reweighted). The centre is at ``z = Z_F - z_f`` on the axis through the
+    (robust: Huber-reweighted; the 4 x 4 normal equations are summed per pixel, no (2n, 4)
+    design is built). The centre is at ``z = Z_F - z_f`` on the axis through the
     principal-ray intersection ``axis`` (its x, y; a camera tilt would enter ``o`` with a
     lever of z_f, and only 34 mm x tilt into the intersection). Covariance: x, y from the
     intersection, z from the fit's residuals plus the focus-plane variance propagated.
@@ -117,39 +145,65 @@ def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, uv: np.ndarray, K: n
     idx = np.flatnonzero(usable)
     if len(idx) < 3:
         raise RayFitError(f"pinhole optical centre: {len(idx)} usable principal rays; need >= 3")
-    xn = pixel_to_normalized(uv[idx], K, dist)
     n = len(idx)
-    a = np.zeros((2 * n, 4))
-    a[0::2, 0] = 1.0
-    a[1::2, 1] = 1.0
-    a[0::2, 2], a[0::2, 3] = xn[:, 0], -xn[:, 1]
-    a[1::2, 2], a[1::2, 3] = xn[:, 1], xn[:, 0]
-    data = rays.xy_at(focus_plane_z_mm)[idx].ravel()
-    slope = rays.slope[idx].ravel()  # d data / d Z_F
-    prior = np.repeat(1.0 / rays.var_at(focus_plane_z_mm)[idx], 2)
-    robust = np.ones(2 * n)
+    blocks = [slice(b, min(n, b + BLOCK_RAYS)) for b in range(0, n, BLOCK_RAYS)]
+    dz = focus_plane_z_mm - rays.z_ref[idx]
+    prior = 1.0 / (rays.var_ref[idx] + dz**2 * rays.var_slope[idx])
+    del dz
+
+    def data(b: slice) -> np.ndarray:  # the in-focus points of a block of rays
+        j = idx[b]
+        return rays.xy_ref[j] + rays.slope[j] * (focus_plane_z_mm - rays.z_ref[j])[:, None]
+
+    def normal(w: np.ndarray, slopes: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        # rows (1, 0, x0, -x1) for x and (0, 1, x1, x0) for y, both with weight w; np.dot,
+        # not @: a 1-D matmul goes through threaded BLAS, whose spinning threads cost ~15x
+        # the CPU time on a shared machine
+        dot = np.dot
+        ata, atb = np.zeros((4, 4)), np.zeros(4)
+        for b in blocks:
+            x0, x1, wb = xn[b, 0], xn[b, 1], w[b]
+            y = rays.slope[idx[b]] if slopes else data(b)
+            sw, s0, s1, sq = wb.sum(), dot(wb, x0), dot(wb, x1), dot(wb, x0 * x0 + x1 * x1)
+            ata += np.array([[sw, 0.0, s0, -s1], [0.0, sw, s1, s0], [s0, s1, sq, 0.0],
+                             [-s1, s0, 0.0, sq]])
+            wy0, wy1 = wb * y[:, 0], wb * y[:, 1]
+            atb += np.array([wy0.sum(), wy1.sum(), dot(wy0, x0) + dot(wy1, x1),
+                             dot(wy1, x0) - dot(wy0, x1)])
+        return ata, atb
+
+    def miss(theta: np.ndarray) -> np.ndarray:  # squared residual length per ray
+        out = np.empty(n)
+        for b in blocks:
+            x0, x1, y = xn[b, 0], xn[b, 1], data(b)
+            rx = y[:, 0] - (theta[0] + theta[2] * x0 - theta[3] * x1)
+            ry = y[:, 1] - (theta[1] + theta[2] * x1 + theta[3] * x0)
+            out[b] = rx * rx + ry * ry
+        return out
+
+    robust = np.ones(n)
     for _ in range(iterations):
-        w = prior * robust
-        ata = a.T @ (w[:, None] * a)
-        theta = np.linalg.solve(ata, a.T @ (w * data))
-        r = data - a @ theta
-        dist_n = np.hypot(r[0::2], r[1::2])
-        scaled = dist_n * np.sqrt(prior[0::2])
+        ata, atb = normal(prior * robust)
+        theta = np.linalg.solve(ata, atb)
+        dist_n = np.sqrt(miss(theta))
+        scaled = dist_n * np.sqrt(prior)
         scale = max(float(np.median(scaled)) / np.sqrt(np.log(4.0)), 1e-300)
-        new = np.repeat(np.where(scaled <= HUBER_K * scale, 1.0,
-                                 HUBER_K * scale / np.maximum(scaled, 1e-300)), 2)
+        new = np.where(scaled <= HUBER_K * scale, 1.0,
+                       HUBER_K * scale / np.maximum(scaled, 1e-300))
+        del scaled
         done = np.allclose(new, robust, atol=1e-10)
         robust = new
         if done:
             break
     w = prior * robust
-    ata_inv = np.linalg.inv(a.T @ (w[:, None] * a))
-    s2 = float((w * r * r).sum()) / max(2 * n - 4, 1)
+    ata, _ = normal(w)
+    ata_inv = np.linalg.inv(ata)
+    s2 = float((w * dist_n**2).sum()) / max(2 * n - 4, 1)
     ca, cb = theta[2], theta[3]
     z_f = float(np.hypot(ca, cb))
     jac = np.array([ca, cb]) / z_f
     var_zf = float(jac @ (s2 * ata_inv[2:, 2:]) @ jac)
-    dtheta = ata_inv @ (a.T @ (w * slope))
+    dtheta = ata_inv @ normal(w, slopes=True)[1]
     dz_o = 1.0 - float(jac @ dtheta[2:])
     cov = np.array(axis.covariance, dtype=np.float64, copy=True)
     cov[2, :] = cov[:, 2] = 0.0
@@ -158,8 +212,8 @@ def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, uv: np.ndarray, K: n
     phi = float(np.arctan2(cb, ca))
     rot = np.array([[np.cos(phi), np.sin(phi), 0.0], [-np.sin(phi), np.cos(phi), 0.0],
                     [0.0, 0.0, 1.0]])
-    weights = np.zeros(len(usable))
-    weights[idx] = w[0::2]
-    distance = np.full(len(usable), np.nan)
+    weights = np.zeros(len(usable), np.float32)
+    weights[idx] = w
+    distance = np.full(len(usable), np.nan, np.float32)
     distance[idx] = dist_n
     return OpticalCentre(o, cov, weights, distance, "pinhole: in-focus points vs K"), rot

@@ -98,11 +98,32 @@ def window_stats(
                        region=region, status=status)
 
 
+def region_stats(h: np.ndarray, use: np.ndarray, sigma: np.ndarray) -> WindowStats:
+    """``window_stats`` of windows already checked (the centroid pass checked every one):
+    h (n, P, P) float64 C-contiguous, finite where ``use`` (n,), zero elsewhere (no signal);
+    no NaN copy of the windows, no checks (the aperture pass: the same regions and
+    centroids). ``h`` is set to 0 outside each window's region, in place."""
+    if h.dtype != np.float64 or not h.flags.c_contiguous:
+        raise ValueError("region_stats: h must be a C-contiguous float64 array (set in place)")
+    sigma = np.ascontiguousarray(sigma, dtype=np.float64).ravel()
+    n, p = h.shape[0], h.shape[1]
+    cen, std = np.empty((n, 2)), np.empty((n, 2))
+    mom, tr_std = np.empty((n, 3)), np.empty(n)
+    region, status = np.empty((n, p, p), dtype=bool), np.empty(n, dtype=np.int8)
+    stats_kernel(h, sigma, np.ascontiguousarray(use, dtype=bool), NOISE_SIGMAS, PEAK_FRACTION,
+                 REGION_MARGIN_PX, cen, std, mom, tr_std, region, status, True)
+    return WindowStats(centroid=cen, centroid_std=std, moments=mom, trace_std=tr_std,
+                       region=region, status=status)
+
+
 @dataclass(frozen=True)
 class Centroids:
     """Centroids of every pixel at every depth.
 
-    xy_lcd_px : (D, H, W, 2) float64 LCD (x, y) pixels; std_lcd_px : (D, H, W, 2) float32.
+    xy_lcd_px : (D, H, W, 2) float64 LCD (x, y) pixels (float32 in a ``LensGeometry``: 2e-4
+    px at 3840 px, far below the centroid noise; the rays are fitted from the float64 ones);
+    std_lcd_px : (D, H, W, 2) float32 (None in a ``LensGeometry``: only the principal-ray
+    fit needs it).
     moments_px2 : (D, H, W, 3) float32 m_xx, m_yy, m_xy in LCD px^2; trace_std_px2 :
     (D, H, W) float32 (float32: relative precision 6e-8, far below their noise; half the
     memory of a full-size sensor's six depths).
@@ -140,7 +161,8 @@ def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
     task, ``WINDOWS_PER_BATCH`` windows at once, so memory does not grow with the sensor
     and each stored chunk is decoded once. engine : where the tasks run
     (``station.ltc.parallel.Engine``; default: in this process), bit-identical results
-    whatever the engine. ``progress``: a bar over the tasks."""
+    whatever the engine. ``progress``: a bar over the tasks. (The lens derivation runs
+    this pass with its ray fit: ``station.lens.geometry.centroids_and_rays``.)"""
     from station.ltc.parallel import Engine, run_ordered
 
     d = len(volume.depths_mm)

@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from sim.optics.measured_lens import LensFileWriter, MeasuredLens, read_lens_nodes
 from station.lens import aperture as ap
-from station.lens.centroids import window_stats
+from station.lens.centroids import region_stats
 from station.ltc.parallel import Engine, run_ordered
 from station.ltc.store import LtcVolume
 from station.lens.geometry import (
@@ -43,7 +43,7 @@ from station.lens.geometry import (
     fit_geometry,
     footprint_mm,
 )
-from station.lens.rays import FLAG_BAD_FIT, FLAG_FEW_DEPTHS, FLAG_OUTLIER
+from station.lens.rays import FLAG_BAD_FIT, FLAG_FEW_DEPTHS, FLAG_OUTLIER, UNUSABLE
 from station.lens.zones import fit_focus_zones
 
 GRID_MARGIN = 1.2  # aperture grid half-width over the largest pupil extent seen
@@ -81,10 +81,13 @@ def aperture_grid(geom: LensGeometry, cfg: LensFitConfig) -> ap.ApertureGrid:
     s = ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, zc)
     moments = c.moments_px2.reshape(d, -1, 3)
     n = moments.shape[1]
-    parts = []
-    for a0 in range(0, n, GRID_PIXELS):
-        sl = slice(a0, min(n, a0 + GRID_PIXELS))
-        use = rays.used[:, sl] & rays.usable[None, sl]  # not empty: the centre needed rays
+    usable = rays.usable
+    blocks = [slice(a0, min(n, a0 + GRID_PIXELS)) for a0 in range(0, n, GRID_PIXELS)]
+    # one array of every used (depth, pixel) reach, partitioned in place by the percentile
+    reach_all = np.empty(sum(int((rays.used[:, b] & usable[None, b]).sum()) for b in blocks))
+    at = 0
+    for sl in blocks:
+        use = rays.used[:, sl] & usable[None, sl]  # not empty: the centre needed rays
         mom = moments[:, sl] * c.pitch_mm**2 * (s**2)[:, None, None]
         lam = 0.5 * (mom[..., 0] + mom[..., 1]) + np.hypot(0.5 * (mom[..., 0] - mom[..., 1]),
                                                            mom[..., 2])
@@ -92,8 +95,11 @@ def aperture_grid(geom: LensGeometry, cfg: LensFitConfig) -> ap.ApertureGrid:
              - geom.centre.position[:2])
         reach = np.abs(a).max(axis=1)[None] + 2.0 * np.sqrt(np.maximum(lam, 0.0))
         reach = reach + 0.5 * c.pitch_mm * np.abs(s)[:, None]
-        parts.append(reach[use])
-    half = GRID_MARGIN * float(np.percentile(np.concatenate(parts), EXTENT_PERCENTILE))
+        got = reach[use]
+        reach_all[at:at + len(got)] = got
+        at += len(got)
+    half = GRID_MARGIN * float(np.percentile(reach_all, EXTENT_PERCENTILE,
+                                             overwrite_input=True))
     return ap.ApertureGrid(half, cfg.aperture_cells)
 
 
@@ -148,7 +154,7 @@ def pixel_inputs(geom: LensGeometry, pix: np.ndarray,
     xy_ref, slope, z_ref = rays.xy_ref[pix], rays.slope[pix], rays.z_ref[pix]
     return {"xy_ref": xy_ref, "slope": slope, "z_ref": z_ref,
             "at_centre": local_ray_centres(geom, pix, cfg.ray_window_px),
-            "used": rays.used[:, pix], "usable": rays.usable[pix],
+            "used": rays.used[:, pix], "usable": (rays.flags[pix] & UNUSABLE) == 0,
             "mom": c.moments_px2.reshape(d, -1, 3)[:, pix].astype(np.float64)}
 
 
@@ -189,9 +195,9 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
             used = inp["used"][i, idx] & usable
             if not used.any():
                 continue
-            h = ltc[i, loc].astype(np.float64)
-            st = window_stats(np.where(used[:, None, None], h, np.nan), noise[i, loc])
-            hh = np.where(st.region, h, 0.0)
+            h = ltc[i, loc].astype(np.float64)  # a copy: zeroed in place
+            h[~used] = 0.0  # (NaN where no signal)
+            st = region_stats(h, used, noise[i, loc])  # h: 0 outside each region
             # each depth's LTC is placed by its own centroid onto the principal ray at the
             # centre's plane: the depths' noisy residuals (x |s_i| ~ 5 at the extreme
             # depths) neither shift nor blur the fused distribution
@@ -199,7 +205,7 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
                                                                  - inp["z_ref"][idx])[:, None]
             own = (st.centroid + origin[i, loc]) * c_pitch
             at_depth = np.where(np.isfinite(own), own, at_depth)
-            m = ap.resample(hh, origin[i, loc], at_depth, inp["at_centre"][idx], s[i], c_pitch,
+            m = ap.resample(h, origin[i, loc], at_depth, inp["at_centre"][idx], s[i], c_pitch,
                             grid, job.rot2, cfg.supersample)
             cov_i = m.sum(axis=(1, 2))
             coverage[:, i] = np.where(used, cov_i, 0.0)
@@ -272,12 +278,21 @@ def local_ray_centres(geom: LensGeometry, pixels: np.ndarray, radius_px: int) ->
     """Principal rays of the given flat pixels on the optical centre's plane, minus the
     centre (n, 2) mm, station frame, by ``local_plane_fit`` over ``radius_px``: the ray's
     per-pixel noise (centroid noise magnified ~4x by the extrapolation from the LCD depths
-    to the centre) averages out."""
+    to the centre) averages out. Only the rows the pixels' windows reach are evaluated, so
+    a block's cost does not grow with the sensor."""
     rays = geom.rays
-    zc = float(geom.centre.position[2])
-    own = rays.xy_at(zc) - geom.centre.position[:2]
-    return local_plane_fit(own, rays.var_at(zc), rays.usable, geom.camera_size, pixels,
-                           radius_px)
+    w, h = geom.camera_size
+    pixels = np.asarray(pixels, dtype=np.int64)
+    if not len(pixels):
+        return np.zeros((0, 2))
+    v0 = max(0, int(pixels.min()) // w - radius_px)
+    v1 = min(h, int(pixels.max()) // w + radius_px + 1)
+    band = slice(v0 * w, v1 * w)
+    dz = float(geom.centre.position[2]) - rays.z_ref[band]
+    own = rays.xy_ref[band] + rays.slope[band] * dz[:, None] - geom.centre.position[:2]
+    var = rays.var_ref[band] + dz**2 * rays.var_slope[band]
+    return local_plane_fit(own, var, (rays.flags[band] & UNUSABLE) == 0, (w, v1 - v0),
+                           pixels - v0 * w, radius_px)
 
 
 def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
@@ -374,8 +389,7 @@ class LensResult:
         """A JSON-able report of what was measured."""
         g = self.geometry
         r = g.rays
-        res = r.residual_norm()
-        res = res[np.isfinite(res) & r.usable[None]]
+        res = _residual_norms(r)
         fl = r.flags
         out = {
             "optical_centre_mm": g.centre.position.tolist(),
@@ -388,8 +402,8 @@ class LensResult:
             "focus_distance_fitted_mm": g.focus_distance_fit_mm,
             "focus_distance_config_mm": g.focus_distance_config_mm,
             "focus_fit_spread_mm": None if g.focus is None else g.focus.spread_mm,
-            "ray_residual_mean_mm": float(res.mean()) if res.size else None,
-            "ray_residual_std_mm": float(res.std()) if res.size else None,
+            "ray_residual_mean_mm": float(res.mean(dtype=np.float64)) if res.size else None,
+            "ray_residual_std_mm": float(res.std(dtype=np.float64)) if res.size else None,
             "ray_residual_count": int(res.size),
             "pixels": len(fl),
             "pixels_usable": int(r.usable.sum()),
@@ -409,6 +423,19 @@ class LensResult:
             out["camera_rotation_deg"] = float(np.degrees(np.arccos(
                 np.clip((np.trace(g.rotation) - 1) / 2, -1, 1))))
         return out
+
+
+def _residual_norms(rays) -> np.ndarray:
+    """The usable rays' residual lengths (float32, flat) of the points in their fits, in
+    pixel blocks (no (D, N) temporaries)."""
+    n = len(rays.flags)
+    usable = rays.usable
+    out = []
+    for a0 in range(0, n, GRID_PIXELS):
+        sl = slice(a0, min(n, a0 + GRID_PIXELS))
+        res = np.linalg.norm(rays.residual[:, sl], axis=-1)
+        out.append(res[rays.used[:, sl] & usable[None, sl] & np.isfinite(res)])
+    return np.concatenate(out)
 
 
 def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,
@@ -445,7 +472,9 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
     writer = LensFileWriter(out, nu, nv, k) if out is not None else None
     try:
         good = np.zeros(shape, dtype=bool)
-        cov = np.zeros(shape + (2, 2))  # the nodes' target covariances: the zone fit's start
+        zoned = cfg.focus_zones and geom.camera_matrix is not None
+        # the nodes' target covariances: the zone fit's start (only then: 32 B per node)
+        cov = np.zeros(shape + (2, 2)) if zoned else None
         if writer is None:
             x = np.zeros(shape + (k, 2))
             wk = np.zeros(shape + (k,))
@@ -475,7 +504,8 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
             sub = (len(jv), len(iu))
             g = (res["ok"] & res["w"].any(axis=1)).reshape(sub)
             good[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = g
-            cov[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = res["cov"].reshape(sub + (2, 2))
+            if cov is not None:
+                cov[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = res["cov"].reshape(sub + (2, 2))
             xs, ws = res["x"].reshape(sub + (k, 2)), res["w"].reshape(sub + (k,))
             if writer is None:
                 x[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = xs
@@ -507,7 +537,7 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
             del flat
         trans = _transmittance(volume, geom.centroids.valid, nu, nv)
         zones, zone_fit = None, None
-        if cfg.focus_zones and geom.camera_matrix is not None:
+        if zoned:
             pix = (nv[:, None] * w + nu[None, :]).ravel()
             found = fit_focus_zones(volume, float(geom.centre.position[2]), geom.camera_matrix,
                                     geom.focus_distance_mm,

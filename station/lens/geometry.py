@@ -26,14 +26,10 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from sim.optics.projection import pixel_to_normalized
 from station.lens.centre import OpticalCentre, intersect_rays, pinhole_centre
-from station.lens.centroids import Centroids, compute_centroids
-from station.lens.rays import (
-    PrincipalRays,
-    RayFitError,
-    concatenate_rays,
-    fit_principal_rays,
-)
+from station.lens.centroids import STATUS_OK, Centroids
+from station.lens.rays import PrincipalRays, RayFitError, fit_principal_rays
 from station.ltc.store import LtcVolume
 
 LCD_BIN_VAR = 1.0 / 12.0  # variance of an LCD pixel box, pitch^2
@@ -97,7 +93,8 @@ class LensFitConfig(BaseModel):
 @dataclass(frozen=True)
 class FocusFit:
     """plane_z_mm : station z of the focus plane; plane_std_mm : its standard error;
-    per_pixel_z_mm : (N,) vertices (NaN where not fitted); spread_mm : robust std of those."""
+    per_pixel_z_mm : (N,) float32 vertices (NaN where not fitted); spread_mm : robust std of
+    those."""
 
     plane_z_mm: float
     plane_std_mm: float
@@ -120,35 +117,46 @@ def footprint_mm(depths_mm: np.ndarray, centre_z_mm: float, K: np.ndarray | None
 
 def fit_focus_plane(c: Centroids, usable: np.ndarray, centre_z_mm: float,
                     K: np.ndarray | None, pixel_samples: int = 0) -> FocusFit | None:
-    """Per-pixel quadratic fit of the de-blurred LTC second moment over depth; None if fewer
+    """Per-pixel quadratic fit of the de-blurred LTC second moment over depth (in pixel
+    blocks of ``RAY_FIT_PIXELS``: temporaries do not grow with the sensor); None if fewer
     than 3 depths or no pixel gives a minimum."""
     d = len(c.depths_mm)
     if d < 3:
         return None
     p2 = c.pitch_mm**2
     fp = footprint_mm(c.depths_mm, centre_z_mm, K, pixel_samples)
-    tr = (c.moments_px2[..., 0] + c.moments_px2[..., 1]).reshape(d, -1) * p2
-    tr = tr - 2 * LCD_BIN_VAR * p2 - 2 * (fp**2 / 12.0)[:, None]
-    var = (c.trace_std_px2.reshape(d, -1) * p2) ** 2 + (TRACE_REL_FLOOR * tr) ** 2 + 1e-12
-    ok = c.valid.reshape(d, -1) & usable[None] & np.isfinite(tr)
-    w = np.where(ok, 1.0 / var, 0.0)
     z0 = float(np.mean(c.depths_mm))
     dz = (c.depths_mm - z0)[:, None]
-    a = np.broadcast_to(np.concatenate([np.ones_like(dz), dz, dz**2], axis=1)[:, None, :],
-                        (d, w.shape[1], 3))  # design (D, N, 3): 1, dz, dz^2
-    ata = np.einsum("dn,dni,dnj->nij", w, a, a)
-    atb = np.einsum("dn,dni,dn->ni", w, a, np.where(ok, tr, 0.0))
-    good = ok.sum(axis=0) >= 3
-    ata[~good] = np.eye(3)
-    coef = np.linalg.solve(ata, atb[..., None])[..., 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        vertex = z0 - coef[:, 1] / (2 * coef[:, 2])
     span = np.ptp(c.depths_mm)
-    good &= (coef[:, 2] > 0) & (np.abs(vertex - z0) < 2 * span)
-    z = np.where(good, vertex, np.nan)
-    if not good.any():
+    mom = c.moments_px2.reshape(d, -1, 3)
+    tstd = c.trace_std_px2.reshape(d, -1)
+    valid = c.valid.reshape(d, -1)
+    n = mom.shape[1]
+    z = np.full(n, np.nan, np.float32)
+    found = []  # the vertices in float64 for the median (float32 per pixel for the record)
+    for a0 in range(0, n, RAY_FIT_PIXELS):
+        sl = slice(a0, min(n, a0 + RAY_FIT_PIXELS))
+        tr = (mom[:, sl, 0] + mom[:, sl, 1]) * p2
+        tr = tr - 2 * LCD_BIN_VAR * p2 - 2 * (fp**2 / 12.0)[:, None]
+        var = (tstd[:, sl] * p2) ** 2 + (TRACE_REL_FLOOR * tr) ** 2 + 1e-12
+        ok = valid[:, sl] & usable[None, sl] & np.isfinite(tr)
+        w = np.where(ok, 1.0 / var, 0.0)
+        a = np.broadcast_to(np.concatenate([np.ones_like(dz), dz, dz**2], axis=1)[:, None, :],
+                            (d, w.shape[1], 3))  # design (D, n, 3): 1, dz, dz^2
+        ata = np.einsum("dn,dni,dnj->nij", w, a, a)
+        atb = np.einsum("dn,dni,dn->ni", w, a, np.where(ok, tr, 0.0))
+        good = ok.sum(axis=0) >= 3
+        ata[~good] = np.eye(3)
+        coef = np.linalg.solve(ata, atb[..., None])[..., 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            vertex = z0 - coef[:, 1] / (2 * coef[:, 2])
+        good &= (coef[:, 2] > 0) & (np.abs(vertex - z0) < 2 * span)
+        z[sl] = np.where(good, vertex, np.nan)
+        found.append(vertex[good])
+    zg = np.concatenate(found)
+    del found
+    if not len(zg):
         return None
-    zg = z[good]
     med = float(np.median(zg))
     spread = float(1.4826 * np.median(np.abs(zg - med)))
     return FocusFit(med, 1.2533 * spread / np.sqrt(len(zg)), z, spread)
@@ -194,6 +202,70 @@ def _focus_plane(fit: FocusFit | None, z_f_config: float | None, centre_z: float
     return fit.plane_z_mm, fit.plane_std_mm**2
 
 
+def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = False,
+                       engine=None) -> tuple[Centroids, PrincipalRays]:
+    """The centroid pass (``centroid_rows`` per depth of each stored chunk, on ``engine``)
+    with each chunk's principal rays fitted as soon as all its depths have arrived (from
+    the float64 centroids and their stds, which are then dropped): the geometry holds
+    float32 centroids and moments and no centroid std (``Centroids.std_lcd_px`` is None),
+    so memory per pixel stays what the later fits need. Same values as
+    ``compute_centroids`` then ``fit_principal_rays`` (rays are per pixel)."""
+    from tqdm import tqdm
+
+    from station.lens.centroids import STATUS_NO_SIGNAL, centroid_rows
+    from station.ltc.parallel import Engine, run_ordered
+
+    d = len(volume.depths_mm)
+    w, h = volume.camera_size
+    chunks = getattr(volume.ltc, "chunks", None)
+    rows = volume.chunk_rows
+    cols = int(chunks[2]) if chunks else w
+    f4 = np.float32
+    out = {"xy": np.full((d, h, w, 2), np.nan, f4), "mom": np.full((d, h, w, 3), np.nan, f4),
+           "tstd": np.full((d, h, w), np.nan, f4),
+           "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
+    rays = PrincipalRays.empty(d, w * h)
+    z = volume.depths_mm.reshape(d, 1, 1)
+    tasks = [(i, r0, min(h, r0 + rows), c0, min(w, c0 + cols))
+             for r0 in range(0, h, rows) for c0 in range(0, w, cols) for i in range(d)]
+    bar = tqdm(total=len(tasks), desc="lens: centroids", unit="block",
+               disable=None if progress else True)
+    waiting: dict[tuple[int, int], dict[int, dict]] = {}
+
+    def on_result(key, part) -> None:
+        i, r0, r1, c0, c1 = key
+        for name in out:
+            out[name][i, r0:r1, c0:c1] = part[name]
+        got = waiting.setdefault((r0, c0), {})
+        got[i] = part
+        bar.update()
+        if len(got) < d:
+            return
+        del waiting[(r0, c0)]
+        pix = (np.arange(r0, r1)[:, None] * w + np.arange(c0, c1)[None, :]).ravel()
+        xy = np.stack([got[j]["xy"].reshape(-1, 2) for j in range(d)]) * volume.pitch_mm
+        rays.put(pix, fit_principal_rays(
+            np.concatenate([xy, np.broadcast_to(z, xy.shape[:2] + (1,))], axis=-1),
+            # float32 stds, as compute_centroids holds them
+            np.stack([got[j]["std"].reshape(-1, 2) for j in range(d)]).astype(np.float32)
+            * volume.pitch_mm,
+            np.stack([got[j]["status"].ravel() == STATUS_OK for j in range(d)]),
+            min_depths=min(cfg.min_depths, d), outlier_sigma=cfg.outlier_sigma,
+            max_outliers=cfg.max_outliers, floor_mm=cfg.ray_floor_mm))
+
+    own = engine is None
+    engine = engine or Engine(1)
+    try:
+        run_ordered(engine, ((t, centroid_rows, (volume,) + t) for t in tasks), on_result)
+    finally:
+        bar.close()
+        if own:
+            engine.close()
+    c = Centroids(out["xy"], None, out["mom"], out["tstd"], out["status"],
+                  volume.depths_mm.copy(), float(volume.pitch_mm))
+    return c, rays
+
+
 def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
                  K: np.ndarray | None = None, dist: np.ndarray | None = None,
                  progress: bool = False, engine=None) -> LensGeometry:
@@ -209,22 +281,7 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
     if cfg.centre_method == "pinhole" and K is None:
         raise LensFitError(f"{volume.name}: centre_method 'pinhole' needs the camera matrix K "
                            "(store attribute camera_matrix, or --rig)")
-    c = compute_centroids(volume, progress=progress, engine=engine)
-    d = len(c.depths_mm)
-    n = c.status[0].size
-    parts = []  # per pixel, so fitted in blocks: temporaries do not grow with the sensor
-    for a in range(0, n, RAY_FIT_PIXELS):
-        sl = slice(a, min(n, a + RAY_FIT_PIXELS))
-        xy = c.xy_lcd_px.reshape(d, n, 2)[:, sl] * c.pitch_mm
-        z = np.broadcast_to(c.depths_mm.reshape(d, 1, 1), xy.shape[:2] + (1,))
-        parts.append(fit_principal_rays(
-            np.concatenate([xy, z], axis=-1),
-            c.std_lcd_px.reshape(d, n, 2)[:, sl] * c.pitch_mm,
-            c.valid.reshape(d, n)[:, sl], min_depths=min(cfg.min_depths, d),
-            outlier_sigma=cfg.outlier_sigma, max_outliers=cfg.max_outliers,
-            floor_mm=cfg.ray_floor_mm))
-    rays = concatenate_rays(parts)
-    del parts
+    c, rays = centroids_and_rays(volume, cfg, progress=progress, engine=engine)
     usable = rays.usable
     notes: list[str] = []
     try:
@@ -238,13 +295,17 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
     centre, rot, pin = centre_rays, np.eye(3), None
     use_pinhole = K is not None and cfg.centre_method != "rays"
     if use_pinhole:
-        w, h = volume.camera_size
-        v, u = np.divmod(np.arange(w * h), w)
-        uv = np.stack([u, v], axis=1).astype(np.float64)  # flat pixel order of the rays
+        w = volume.camera_size[0]
+        idx = np.flatnonzero(usable)  # the usable rays' pixels, normalised in blocks
+        xn = np.empty((len(idx), 2))
+        for a in range(0, len(idx), RAY_FIT_PIXELS):
+            v, u = np.divmod(idx[a:a + RAY_FIT_PIXELS], w)
+            xn[a:a + len(u)] = pixel_to_normalized(np.stack([u, v], axis=1).astype(np.float64),
+                                                   K, dist)
+        del idx
         try:
             for _ in range(30):  # fixed point: footprint and z_f depend on the centre
-                pin, rot = pinhole_centre(rays, usable, uv, K, dist, plane, plane_var,
-                                          centre_rays)
+                pin, rot = pinhole_centre(rays, usable, xn, plane, plane_var, centre_rays)
                 fit = fit_focus_plane(c, usable, float(pin.position[2]), K,
                                       cfg.pixel_samples)
                 new_plane, plane_var = _focus_plane(fit, zf_cfg, float(pin.position[2]),
@@ -253,9 +314,10 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
                 plane = new_plane
                 if moved < 1e-9:
                     break
-            pin, rot = pinhole_centre(rays, usable, uv, K, dist, plane, plane_var, centre_rays)
+            pin, rot = pinhole_centre(rays, usable, xn, plane, plane_var, centre_rays)
         except RayFitError as exc:
             raise LensFitError(f"{volume.name}: {exc}") from exc
+        del xn
         centre = pin
     else:
         if K is None:

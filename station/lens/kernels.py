@@ -19,10 +19,12 @@ import numpy as np
 
 @numba.njit(cache=True, nogil=True)
 def stats_kernel(h, sigma, signal, noise_sigmas, peak_fraction, margin,
-                 centroid, centroid_std, moments, trace_std, region_out, status_out):
+                 centroid, centroid_std, moments, trace_std, region_out, status_out,
+                 zero_outside=False):
     """Per window n: h (n, P, P) float64 (NaN windows already zeroed), sigma (n,), signal (n,)
     bool; writes centroid (n, 2), centroid_std (n, 2), moments (n, 3), trace_std (n,),
-    region_out (n, P, P) bool, status_out (n,) int8 (0 ok, 1 no signal, 2 truncated)."""
+    region_out (n, P, P) bool, status_out (n,) int8 (0 ok, 1 no signal, 2 truncated);
+    ``zero_outside``: also set h to 0 outside region_out (the aperture pass's windows)."""
     n, p = h.shape[0], h.shape[1]
     sm = np.empty((p, p))
     tmp = np.empty((p, p))
@@ -167,6 +169,8 @@ def stats_kernel(h, sigma, signal, noise_sigmas, peak_fraction, margin,
         for i in range(p):
             for j in range(p):
                 region_out[k, i, j] = region[i, j] and ok
+                if zero_outside and not region_out[k, i, j]:
+                    hz[i, j] = 0.0
 
 
 OFFSET_I = 1 << 20  # added before truncating LCD coordinates (|index| << 2^20), exact in float64
@@ -409,6 +413,8 @@ def lloyd_kernel(mass, centres, x, w, iterations):
     cy = np.empty(ncell)
     cm = np.empty(ncell)
     lab = np.empty(ncell, dtype=np.int64)
+    nl = np.empty(ncell, dtype=np.int64)
+    bd = np.empty(ncell)
     sx = np.empty(k)
     sy = np.empty(k)
     sw = np.empty(k)
@@ -422,21 +428,26 @@ def lloyd_kernel(mass, centres, x, w, iterations):
                     lab[na] = -1
                     na += 1
         for it in range(iterations):
+            # nearest sample of every cell, sample by sample over all cells (a loop the
+            # compiler vectorises); strict < keeps the first nearest, as a per-cell scan does
+            for c in range(na):
+                bd[c] = np.inf
+            for j in range(k):
+                xj, yj = x[m, j, 0], x[m, j, 1]
+                for c in range(na):
+                    dx = cx[c] - xj
+                    dy = cy[c] - yj
+                    d = dx * dx + dy * dy
+                    closer = d < bd[c]
+                    bd[c] = d if closer else bd[c]
+                    nl[c] = j if closer else nl[c]
             changed = False
             for j in range(k):
                 sx[j] = 0.0
                 sy[j] = 0.0
                 sw[j] = 0.0
             for c in range(na):
-                best = 0
-                bd = np.inf
-                for j in range(k):
-                    dx = cx[c] - x[m, j, 0]
-                    dy = cy[c] - x[m, j, 1]
-                    d = dx * dx + dy * dy
-                    if d < bd:
-                        bd = d
-                        best = j
+                best = nl[c]
                 if best != lab[c]:
                     changed = True
                     lab[c] = best

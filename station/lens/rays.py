@@ -38,8 +38,9 @@ class PrincipalRays:
 
     z_ref : (N,) weighted mean depth, mm; xy_ref : (N, 2) line position there, mm;
     slope : (N, 2) dx/dz, dy/dz; var_ref, var_slope : (N,) per-axis variances of those from
-    the a-priori weights. residual : (D, N, 2) measured minus fitted, mm (NaN where no point);
-    used : (D, N) points in the fit; weight : (D, N) their weights, 1/mm^2; flags : (N,).
+    the a-priori weights. residual : (D, N, 2) float32 measured minus fitted, mm (NaN where no
+    point; float32: far below the centroid noise, half the memory of a full-size sensor);
+    used : (D, N) points in the fit; flags : (N,).
     """
 
     z_ref: np.ndarray
@@ -49,8 +50,24 @@ class PrincipalRays:
     var_slope: np.ndarray
     residual: np.ndarray
     used: np.ndarray
-    weight: np.ndarray
     flags: np.ndarray
+
+    @classmethod
+    def empty(cls, d: int, n: int) -> "PrincipalRays":
+        """Rays of n pixels and d depths, to be filled block by block (``put``)."""
+        return cls(np.empty(n), np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n),
+                   np.empty((d, n, 2), np.float32), np.empty((d, n), bool),
+                   np.empty(n, np.int8))
+
+    def put(self, sl: slice | np.ndarray, part: "PrincipalRays") -> None:
+        """Copy the rays of pixels ``sl`` (a slice or flat indices) from ``part`` (pixel
+        axis: 0 of the per-pixel arrays, 1 of the (D, N, ...) ones)."""
+        for f in fields(self):
+            dst = getattr(self, f.name)
+            if f.name in ("residual", "used"):
+                dst[:, sl] = getattr(part, f.name)
+            else:
+                dst[sl] = getattr(part, f.name)
 
     @property
     def usable(self) -> np.ndarray:
@@ -89,16 +106,6 @@ def _line_fit(z: np.ndarray, xy: np.ndarray, w: np.ndarray):
     szz_safe = np.where(szz > 0, szz, 1.0)
     s = (w[..., None] * dz[..., None] * (xyw - c)).sum(axis=0) / szz_safe[:, None]
     return z_ref, c, s, 1.0 / safe, 1.0 / szz_safe
-
-
-def concatenate_rays(parts: list[PrincipalRays]) -> PrincipalRays:
-    """The rays of consecutive pixel blocks as one :class:`PrincipalRays` (pixel axis: 0 of
-    the per-pixel arrays, 1 of the (D, N, ...) ones)."""
-    per_depth = {"residual", "used", "weight"}
-    return PrincipalRays(**{
-        f.name: np.concatenate([getattr(q, f.name) for q in parts],
-                               axis=1 if f.name in per_depth else 0)
-        for f in fields(PrincipalRays)})
 
 
 def fit_principal_rays(
@@ -151,6 +158,5 @@ def fit_principal_rays(
         flags = np.where(can, flags | FLAG_OUTLIER, flags)
         if not can.any():
             break
-    res = np.where(used[..., None], res, np.nan)
-    return PrincipalRays(z_ref, c, s, vr, vs, res, used, np.where(used, w0, 0.0),
-                         flags.astype(np.int8))
+    res = np.where(used[..., None], res, np.nan).astype(np.float32)
+    return PrincipalRays(z_ref, c, s, vr, vs, res, used, flags.astype(np.int8))

@@ -407,7 +407,8 @@ def test_samples_match_moments():
 
 def test_ray_fit_in_pixel_blocks_equals_one_block(bench, truth, monkeypatch):
     """The principal rays are fitted per pixel, so fitting them in blocks (memory bounded
-    whatever the sensor) changes nothing, bit for bit."""
+    whatever the sensor) changes nothing, bit for bit; the optical centres summed over
+    blocks of rays agree to rounding."""
     import dataclasses
 
     from station.lens import geometry
@@ -420,6 +421,15 @@ def test_ray_fit_in_pixel_blocks_equals_one_block(bench, truth, monkeypatch):
         np.testing.assert_array_equal(getattr(blocks.rays, f.name), getattr(whole.rays, f.name),
                                       err_msg=f.name)
     np.testing.assert_array_equal(blocks.centre.position, whole.centre.position)
+    # the centre fits sum over blocks of rays: only the order of the sums changes
+    from station.lens import centre
+
+    monkeypatch.setattr(centre, "BLOCK_RAYS", 53)
+    summed = geometry.fit_geometry(vol)
+    for a, b in ((summed.centre_rays, whole.centre_rays), (summed.centre, whole.centre)):
+        np.testing.assert_allclose(a.position, b.position, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-9, atol=1e-15)
+        np.testing.assert_array_equal(a.weights > 0, b.weights > 0)
 
 
 def test_local_plane_fit_passes_a_linear_field_and_averages_the_noise():
