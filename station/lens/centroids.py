@@ -163,7 +163,6 @@ def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
     (``station.ltc.parallel.Engine``; default: in this process), bit-identical results
     whatever the engine. ``progress``: a bar over the tasks. (The lens derivation runs
     this pass with its ray fit: ``station.lens.geometry.centroids_and_rays``.)"""
-    from station.ltc.parallel import Engine, run_ordered
 
     d = len(volume.depths_mm)
     w, h = volume.camera_size
@@ -185,6 +184,17 @@ def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
             out[name][i, r0:r1, c0:c1] = value
         bar.update()
 
+    run_centroid_blocks(volume, tasks, on_result, engine, bar)
+    return Centroids(out["xy"], out["std"], out["mom"], out["tstd"], out["status"],
+                     volume.depths_mm.copy(), float(volume.pitch_mm))
+
+
+def run_centroid_blocks(volume: LtcVolume, tasks: list, on_result, engine, bar) -> None:
+    """Compute ``centroid_rows`` of every (depth, r0, r1, c0, c1) in ``tasks`` on ``engine``
+    (default: in this process), calling ``on_result(task, part)`` as each finishes; closes
+    the progress ``bar`` and any engine it started."""
+    from station.ltc.parallel import Engine, run_ordered
+
     own = engine is None
     engine = engine or Engine(1)
     try:
@@ -193,8 +203,6 @@ def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
         bar.close()
         if own:
             engine.close()
-    return Centroids(out["xy"], out["std"], out["mom"], out["tstd"], out["status"],
-                     volume.depths_mm.copy(), float(volume.pitch_mm))
 
 
 def centroid_rows(volume: LtcVolume, depth: int, r0: int, r1: int, c0: int = 0,

@@ -212,8 +212,7 @@ def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = F
     ``compute_centroids`` then ``fit_principal_rays`` (rays are per pixel)."""
     from tqdm import tqdm
 
-    from station.lens.centroids import STATUS_NO_SIGNAL, centroid_rows
-    from station.ltc.parallel import Engine, run_ordered
+    from station.lens.centroids import STATUS_NO_SIGNAL, run_centroid_blocks
 
     d = len(volume.depths_mm)
     w, h = volume.camera_size
@@ -253,14 +252,7 @@ def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = F
             min_depths=min(cfg.min_depths, d), outlier_sigma=cfg.outlier_sigma,
             max_outliers=cfg.max_outliers, floor_mm=cfg.ray_floor_mm))
 
-    own = engine is None
-    engine = engine or Engine(1)
-    try:
-        run_ordered(engine, ((t, centroid_rows, (volume,) + t) for t in tasks), on_result)
-    finally:
-        bar.close()
-        if own:
-            engine.close()
+    run_centroid_blocks(volume, tasks, on_result, engine, bar)
     c = Centroids(out["xy"], None, out["mom"], out["tstd"], out["status"],
                   volume.depths_mm.copy(), float(volume.pitch_mm))
     return c, rays
