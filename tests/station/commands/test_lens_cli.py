@@ -8,15 +8,10 @@ import numpy as np
 import pytest
 
 from fakes.bench import BenchConfig, FakeBench
+from ltc_stores import write_true_ltc_store
 from sim.optics.measured_lens import load_lens
 from sim.optics.rig import Rig, small_rig
 from station.cli import main
-from station.ltc.store import (
-    centred_origins,
-    create_ltc_store,
-    mark_depth_complete,
-    windows_from_sparse,
-)
 
 P = 24
 DEPTHS = [0.0, 30.0, 60.0, 250.0, 290.0]
@@ -31,22 +26,7 @@ def bench() -> FakeBench:
 
 def write_store(path, bench: FakeBench, with_k: bool = True):
     """An LTC store of the bench's true LTC plus noise of std 6e-4 per weight."""
-    c = bench.config
-    w, h = c.camera_size
-    g = create_ltc_store(path, depths_mm=DEPTHS, camera_size=c.camera_size, period=P,
-                         pitch_mm=c.lcd_pitch_mm, lcd_size=c.lcd_size,
-                         attrs={"camera_matrix": bench.K.tolist()} if with_k else None)
-    rng = np.random.default_rng(0)
-    for i, z in enumerate(DEPTHS):
-        org = centred_origins(bench.true_centroids_lcd_px(z).reshape(-1, 2), P)
-        win = windows_from_sparse(bench.true_ltc(z, normalise=True), c.lcd_size, P, org)
-        win = win + rng.normal(0.0, 6e-4, win.shape)
-        g["ltc"][i] = (win / win.sum(axis=(1, 2), keepdims=True)).reshape(h, w, P, P)
-        g["origin"][i] = org.reshape(h, w, 2)
-        g["gain"][i] = np.full((h, w), 3000.0)
-        g["noise"][i] = np.full((h, w), 6e-4)
-        mark_depth_complete(g, i, all_tiles=True)
-    return path
+    return write_true_ltc_store(path, bench, DEPTHS, period=P, with_k=with_k)
 
 
 @pytest.fixture(scope="module")

@@ -7,14 +7,9 @@ import numpy as np
 import pytest
 
 from fakes.bench import BenchConfig, FakeBench
+from ltc_stores import write_true_ltc_store
 from sim.optics.measured_lens import load_lens, read_lens_nodes
 from station.api import derive_lens
-from station.ltc.store import (
-    centred_origins,
-    create_ltc_store,
-    mark_depth_complete,
-    windows_from_sparse,
-)
 
 P = 24
 DEPTHS = [0.0, 30.0, 60.0, 250.0, 290.0]
@@ -25,29 +20,12 @@ ARRAYS = ("aperture_x_mm", "aperture_y_mm", "weights", "transmittance", "node_u"
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
     """A 40 x 30 LTC store in 16 x 16 tiles (6 tiles), the bench's LTC plus noise, with one
-    pixel without signal at two depths (its node is filled from a neighbour)."""
+    pixel without signal at three depths (its node is filled from a neighbour)."""
     bench = FakeBench(BenchConfig.small(lcd_size=(120, 96), lcd_distance_at_zero_mm=100.0,
                                         pupil_samples=150, subpixels=1))
-    c = bench.config
-    w, h = c.camera_size
-    path = tmp_path_factory.mktemp("engines") / "ltc.zarr"
-    g = create_ltc_store(path, depths_mm=DEPTHS, camera_size=c.camera_size, period=P,
-                         pitch_mm=c.lcd_pitch_mm, lcd_size=c.lcd_size, tile_px=16,
-                         attrs={"camera_matrix": bench.K.tolist()})
-    rng = np.random.default_rng(0)
-    for i, z in enumerate(DEPTHS):
-        org = centred_origins(bench.true_centroids_lcd_px(z).reshape(-1, 2), P)
-        win = windows_from_sparse(bench.true_ltc(z, normalise=True), c.lcd_size, P, org)
-        win = win + rng.normal(0.0, 6e-4, win.shape)
-        win = (win / win.sum(axis=(1, 2), keepdims=True)).reshape(h, w, P, P)
-        if i < 3:
-            win[17, 20] = np.nan
-        g["ltc"][i] = win
-        g["origin"][i] = org.reshape(h, w, 2)
-        g["gain"][i] = np.full((h, w), 3000.0) + rng.uniform(0, 100, (h, w))
-        g["noise"][i] = np.full((h, w), 6e-4)
-        mark_depth_complete(g, i, all_tiles=True)
-    return path
+    return write_true_ltc_store(tmp_path_factory.mktemp("engines") / "ltc.zarr", bench, DEPTHS,
+                                period=P, tile_px=16, hole_px=(17, 20), hole_depths=3,
+                                gain_jitter=100.0)
 
 
 def test_streamed_and_dask_lenses_equal_the_in_memory_one(store, tmp_path):
