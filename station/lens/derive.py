@@ -430,12 +430,19 @@ def _residual_norms(rays) -> np.ndarray:
     pixel blocks (no (D, N) temporaries)."""
     n = len(rays.flags)
     usable = rays.usable
-    out = []
-    for a0 in range(0, n, GRID_PIXELS):
-        sl = slice(a0, min(n, a0 + GRID_PIXELS))
-        res = np.linalg.norm(rays.residual[:, sl], axis=-1)
-        out.append(res[rays.used[:, sl] & usable[None, sl] & np.isfinite(res)])
-    return np.concatenate(out)
+    blocks = [slice(a0, min(n, a0 + GRID_PIXELS)) for a0 in range(0, n, GRID_PIXELS)]
+
+    def keep(sl: slice) -> np.ndarray:
+        res = rays.residual_mm[:, sl]
+        return rays.used[:, sl] & usable[None, sl] & np.isfinite(res)
+
+    out = np.empty(sum(int(keep(sl).sum()) for sl in blocks), np.float32)
+    at = 0
+    for sl in blocks:  # counted first: one array, no list of parts to concatenate
+        got = rays.residual_mm[:, sl][keep(sl)]
+        out[at:at + len(got)] = got
+        at += len(got)
+    return out
 
 
 def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,
