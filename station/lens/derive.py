@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from sim.optics.measured_lens import LensFileWriter, MeasuredLens, read_lens_nodes
 from station.lens import aperture as ap
-from station.lens.centroids import region_stats
+from station.lens.centroids import STATUS_OK, region_stats
 from station.ltc.parallel import Engine, run_ordered
 from station.ltc.store import LtcVolume
 from station.lens.geometry import (
@@ -48,7 +48,10 @@ from station.lens.zones import fit_focus_zones
 
 GRID_MARGIN = 1.2  # aperture grid half-width over the largest pupil extent seen
 EXTENT_PERCENTILE = 99.5
-GRID_PIXELS = 1 << 18  # pixels per block of the grid extent's temporaries
+GRID_PIXELS = 1 << 16  # pixels per block of the grid extent's temporaries (~1 kB each)
+# pixels per block of the summary's residual lengths: their order (depth-major per block)
+# fixes the mean and std reported in the lens file to the last bit
+RESIDUAL_PIXELS = 1 << 18
 MIN_COVERAGE = 0.5  # a depth whose resampled LTC falls mostly off the grid is not fused
 
 
@@ -430,7 +433,7 @@ def _residual_norms(rays) -> np.ndarray:
     pixel blocks (no (D, N) temporaries)."""
     n = len(rays.flags)
     usable = rays.usable
-    blocks = [slice(a0, min(n, a0 + GRID_PIXELS)) for a0 in range(0, n, GRID_PIXELS)]
+    blocks = [slice(a0, min(n, a0 + RESIDUAL_PIXELS)) for a0 in range(0, n, RESIDUAL_PIXELS)]
 
     def keep(sl: slice) -> np.ndarray:
         res = rays.residual_mm[:, sl]
@@ -542,7 +545,7 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
             else:
                 writer.copy_nodes(fill, flat[fill])
             del flat
-        trans = _transmittance(volume, geom.centroids.valid, nu, nv)
+        trans = _transmittance(volume, geom.centroids.status, nu, nv)
         zones, zone_fit = None, None
         if zoned:
             pix = (nv[:, None] * w + nu[None, :]).ravel()
@@ -594,18 +597,31 @@ def _centre_radius_mm(cov: np.ndarray, good: np.ndarray, pix: np.ndarray,
     return float(np.sqrt(2.0 * np.trace(cov[j])))
 
 
-def _transmittance(volume: LtcVolume, valid: np.ndarray, nu: np.ndarray,
+def _transmittance(volume: LtcVolume, status: np.ndarray, nu: np.ndarray,
                    nv: np.ndarray) -> np.ndarray:
     """Relative transmittance of the nodes (Gv, Gu): each pixel's median gain over its
-    valid depths, over the sensor's maximum after a 3 x 3 median (read in row blocks)."""
+    valid depths (``status`` (D, H, W) STATUS_OK), over the sensor's maximum after a 3 x 3
+    median; read and filtered in row blocks (one (H, W) float64 array per pixel, no
+    sensor-wide temporaries)."""
     w, h = volume.camera_size
-    tg = np.zeros((h, w))
+    # column-major: the layout the lens file has always stored (numpy's result of
+    # ``tg[nv][:, nu]``), so that the array can be the nodes' own when every pixel is one
+    tg = np.zeros((h, w), order="F")
     rows = tile_shape(volume)[0]
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
-        gain = np.where(valid[:, r0:r1], np.asarray(volume.gain[:, r0:r1], dtype=np.float64),
-                        np.nan)
+        gain = np.where(status[:, r0:r1] == STATUS_OK,
+                        np.asarray(volume.gain[:, r0:r1], dtype=np.float64), np.nan)
         tg[r0:r1] = np.nan_to_num(np.nanmedian(
             np.where(np.isfinite(gain).any(axis=0), gain, 0.0), axis=0))
-    norm = float(ndimage.median_filter(tg, size=3).max())
-    return (tg / norm if norm > 0 else np.ones_like(tg))[nv][:, nu]
+    norm = -np.inf
+    for r0 in range(0, h, rows):  # the 3 x 3 median of each block with its neighbour rows
+        r1 = min(h, r0 + rows)
+        a0, a1 = max(0, r0 - 1), min(h, r1 + 1)
+        med = ndimage.median_filter(tg[a0:a1], size=3)[r0 - a0:r1 - a0]
+        norm = max(norm, float(med.max()))
+    if norm <= 0:
+        return np.ones((len(nv), len(nu)), order="F")
+    out = tg if (len(nv), len(nu)) == (h, w) else tg[nv][:, nu]  # every pixel a node: tg
+    out /= norm
+    return out
