@@ -392,7 +392,7 @@ class LensResult:
         """A JSON-able report of what was measured."""
         g = self.geometry
         r = g.rays
-        res = _residual_norms(r)
+        res_mean, res_std, res_count = _residual_stats(r)
         fl = r.flags
         out = {
             "optical_centre_mm": g.centre.position.tolist(),
@@ -405,9 +405,9 @@ class LensResult:
             "focus_distance_fitted_mm": g.focus_distance_fit_mm,
             "focus_distance_config_mm": g.focus_distance_config_mm,
             "focus_fit_spread_mm": None if g.focus is None else g.focus.spread_mm,
-            "ray_residual_mean_mm": float(res.mean(dtype=np.float64)) if res.size else None,
-            "ray_residual_std_mm": float(res.std(dtype=np.float64)) if res.size else None,
-            "ray_residual_count": int(res.size),
+            "ray_residual_mean_mm": res_mean,
+            "ray_residual_std_mm": res_std,
+            "ray_residual_count": res_count,
             "pixels": len(fl),
             "pixels_usable": int(r.usable.sum()),
             "pixels_few_depths": int(((fl & FLAG_FEW_DEPTHS) > 0).sum()),
@@ -428,9 +428,12 @@ class LensResult:
         return out
 
 
-def _residual_norms(rays) -> np.ndarray:
-    """The usable rays' residual lengths (float32, flat) of the points in their fits, in
-    pixel blocks (no (D, N) temporaries)."""
+def _residual_stats(rays) -> tuple[float | None, float | None, int]:
+    """Mean, std (None without any) and count of the usable rays' residual lengths (float32)
+    of the points in their fits, in pixel blocks: the values numpy's float64 ``mean`` and
+    ``std`` give of them in this order, with one float64 array of the lengths (no (D, N)
+    temporaries, no float32 copy beside the deviations): the float32 lengths are packed into
+    its first half, then turned into the float64 squared deviations in place, from the end."""
     n = len(rays.flags)
     usable = rays.usable
     blocks = [slice(a0, min(n, a0 + RESIDUAL_PIXELS)) for a0 in range(0, n, RESIDUAL_PIXELS)]
@@ -439,13 +442,27 @@ def _residual_norms(rays) -> np.ndarray:
         res = rays.residual_mm[:, sl]
         return rays.used[:, sl] & usable[None, sl] & np.isfinite(res)
 
-    out = np.empty(sum(int(keep(sl).sum()) for sl in blocks), np.float32)
+    count = sum(int(keep(sl).sum()) for sl in blocks)
+    if not count:
+        return None, None, 0
+    buf = np.empty(count)
+    res = buf.view(np.float32)[:count]
     at = 0
-    for sl in blocks:  # counted first: one array, no list of parts to concatenate
+    for sl in blocks:
         got = rays.residual_mm[:, sl][keep(sl)]
-        out[at:at + len(got)] = got
+        res[at:at + len(got)] = got
         at += len(got)
-    return out
+    mean = float(res.mean(dtype=np.float64))
+    # numpy's std: the float64 mean kept as a (1,) array, deviations squared, summed, / n
+    m = np.true_divide(np.add.reduce(res, dtype=np.float64, keepdims=True), count)
+    step = 1 << 16
+    for b in range(count, 0, -step):  # buf[a:b] overwrites res[2a:2b]: read already
+        a = max(0, b - step)
+        buf[a:b] = res[a:b].copy() - m
+    del res
+    np.multiply(buf, buf, out=buf)
+    var = np.add.reduce(buf, dtype=np.float64)
+    return mean, float(np.sqrt(np.float64(var / count))), count
 
 
 def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,

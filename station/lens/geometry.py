@@ -34,7 +34,7 @@ from station.ltc.store import LtcVolume
 
 LCD_BIN_VAR = 1.0 / 12.0  # variance of an LCD pixel box, pitch^2
 TRACE_REL_FLOOR = 0.01  # relative error floor of an LTC second moment in the focus fit
-RAY_FIT_PIXELS = 1 << 18  # pixels per block of the principal-ray fit (temporaries ~ 1 kB each)
+RAY_FIT_PIXELS = 1 << 16  # pixels per block of the focus fit and K directions (temporaries ~ 1 kB each)
 
 
 class LensFitError(ValueError):
@@ -128,15 +128,16 @@ def fit_focus_plane(c: Centroids, usable: np.ndarray, centre_z_mm: float,
     span = np.ptp(c.depths_mm)
     mom = c.moments_px2.reshape(d, -1, 3)
     tstd = c.trace_std_px2.reshape(d, -1)
-    valid = c.valid.reshape(d, -1)
+    status = c.status.reshape(d, -1)
     n = mom.shape[1]
-    found = []  # the vertices in float64 for the median
+    zg = np.empty(n)  # the vertices found, in float64 for the median, packed at the front
+    at = 0
     for a0 in range(0, n, RAY_FIT_PIXELS):
         sl = slice(a0, min(n, a0 + RAY_FIT_PIXELS))
         tr = (mom[:, sl, 0] + mom[:, sl, 1]) * p2
         tr = tr - 2 * LCD_BIN_VAR * p2 - 2 * (fp**2 / 12.0)[:, None]
         var = (tstd[:, sl] * p2) ** 2 + (TRACE_REL_FLOOR * tr) ** 2 + 1e-12
-        ok = valid[:, sl] & usable[None, sl] & np.isfinite(tr)
+        ok = (status[:, sl] == STATUS_OK) & usable[None, sl] & np.isfinite(tr)
         w = np.where(ok, 1.0 / var, 0.0)
         a = np.broadcast_to(np.concatenate([np.ones_like(dz), dz, dz**2], axis=1)[:, None, :],
                             (d, w.shape[1], 3))  # design (D, n, 3): 1, dz, dz^2
@@ -148,14 +149,19 @@ def fit_focus_plane(c: Centroids, usable: np.ndarray, centre_z_mm: float,
         with np.errstate(divide="ignore", invalid="ignore"):
             vertex = z0 - coef[:, 1] / (2 * coef[:, 2])
         good &= (coef[:, 2] > 0) & (np.abs(vertex - z0) < 2 * span)
-        found.append(vertex[good])
-    zg = np.concatenate(found)
-    del found
-    if not len(zg):
+        got = vertex[good]
+        zg[at:at + len(got)] = got
+        at += len(got)
+    if not at:
         return None
-    med = float(np.median(zg))
-    spread = float(1.4826 * np.median(np.abs(zg - med)))
-    return FocusFit(med, 1.2533 * spread / np.sqrt(len(zg)), spread)
+    zg = zg[:at]
+    # medians of the values and of their deviations, each partitioning zg in place (a
+    # median does not depend on the order)
+    med = float(np.median(zg, overwrite_input=True))
+    np.subtract(zg, med, out=zg)
+    np.abs(zg, out=zg)
+    spread = float(1.4826 * np.median(zg, overwrite_input=True))
+    return FocusFit(med, 1.2533 * spread / np.sqrt(at), spread)
 
 
 @dataclass
