@@ -34,7 +34,7 @@ from station.ltc.store import LtcVolume
 
 LCD_BIN_VAR = 1.0 / 12.0  # variance of an LCD pixel box, pitch^2
 TRACE_REL_FLOOR = 0.01  # relative error floor of an LTC second moment in the focus fit
-RAY_FIT_PIXELS = 1 << 16  # pixels per block of the focus fit and K directions (temporaries ~ 1 kB each)
+RAY_FIT_PIXELS = 1 << 16  # pixels per block of the focus fit and K directions (~1 kB each)
 
 
 class LensFitError(ValueError):
