@@ -86,8 +86,8 @@ def rays_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path:
     rays = g.rays
     ok = np.flatnonzero(rays.usable)
     show = ok[np.linspace(0, len(ok) - 1, min(RAYS_SHOWN, len(ok))).astype(np.int64)]
-    xy = _centroids_lcd_px(volume, show) * g.centroids.pitch_mm  # (D, n, 2) mm
-    zs = np.broadcast_to(g.centroids.depths_mm[:, None], xy.shape[:2])
+    cen = _centroids_lcd_px(volume, show) * g.centroids.pitch_mm  # (D, n, 2) mm
+    zs = np.broadcast_to(g.centroids.depths_mm[:, None], cen.shape[:2])
     z0 = min(g.centre.position[2], g.centre_rays.position[2])
     z = np.array([z0, float(np.max(g.centroids.depths_mm))])
     fig = Figure(figsize=(10, 4.5), dpi=DPI)
@@ -95,7 +95,7 @@ def rays_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path:
     for k, (ax, name) in enumerate(zip(axes, ("x", "y"))):
         xy = np.stack([rays.xy_at(zz)[show, k] for zz in z])
         ax.plot(z, xy, "-", color="0.6", lw=0.5)
-        ax.plot(zs.ravel(), xy[..., k].ravel(), ".", color="C0", ms=2, label="LTC centroids")
+        ax.plot(zs.ravel(), cen[..., k].ravel(), ".", color="C0", ms=2, label="LTC centroids")
         ax.plot(g.centre.position[2], g.centre.position[k], "r*", ms=12,
                 label=f"optical centre ({g.centre.method})")
         ax.plot(g.centre_rays.position[2], g.centre_rays.position[k], "kx", ms=9,
