@@ -618,7 +618,7 @@ def _transmittance(volume: LtcVolume, status: np.ndarray, nu: np.ndarray,
                    nv: np.ndarray) -> np.ndarray:
     """Relative transmittance of the nodes (Gv, Gu): each pixel's median gain over its
     valid depths (``status`` (D, H, W) STATUS_OK), over the sensor's maximum after a 3 x 3
-    median; read and filtered in row blocks (one (H, W) float64 array per pixel, no
+    median; read and filtered in row blocks (one float64 map of the sensor, no other
     sensor-wide temporaries)."""
     w, h = volume.camera_size
     # column-major: the layout the lens file has always stored (numpy's result of
