@@ -36,13 +36,11 @@ BLOCK_RAYS = 1 << 18  # rays per block of the intersection's sums
 @dataclass(frozen=True)
 class OpticalCentre:
     """position : (3,) mm station frame; covariance : (3, 3) mm^2; weights : (N,) float32
-    final robust weights (0 for unused rays); distance : (N,) float32 ray-to-centre
-    distance, mm; method : how it was found."""
+    final robust weights (0 for unused rays); method : how it was found."""
 
     position: np.ndarray
     covariance: np.ndarray
     weights: np.ndarray
-    distance: np.ndarray
     method: str
 
     @property
@@ -76,25 +74,29 @@ def intersect_rays(rays: PrincipalRays, use: np.ndarray | None = None,
         a = np.concatenate([rays.xy_ref[j], rays.z_ref[j, None]], axis=1)
         return d, a, np.einsum("ni,ni->n", d, a)
 
+    # per ray: its robust weight, a-priori weight, distance and a scratch array (8 B each);
+    # everything else is computed per block
     robust = np.ones(n)
     prior = np.empty(n)
     dist = np.empty(n)
+    scratch = np.empty(n)
     z_c = float(np.mean(rays.z_ref[ok]))
     o = np.full(3, np.inf)
 
-    def normal() -> np.ndarray:
+    def normal(weight) -> np.ndarray:  # weight(b): the block's weights
         mat = np.zeros((3, 3))
         for b in blocks:
             d, _, _ = lines(b)
-            w = prior[b] * robust[b]
-            mat += np.eye(3) * w.sum() - np.einsum("n,ni,nj->ij", w, d, d)
+            wb = weight(b)
+            mat += np.eye(3) * wb.sum() - np.einsum("n,ni,nj->ij", wb, d, d)
         return mat
 
     for _ in range(iterations):
         # a-priori lateral variance of each ray where it passes the current centre
-        j = idx
-        prior[:] = 1.0 / (rays.var_ref[j] + (z_c - rays.z_ref[j]) ** 2 * rays.var_slope[j])
-        mat, rhs = normal(), np.zeros(3)
+        for b in blocks:
+            j = idx[b]
+            prior[b] = 1.0 / (rays.var_ref[j] + (z_c - rays.z_ref[j]) ** 2 * rays.var_slope[j])
+        mat, rhs = normal(lambda b: prior[b] * robust[b]), np.zeros(3)
         for b in blocks:
             d, a, da = lines(b)
             w = prior[b] * robust[b]
@@ -104,25 +106,28 @@ def intersect_rays(rays: PrincipalRays, use: np.ndarray | None = None,
         for b in blocks:
             d, a, da = lines(b)
             dist[b] = np.linalg.norm((o - a) - d * (d @ o - da)[:, None], axis=1)
-        scaled = dist * np.sqrt(prior)
+            scratch[b] = dist[b] * np.sqrt(prior[b])
         # a 2-D Gaussian miss has a Rayleigh length, median sigma * sqrt(ln 4)
-        scale = np.median(scaled) / np.sqrt(np.log(4.0))
-        new = _huber(scaled / max(scale, 1e-300))
-        del scaled
-        done = np.allclose(new, robust, atol=1e-10) and np.allclose(o, o_prev, atol=1e-9, rtol=0)
-        robust = new
-        if done:
+        scale = np.median(scratch, overwrite_input=True) / np.sqrt(np.log(4.0))
+        same = True
+        for b in blocks:  # the new weights, in place, from the scaled misses again
+            new = _huber(dist[b] * np.sqrt(prior[b]) / max(scale, 1e-300))
+            same = same and np.allclose(new, robust[b], atol=1e-10)
+            robust[b] = new
+        if same and np.allclose(o, o_prev, atol=1e-9, rtol=0):
             break
-    w = prior * robust
-    mat = normal()
+    w = prior  # prior x robust, in place
+    w *= robust
+    mat = normal(lambda b: w[b])
     dof = max(2 * len(w) - 3, 1)
-    s2 = float((w * dist**2).sum() / dof)
+    np.square(dist, out=scratch)
+    scratch *= w
+    s2 = float(scratch.sum() / dof)
+    del scratch
     cov = s2 * np.linalg.inv(mat)
     weights = np.zeros(len(ok), np.float32)
     weights[ok] = w
-    distance = np.full(len(ok), np.nan, np.float32)
-    distance[ok] = dist
-    return OpticalCentre(o, cov, weights, distance, "principal-ray intersection")
+    return OpticalCentre(o, cov, weights, "principal-ray intersection")
 
 
 def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
@@ -147,22 +152,25 @@ def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
         raise RayFitError(f"pinhole optical centre: {len(idx)} usable principal rays; need >= 3")
     n = len(idx)
     blocks = [slice(b, min(n, b + BLOCK_RAYS)) for b in range(0, n, BLOCK_RAYS)]
-    dz = focus_plane_z_mm - rays.z_ref[idx]
-    prior = 1.0 / (rays.var_ref[idx] + dz**2 * rays.var_slope[idx])
-    del dz
+    # per ray: a-priori and robust weights, distance and a scratch array (8 B each)
+    prior = np.empty(n)
+    for b in blocks:
+        j = idx[b]
+        dz = focus_plane_z_mm - rays.z_ref[j]
+        prior[b] = 1.0 / (rays.var_ref[j] + dz**2 * rays.var_slope[j])
 
     def data(b: slice) -> np.ndarray:  # the in-focus points of a block of rays
         j = idx[b]
         return rays.xy_ref[j] + rays.slope[j] * (focus_plane_z_mm - rays.z_ref[j])[:, None]
 
-    def normal(w: np.ndarray, slopes: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def normal(weight, slopes: bool = False) -> tuple[np.ndarray, np.ndarray]:
         # rows (1, 0, x0, -x1) for x and (0, 1, x1, x0) for y, both with weight w; np.dot,
         # not @: a 1-D matmul goes through threaded BLAS, whose spinning threads cost ~15x
         # the CPU time on a shared machine
         dot = np.dot
         ata, atb = np.zeros((4, 4)), np.zeros(4)
         for b in blocks:
-            x0, x1, wb = xn[b, 0], xn[b, 1], w[b]
+            x0, x1, wb = xn[b, 0], xn[b, 1], weight(b)
             y = rays.slope[idx[b]] if slopes else data(b)
             sw, s0, s1, sq = wb.sum(), dot(wb, x0), dot(wb, x1), dot(wb, x0 * x0 + x1 * x1)
             ata += np.array([[sw, 0.0, s0, -s1], [0.0, sw, s1, s0], [s0, s1, sq, 0.0],
@@ -172,38 +180,43 @@ def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
                              dot(wy1, x0) - dot(wy0, x1)])
         return ata, atb
 
-    def miss(theta: np.ndarray) -> np.ndarray:  # squared residual length per ray
-        out = np.empty(n)
-        for b in blocks:
+    robust = np.ones(n)
+    dist_n = np.empty(n)
+    scratch = np.empty(n)
+    for _ in range(iterations):
+        ata, atb = normal(lambda b: prior[b] * robust[b])
+        theta = np.linalg.solve(ata, atb)
+        for b in blocks:  # each ray's miss, and scaled by its a-priori std
             x0, x1, y = xn[b, 0], xn[b, 1], data(b)
             rx = y[:, 0] - (theta[0] + theta[2] * x0 - theta[3] * x1)
             ry = y[:, 1] - (theta[1] + theta[2] * x1 + theta[3] * x0)
-            out[b] = rx * rx + ry * ry
-        return out
-
-    robust = np.ones(n)
-    for _ in range(iterations):
-        ata, atb = normal(prior * robust)
-        theta = np.linalg.solve(ata, atb)
-        dist_n = np.sqrt(miss(theta))
-        scaled = dist_n * np.sqrt(prior)
-        scale = max(float(np.median(scaled)) / np.sqrt(np.log(4.0)), 1e-300)
-        new = np.where(scaled <= HUBER_K * scale, 1.0,
-                       HUBER_K * scale / np.maximum(scaled, 1e-300))
-        del scaled
-        done = np.allclose(new, robust, atol=1e-10)
-        robust = new
+            dist_n[b] = np.sqrt(rx * rx + ry * ry)
+            scratch[b] = dist_n[b] * np.sqrt(prior[b])
+        scale = max(float(np.median(scratch, overwrite_input=True)) / np.sqrt(np.log(4.0)),
+                    1e-300)
+        done = True
+        for b in blocks:  # the new weights, in place, from the scaled misses again
+            scaled = dist_n[b] * np.sqrt(prior[b])
+            new = np.where(scaled <= HUBER_K * scale, 1.0,
+                           HUBER_K * scale / np.maximum(scaled, 1e-300))
+            done = done and np.allclose(new, robust[b], atol=1e-10)
+            robust[b] = new
         if done:
             break
-    w = prior * robust
-    ata, _ = normal(w)
+    w = prior  # prior x robust, in place
+    w *= robust
+    del robust
+    ata, _ = normal(lambda b: w[b])
     ata_inv = np.linalg.inv(ata)
-    s2 = float((w * dist_n**2).sum()) / max(2 * n - 4, 1)
+    np.square(dist_n, out=scratch)
+    scratch *= w
+    s2 = float(scratch.sum()) / max(2 * n - 4, 1)
+    del scratch, dist_n
     ca, cb = theta[2], theta[3]
     z_f = float(np.hypot(ca, cb))
     jac = np.array([ca, cb]) / z_f
     var_zf = float(jac @ (s2 * ata_inv[2:, 2:]) @ jac)
-    dtheta = ata_inv @ normal(w, slopes=True)[1]
+    dtheta = ata_inv @ normal(lambda b: w[b], slopes=True)[1]
     dz_o = 1.0 - float(jac @ dtheta[2:])
     cov = np.array(axis.covariance, dtype=np.float64, copy=True)
     cov[2, :] = cov[:, 2] = 0.0
@@ -214,6 +227,4 @@ def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
                     [0.0, 0.0, 1.0]])
     weights = np.zeros(len(usable), np.float32)
     weights[idx] = w
-    distance = np.full(len(usable), np.nan, np.float32)
-    distance[idx] = dist_n
-    return OpticalCentre(o, cov, weights, distance, "pinhole: in-focus points vs K"), rot
+    return OpticalCentre(o, cov, weights, "pinhole: in-focus points vs K"), rot

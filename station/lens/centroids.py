@@ -120,21 +120,21 @@ def region_stats(h: np.ndarray, use: np.ndarray, sigma: np.ndarray) -> WindowSta
 class Centroids:
     """Centroids of every pixel at every depth.
 
-    xy_lcd_px : (D, H, W, 2) float64 LCD (x, y) pixels (float32 in a ``LensGeometry``: 2e-4
-    px at 3840 px, far below the centroid noise; the rays are fitted from the float64 ones);
-    std_lcd_px : (D, H, W, 2) float32 (None in a ``LensGeometry``: only the principal-ray
-    fit needs it).
+    xy_lcd_px : (D, H, W, 2) float64 LCD (x, y) pixels; std_lcd_px : (D, H, W, 2) float32
+    (both None in a ``LensGeometry``: only the principal-ray fit reads them, from the
+    float64 ones as each block arrives).
     moments_px2 : (D, H, W, 3) float32 m_xx, m_yy, m_xy in LCD px^2; trace_std_px2 :
     (D, H, W) float32 (float32: relative precision 6e-8, far below their noise; half the
-    memory of a full-size sensor's six depths).
+    memory of a full-size sensor's six depths; None in a ``LensGeometry``: only its focus
+    fits read it).
     status : (D, H, W) int8 STATUS_*; valid : status == STATUS_OK.
     depths_mm : (D,); pitch_mm.
     """
 
-    xy_lcd_px: np.ndarray
-    std_lcd_px: np.ndarray
+    xy_lcd_px: np.ndarray | None
+    std_lcd_px: np.ndarray | None
     moments_px2: np.ndarray
-    trace_std_px2: np.ndarray
+    trace_std_px2: np.ndarray | None
     status: np.ndarray
     depths_mm: np.ndarray
     pitch_mm: float

@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from sim.optics.measured_lens import LensFileWriter, MeasuredLens, read_lens_nodes
 from station.lens import aperture as ap
-from station.lens.centroids import region_stats
+from station.lens.centroids import STATUS_OK, region_stats
 from station.ltc.parallel import Engine, run_ordered
 from station.ltc.store import LtcVolume
 from station.lens.geometry import (
@@ -48,7 +48,10 @@ from station.lens.zones import fit_focus_zones
 
 GRID_MARGIN = 1.2  # aperture grid half-width over the largest pupil extent seen
 EXTENT_PERCENTILE = 99.5
-GRID_PIXELS = 1 << 18  # pixels per block of the grid extent's temporaries
+GRID_PIXELS = 1 << 16  # pixels per block of the grid extent's temporaries (~1 kB each)
+# pixels per block of the summary's residual lengths: their order (depth-major per block)
+# fixes the mean and std reported in the lens file to the last bit
+RESIDUAL_PIXELS = 1 << 18
 MIN_COVERAGE = 0.5  # a depth whose resampled LTC falls mostly off the grid is not fused
 
 
@@ -389,7 +392,7 @@ class LensResult:
         """A JSON-able report of what was measured."""
         g = self.geometry
         r = g.rays
-        res = _residual_norms(r)
+        res_mean, res_std, res_count = _residual_stats(r)
         fl = r.flags
         out = {
             "optical_centre_mm": g.centre.position.tolist(),
@@ -402,9 +405,9 @@ class LensResult:
             "focus_distance_fitted_mm": g.focus_distance_fit_mm,
             "focus_distance_config_mm": g.focus_distance_config_mm,
             "focus_fit_spread_mm": None if g.focus is None else g.focus.spread_mm,
-            "ray_residual_mean_mm": float(res.mean(dtype=np.float64)) if res.size else None,
-            "ray_residual_std_mm": float(res.std(dtype=np.float64)) if res.size else None,
-            "ray_residual_count": int(res.size),
+            "ray_residual_mean_mm": res_mean,
+            "ray_residual_std_mm": res_std,
+            "ray_residual_count": res_count,
             "pixels": len(fl),
             "pixels_usable": int(r.usable.sum()),
             "pixels_few_depths": int(((fl & FLAG_FEW_DEPTHS) > 0).sum()),
@@ -425,17 +428,41 @@ class LensResult:
         return out
 
 
-def _residual_norms(rays) -> np.ndarray:
-    """The usable rays' residual lengths (float32, flat) of the points in their fits, in
-    pixel blocks (no (D, N) temporaries)."""
+def _residual_stats(rays) -> tuple[float | None, float | None, int]:
+    """Mean, std (None without any) and count of the usable rays' residual lengths (float32)
+    of the points in their fits, in pixel blocks: the values numpy's float64 ``mean`` and
+    ``std`` give of them in this order, with one float64 array of the lengths (no (D, N)
+    temporaries, no float32 copy beside the deviations): the float32 lengths are packed into
+    its first half, then turned into the float64 squared deviations in place, from the end."""
     n = len(rays.flags)
     usable = rays.usable
-    out = []
-    for a0 in range(0, n, GRID_PIXELS):
-        sl = slice(a0, min(n, a0 + GRID_PIXELS))
-        res = np.linalg.norm(rays.residual[:, sl], axis=-1)
-        out.append(res[rays.used[:, sl] & usable[None, sl] & np.isfinite(res)])
-    return np.concatenate(out)
+    blocks = [slice(a0, min(n, a0 + RESIDUAL_PIXELS)) for a0 in range(0, n, RESIDUAL_PIXELS)]
+
+    def keep(sl: slice) -> np.ndarray:
+        res = rays.residual_mm[:, sl]
+        return rays.used[:, sl] & usable[None, sl] & np.isfinite(res)
+
+    count = sum(int(keep(sl).sum()) for sl in blocks)
+    if not count:
+        return None, None, 0
+    buf = np.empty(count)
+    res = buf.view(np.float32)[:count]
+    at = 0
+    for sl in blocks:
+        got = rays.residual_mm[:, sl][keep(sl)]
+        res[at:at + len(got)] = got
+        at += len(got)
+    mean = float(res.mean(dtype=np.float64))
+    # numpy's std: the float64 mean kept as a (1,) array, deviations squared, summed, / n
+    m = np.true_divide(np.add.reduce(res, dtype=np.float64, keepdims=True), count)
+    step = 1 << 16
+    for b in range(count, 0, -step):  # buf[a:b] overwrites res[2a:2b]: read already
+        a = max(0, b - step)
+        buf[a:b] = res[a:b].copy() - m
+    del res
+    np.multiply(buf, buf, out=buf)
+    var = np.add.reduce(buf, dtype=np.float64)
+    return mean, float(np.sqrt(np.float64(var / count))), count
 
 
 def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,
@@ -535,7 +562,7 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
             else:
                 writer.copy_nodes(fill, flat[fill])
             del flat
-        trans = _transmittance(volume, geom.centroids.valid, nu, nv)
+        trans = _transmittance(volume, geom.centroids.status, nu, nv)
         zones, zone_fit = None, None
         if zoned:
             pix = (nv[:, None] * w + nu[None, :]).ravel()
@@ -587,18 +614,31 @@ def _centre_radius_mm(cov: np.ndarray, good: np.ndarray, pix: np.ndarray,
     return float(np.sqrt(2.0 * np.trace(cov[j])))
 
 
-def _transmittance(volume: LtcVolume, valid: np.ndarray, nu: np.ndarray,
+def _transmittance(volume: LtcVolume, status: np.ndarray, nu: np.ndarray,
                    nv: np.ndarray) -> np.ndarray:
     """Relative transmittance of the nodes (Gv, Gu): each pixel's median gain over its
-    valid depths, over the sensor's maximum after a 3 x 3 median (read in row blocks)."""
+    valid depths (``status`` (D, H, W) STATUS_OK), over the sensor's maximum after a 3 x 3
+    median; read and filtered in row blocks (one float64 map of the sensor, no other
+    sensor-wide temporaries)."""
     w, h = volume.camera_size
-    tg = np.zeros((h, w))
+    # column-major: the layout the lens file has always stored (numpy's result of
+    # ``tg[nv][:, nu]``), so that the array can be the nodes' own when every pixel is one
+    tg = np.zeros((h, w), order="F")
     rows = tile_shape(volume)[0]
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
-        gain = np.where(valid[:, r0:r1], np.asarray(volume.gain[:, r0:r1], dtype=np.float64),
-                        np.nan)
+        gain = np.where(status[:, r0:r1] == STATUS_OK,
+                        np.asarray(volume.gain[:, r0:r1], dtype=np.float64), np.nan)
         tg[r0:r1] = np.nan_to_num(np.nanmedian(
             np.where(np.isfinite(gain).any(axis=0), gain, 0.0), axis=0))
-    norm = float(ndimage.median_filter(tg, size=3).max())
-    return (tg / norm if norm > 0 else np.ones_like(tg))[nv][:, nu]
+    norm = -np.inf
+    for r0 in range(0, h, rows):  # the 3 x 3 median of each block with its neighbour rows
+        r1 = min(h, r0 + rows)
+        a0, a1 = max(0, r0 - 1), min(h, r1 + 1)
+        med = ndimage.median_filter(tg[a0:a1], size=3)[r0 - a0:r1 - a0]
+        norm = max(norm, float(med.max()))
+    if norm <= 0:
+        return np.ones((len(nv), len(nu)), order="F")
+    out = tg if (len(nv), len(nu)) == (h, w) else tg[nv][:, nu]  # every pixel a node: tg
+    out /= norm
+    return out

@@ -17,6 +17,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from station.ltc.store import LtcVolume
+from station.lens.centroids import centroid_rows
 from station.lens.derive import LensResult, aperture_set
 from station.lens.rays import UNUSABLE
 
@@ -34,6 +35,18 @@ def _flat(uv: tuple[int, int], w: int) -> int:
     return uv[1] * w + uv[0]
 
 
+def _centroids_lcd_px(volume: LtcVolume, pixels: np.ndarray) -> np.ndarray:
+    """LTC centroids (D, n, 2) LCD px of flat pixels (n,), computed again from the store (a
+    ``LensGeometry`` keeps none: a full-size sensor's would cost 48 B per pixel)."""
+    w = volume.camera_size[0]
+    out = np.empty((len(volume.depths_mm), len(pixels), 2))
+    for k, p in enumerate(np.asarray(pixels, dtype=np.int64).tolist()):
+        v, u = divmod(p, w)
+        for i in range(len(volume.depths_mm)):
+            out[i, k] = centroid_rows(volume, i, v, v + 1, u, u + 1)["xy"][0, 0]
+    return out
+
+
 def ltc_depths_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path:
     """LTC windows of the chosen pixels at every depth."""
     g = result.geometry
@@ -43,6 +56,7 @@ def ltc_depths_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path
     fig = Figure(figsize=(2.0 * len(depths) + 0.5, 2.2 * len(pix)), dpi=DPI)
     axes = fig.subplots(len(pix), len(depths), squeeze=False)
     pitch = volume.pitch_mm
+    cen = _centroids_lcd_px(volume, np.array([_flat(uv, w) for uv in pix.values()]))
     for r, (name, (u, v)) in enumerate(pix.items()):
         ltc, origin, _, _ = volume.rows(v, v + 1)
         ray = g.rays
@@ -53,7 +67,7 @@ def ltc_depths_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path
             p = win.shape[-1]
             ext = (o[0] - 0.5, o[0] + p - 0.5, o[1] + p - 0.5, o[1] - 0.5)
             ax.imshow(np.nan_to_num(win), extent=ext, cmap="magma", interpolation="nearest")
-            c = g.centroids.xy_lcd_px[i, v, u]
+            c = cen[i, r]
             if np.all(np.isfinite(c)):
                 ax.plot(c[0], c[1], "c+", ms=8)
             f = ray.xy_at(z)[_flat((u, v), w)] / pitch
@@ -66,13 +80,14 @@ def ltc_depths_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path
     return path
 
 
-def rays_figure(result: LensResult, path: Path) -> Path:
+def rays_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path:
     """Principal rays in x-z and y-z with the optical centre."""
     g = result.geometry
     rays = g.rays
-    pts = g.centroids.points_mm().reshape(len(g.centroids.depths_mm), -1, 3)
     ok = np.flatnonzero(rays.usable)
     show = ok[np.linspace(0, len(ok) - 1, min(RAYS_SHOWN, len(ok))).astype(np.int64)]
+    cen = _centroids_lcd_px(volume, show) * g.centroids.pitch_mm  # (D, n, 2) mm
+    zs = np.broadcast_to(g.centroids.depths_mm[:, None], cen.shape[:2])
     z0 = min(g.centre.position[2], g.centre_rays.position[2])
     z = np.array([z0, float(np.max(g.centroids.depths_mm))])
     fig = Figure(figsize=(10, 4.5), dpi=DPI)
@@ -80,8 +95,7 @@ def rays_figure(result: LensResult, path: Path) -> Path:
     for k, (ax, name) in enumerate(zip(axes, ("x", "y"))):
         xy = np.stack([rays.xy_at(zz)[show, k] for zz in z])
         ax.plot(z, xy, "-", color="0.6", lw=0.5)
-        ax.plot(pts[:, show, 2].ravel(), pts[:, show, k].ravel(), ".", color="C0", ms=2,
-                label="LTC centroids")
+        ax.plot(zs.ravel(), cen[..., k].ravel(), ".", color="C0", ms=2, label="LTC centroids")
         ax.plot(g.centre.position[2], g.centre.position[k], "r*", ms=12,
                 label=f"optical centre ({g.centre.method})")
         ax.plot(g.centre_rays.position[2], g.centre_rays.position[k], "kx", ms=9,
@@ -154,7 +168,7 @@ def write_figures(volume: LtcVolume, result: LensResult, folder: str | Path) -> 
     folder.mkdir(parents=True, exist_ok=True)
     return [
         ltc_depths_figure(volume, result, folder / "ltc_depths.png"),
-        rays_figure(result, folder / "principal_rays.png"),
+        rays_figure(volume, result, folder / "principal_rays.png"),
         aperture_figure(volume, result, folder / "aperture.png"),
         residuals_figure(result, folder / "ray_residuals.png"),
     ]

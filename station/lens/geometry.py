@@ -20,7 +20,7 @@ point.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -34,7 +34,7 @@ from station.ltc.store import LtcVolume
 
 LCD_BIN_VAR = 1.0 / 12.0  # variance of an LCD pixel box, pitch^2
 TRACE_REL_FLOOR = 0.01  # relative error floor of an LTC second moment in the focus fit
-RAY_FIT_PIXELS = 1 << 18  # pixels per block of the principal-ray fit (temporaries ~ 1 kB each)
+RAY_FIT_PIXELS = 1 << 16  # pixels per block of the focus fit and K directions (~1 kB each)
 
 
 class LensFitError(ValueError):
@@ -93,12 +93,10 @@ class LensFitConfig(BaseModel):
 @dataclass(frozen=True)
 class FocusFit:
     """plane_z_mm : station z of the focus plane; plane_std_mm : its standard error;
-    per_pixel_z_mm : (N,) float32 vertices (NaN where not fitted); spread_mm : robust std of
-    those."""
+    spread_mm : robust std of the pixels' vertices."""
 
     plane_z_mm: float
     plane_std_mm: float
-    per_pixel_z_mm: np.ndarray
     spread_mm: float
 
 
@@ -130,16 +128,16 @@ def fit_focus_plane(c: Centroids, usable: np.ndarray, centre_z_mm: float,
     span = np.ptp(c.depths_mm)
     mom = c.moments_px2.reshape(d, -1, 3)
     tstd = c.trace_std_px2.reshape(d, -1)
-    valid = c.valid.reshape(d, -1)
+    status = c.status.reshape(d, -1)
     n = mom.shape[1]
-    z = np.full(n, np.nan, np.float32)
-    found = []  # the vertices in float64 for the median (float32 per pixel for the record)
+    zg = np.empty(n)  # the vertices found, in float64 for the median, packed at the front
+    at = 0
     for a0 in range(0, n, RAY_FIT_PIXELS):
         sl = slice(a0, min(n, a0 + RAY_FIT_PIXELS))
         tr = (mom[:, sl, 0] + mom[:, sl, 1]) * p2
         tr = tr - 2 * LCD_BIN_VAR * p2 - 2 * (fp**2 / 12.0)[:, None]
         var = (tstd[:, sl] * p2) ** 2 + (TRACE_REL_FLOOR * tr) ** 2 + 1e-12
-        ok = valid[:, sl] & usable[None, sl] & np.isfinite(tr)
+        ok = (status[:, sl] == STATUS_OK) & usable[None, sl] & np.isfinite(tr)
         w = np.where(ok, 1.0 / var, 0.0)
         a = np.broadcast_to(np.concatenate([np.ones_like(dz), dz, dz**2], axis=1)[:, None, :],
                             (d, w.shape[1], 3))  # design (D, n, 3): 1, dz, dz^2
@@ -151,15 +149,19 @@ def fit_focus_plane(c: Centroids, usable: np.ndarray, centre_z_mm: float,
         with np.errstate(divide="ignore", invalid="ignore"):
             vertex = z0 - coef[:, 1] / (2 * coef[:, 2])
         good &= (coef[:, 2] > 0) & (np.abs(vertex - z0) < 2 * span)
-        z[sl] = np.where(good, vertex, np.nan)
-        found.append(vertex[good])
-    zg = np.concatenate(found)
-    del found
-    if not len(zg):
+        got = vertex[good]
+        zg[at:at + len(got)] = got
+        at += len(got)
+    if not at:
         return None
-    med = float(np.median(zg))
-    spread = float(1.4826 * np.median(np.abs(zg - med)))
-    return FocusFit(med, 1.2533 * spread / np.sqrt(len(zg)), z, spread)
+    zg = zg[:at]
+    # medians of the values and of their deviations, each partitioning zg in place (a
+    # median does not depend on the order)
+    med = float(np.median(zg, overwrite_input=True))
+    np.subtract(zg, med, out=zg)
+    np.abs(zg, out=zg)
+    spread = float(1.4826 * np.median(zg, overwrite_input=True))
+    return FocusFit(med, 1.2533 * spread / np.sqrt(at), spread)
 
 
 @dataclass
@@ -207,9 +209,10 @@ def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = F
     """The centroid pass (``centroid_rows`` per depth of each stored chunk, on ``engine``)
     with each chunk's principal rays fitted as soon as all its depths have arrived (from
     the float64 centroids and their stds, which are then dropped): the geometry holds
-    float32 centroids and moments and no centroid std (``Centroids.std_lcd_px`` is None),
-    so memory per pixel stays what the later fits need. Same values as
-    ``compute_centroids`` then ``fit_principal_rays`` (rays are per pixel)."""
+    float32 moments and no centroids (``Centroids.xy_lcd_px`` and ``std_lcd_px`` are None:
+    the rays and their residual lengths are what later steps read), so memory per pixel
+    stays what the later fits need. Same values as ``compute_centroids`` then
+    ``fit_principal_rays`` (rays are per pixel)."""
     from tqdm import tqdm
 
     from station.lens.centroids import STATUS_NO_SIGNAL, run_centroid_blocks
@@ -220,8 +223,7 @@ def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = F
     rows = volume.chunk_rows
     cols = int(chunks[2]) if chunks else w
     f4 = np.float32
-    out = {"xy": np.full((d, h, w, 2), np.nan, f4), "mom": np.full((d, h, w, 3), np.nan, f4),
-           "tstd": np.full((d, h, w), np.nan, f4),
+    out = {"mom": np.full((d, h, w, 3), np.nan, f4), "tstd": np.full((d, h, w), np.nan, f4),
            "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
     rays = PrincipalRays.empty(d, w * h)
     z = volume.depths_mm.reshape(d, 1, 1)
@@ -253,7 +255,7 @@ def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = F
             max_outliers=cfg.max_outliers, floor_mm=cfg.ray_floor_mm))
 
     run_centroid_blocks(volume, tasks, on_result, engine, bar)
-    c = Centroids(out["xy"], None, out["mom"], out["tstd"], out["status"],
+    c = Centroids(None, None, out["mom"], out["tstd"], out["status"],
                   volume.depths_mm.copy(), float(volume.pitch_mm))
     return c, rays
 
@@ -316,6 +318,8 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
             notes.append("no camera matrix: optical centre is the principal-ray intersection, "
                          "which vignetting pulls behind the pupil; give K for a centre "
                          "consistent with the simulator's pixel directions")
+    # the focus fits were the trace stds' last reader: the geometry does not keep them
+    c = replace(c, trace_std_px2=None)
     zf_fit = None if fit is None else float(fit.plane_z_mm - centre.position[2])
     if zf_cfg is not None and zf_fit is not None:
         notes.append(f"focus distance: configured {zf_cfg:.3f} mm (used), fitted "

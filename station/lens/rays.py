@@ -39,8 +39,10 @@ class PrincipalRays:
     z_ref : (N,) weighted mean depth, mm; xy_ref : (N, 2) line position there, mm;
     slope : (N, 2) dx/dz, dy/dz; var_ref, var_slope : (N,) per-axis variances of those from
     the a-priori weights. residual : (D, N, 2) float32 measured minus fitted, mm (NaN where no
-    point; float32: far below the centroid noise, half the memory of a full-size sensor);
-    used : (D, N) points in the fit; flags : (N,).
+    point; float32: far below the centroid noise), or None in a ``LensGeometry`` (the
+    geometry keeps only the lengths: a third of the memory with ``used``);
+    used : (D, N) points in the fit; flags : (N,); residual_mm : (D, N) float32 lengths of
+    ``residual`` (NaN where the point is not used).
     """
 
     z_ref: np.ndarray
@@ -48,23 +50,27 @@ class PrincipalRays:
     slope: np.ndarray
     var_ref: np.ndarray
     var_slope: np.ndarray
-    residual: np.ndarray
+    residual: np.ndarray | None
     used: np.ndarray
     flags: np.ndarray
+    residual_mm: np.ndarray
 
     @classmethod
     def empty(cls, d: int, n: int) -> "PrincipalRays":
-        """Rays of n pixels and d depths, to be filled block by block (``put``)."""
+        """Rays of n pixels and d depths, to be filled block by block (``put``); without the
+        residual vectors (``residual`` None: their lengths only)."""
         return cls(np.empty(n), np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n),
-                   np.empty((d, n, 2), np.float32), np.empty((d, n), bool),
-                   np.empty(n, np.int8))
+                   None, np.empty((d, n), bool), np.empty(n, np.int8),
+                   np.empty((d, n), np.float32))
 
     def put(self, sl: slice | np.ndarray, part: "PrincipalRays") -> None:
         """Copy the rays of pixels ``sl`` (a slice or flat indices) from ``part`` (pixel
         axis: 0 of the per-pixel arrays, 1 of the (D, N, ...) ones)."""
         for f in fields(self):
             dst = getattr(self, f.name)
-            if f.name in ("residual", "used"):
+            if dst is None:
+                continue
+            if f.name in ("residual", "used", "residual_mm"):
                 dst[:, sl] = getattr(part, f.name)
             else:
                 dst[sl] = getattr(part, f.name)
@@ -91,7 +97,7 @@ class PrincipalRays:
 
     def residual_norm(self) -> np.ndarray:
         """Lateral residual length (D, N), mm, NaN where the point is not used."""
-        return np.where(self.used, np.linalg.norm(self.residual, axis=-1), np.nan)
+        return np.where(self.used, self.residual_mm, np.nan)
 
 
 def _line_fit(z: np.ndarray, xy: np.ndarray, w: np.ndarray):
@@ -159,4 +165,5 @@ def fit_principal_rays(
         if not can.any():
             break
     res = np.where(used[..., None], res, np.nan).astype(np.float32)
-    return PrincipalRays(z_ref, c, s, vr, vs, res, used, flags.astype(np.int8))
+    return PrincipalRays(z_ref, c, s, vr, vs, res, used, flags.astype(np.int8),
+                         np.linalg.norm(res, axis=-1))
