@@ -4,10 +4,11 @@ weights ``w_k`` (sum 1), one focus distance ``z_f`` and, optionally, a focus dis
 pupil zone ``z(rho)`` (spherical aberration: ``focus_zones_mm``).
 
 ``MeasuredLens.bundle(xy_n, uv)`` casts ray k of a pixel from ``(x_k, y_k, 0)`` through the
-pixel's in-focus point ``(x_n z_k, y_n z_k, z_k)`` in the camera frame whose origin is the
-optical centre (``z_k = z_f``, or with ``focus_zones_mm`` the zone's focus at the sample's
-pupil radius ``rho_k = |(x_k, y_k)|``, linear between rows, clamped at the ends), with weight ``w_k * transmittance`` (relative transmittance: 1 for the
-brightest pixels, lower where the lens vignettes). Samples between nodes: ``nearest`` node,
+pixel's in-focus point ``((x_n + e_x) z_k, (y_n + e_y) z_k, z_k)`` in the camera frame whose
+origin is the optical centre (``z_k = z_f``, or with ``focus_zones_mm`` the zone's focus at
+the sample's pupil radius ``rho_k = |(x_k, y_k)|``, linear between rows, clamped at the
+ends; ``e`` the node's ``aim_offset``, 0 without one), with weight ``w_k * transmittance``
+(relative transmittance: 1 for the brightest pixels, lower where the lens vignettes). Samples between nodes: ``nearest`` node,
 or ``bilinear`` (sample k of the four surrounding nodes blended; the derivation orders
 samples the same way at every node, so sample k means the same part of the aperture).
 
@@ -32,6 +33,10 @@ dist_coeffs            (5,) float      optional: OpenCV distortion with that K
 focus_zones_mm         (Z, 2) float    optional: rows (pupil radius mm, focus distance mm
                                        from the optical centre), radii strictly increasing
                                        from >= 0, Z >= 2; absent: every ray aims at z_f
+aim_offset             (Gv, Gu, 2)     optional: per node, added to the pixel's normalised
+                                       coordinates where its samples aim (the principal
+                                       ray's offset from the pinhole direction, radians);
+                                       absent: 0
 metadata_json          () str          optional: how it was measured (free JSON)
 =====================  ==============  ===================================================
 """
@@ -57,7 +62,7 @@ INTERPOLATIONS = ("nearest", "bilinear")
 REQUIRED = ("format", "format_version", "focus_distance_mm", "optical_centre_mm", "camera_size",
             "node_u", "node_v", "aperture_x_mm", "aperture_y_mm", "weights", "transmittance",
             "interpolation")
-OPTIONAL = ("camera_matrix", "dist_coeffs", "metadata_json", "focus_zones_mm")
+OPTIONAL = ("camera_matrix", "dist_coeffs", "metadata_json", "focus_zones_mm", "aim_offset")
 
 
 class LensFileError(ValueError):
@@ -88,11 +93,12 @@ class MeasuredLens:
     dist_coeffs: np.ndarray | None = None
     metadata: dict = field(default_factory=dict)
     focus_zones_mm: np.ndarray | None = None
+    aim_offset: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name in ("optical_centre_mm", "node_u", "node_v", "aperture_x_mm", "aperture_y_mm",
                      "weights", "transmittance", "camera_matrix", "dist_coeffs",
-                     "focus_zones_mm"):
+                     "focus_zones_mm", "aim_offset"):
             if getattr(self, name) is not None:  # own float64 copies
                 object.__setattr__(self, name, np.array(getattr(self, name), dtype=np.float64))
         object.__setattr__(self, "focus_distance_mm", float(self.focus_distance_mm))
@@ -157,6 +163,11 @@ class MeasuredLens:
                 raise LensFileError(f"field 'dist_coeffs' must have 5 values, got "
                                     f"{self.dist_coeffs.shape}")
             _finite("dist_coeffs", self.dist_coeffs)
+        if self.aim_offset is not None:
+            if self.aim_offset.shape != (gv, gu, 2):
+                raise LensFileError(f"field 'aim_offset' must have shape ({gv}, {gu}, 2), got "
+                                    f"{self.aim_offset.shape}")
+            _finite("aim_offset", self.aim_offset)
         zones = self.focus_zones_mm
         if zones is not None:
             if zones.ndim != 2 or zones.shape[1] != 2 or zones.shape[0] < 2:
@@ -195,9 +206,19 @@ class MeasuredLens:
     def samples_at(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Aperture samples of pixels uv (n, 2): x (n, K), y (n, K) mm and weights (n, K)
         times the relative transmittance."""
-        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         t = self.transmittance[..., None] * self.weights
-        arrays = (self.aperture_x_mm, self.aperture_y_mm, t)
+        return self._at((self.aperture_x_mm, self.aperture_y_mm, t), uv)  # type: ignore
+
+    def aim_offset_at(self, uv: np.ndarray) -> np.ndarray:
+        """The aim offset (n, 2) of pixels uv (n, 2), read like the samples; 0 without one."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        if self.aim_offset is None:
+            return np.zeros((len(uv), 2))
+        return self._at((self.aim_offset,), uv)[0]
+
+    def _at(self, arrays: tuple[np.ndarray, ...], uv: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Per-node arrays (Gv, Gu, ...) at pixels uv (n, 2): nearest node or bilinear."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         if self.interpolation == "nearest":
             i = np.abs(uv[:, 0, None] - self.node_u[None]).argmin(axis=1)
             j = np.abs(uv[:, 1, None] - self.node_v[None]).argmin(axis=1)
@@ -229,7 +250,8 @@ class MeasuredLens:
         x, y, w = self.samples_at(uv)
         zf = np.broadcast_to(self.aim_depths(x, y), x.shape)
         aim = np.empty(x.shape + (3,))
-        aim[..., :2] = xy_n[:, None, :] * zf[..., None]
+        xy_aim = xy_n if self.aim_offset is None else xy_n + self.aim_offset_at(uv)
+        aim[..., :2] = xy_aim[:, None, :] * zf[..., None]
         aim[..., 2] = zf
         origins = np.zeros(x.shape + (3,))
         origins[..., 0] = x
@@ -322,7 +344,7 @@ def _trailer(lens: MeasuredLens, transmittance: np.ndarray) -> dict:
     """The lens file's members after the per-sample arrays (the optional ones if set)."""
     out = {"transmittance": transmittance, "interpolation": np.array(lens.interpolation),
            "metadata_json": np.array(json.dumps(lens.metadata))}
-    for name in ("camera_matrix", "dist_coeffs", "focus_zones_mm"):
+    for name in ("camera_matrix", "dist_coeffs", "focus_zones_mm", "aim_offset"):
         if getattr(lens, name) is not None:
             out[name] = getattr(lens, name)
     return out
@@ -399,6 +421,17 @@ class LensFileWriter:
             for r in range(a.shape[0]):
                 os.pwrite(f.fileno(), a[r].tobytes(), self._offset(name, j0 + r, i0))
 
+    def read_rows(self, j0: int, j1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The written samples x, y mm and weights (j1 - j0, Gu, K) of node rows j0:j1."""
+        _, gu, k = self.shape
+        out = []
+        for name in self.NAMES:
+            f = self._files[name]
+            f.flush()
+            buf = os.pread(f.fileno(), 8 * (j1 - j0) * gu * k, self._offset(name, j0, 0))
+            out.append(np.frombuffer(buf, dtype="<f8").reshape(j1 - j0, gu, k))
+        return out[0], out[1], out[2]
+
     def copy_nodes(self, dst: np.ndarray, src: np.ndarray) -> None:
         """Node (flat index) ``dst[n]`` takes the samples of node ``src[n]``, read back from
         the written ones (sources must not be among the destinations)."""
@@ -414,7 +447,8 @@ class LensFileWriter:
               camera_size: tuple[int, int], transmittance: np.ndarray,
               interpolation: str = "bilinear", camera_matrix: np.ndarray | None = None,
               dist_coeffs: np.ndarray | None = None, metadata: dict | None = None,
-              focus_zones_mm: np.ndarray | None = None) -> Path:
+              focus_zones_mm: np.ndarray | None = None,
+              aim_offset: np.ndarray | None = None) -> Path:
         """Validate the scalar fields, write the ``.npz`` and return its path."""
         gv, gu, _ = self.shape
         # the scalar fields, validated by a one-node stand-in (the per-node arrays were
@@ -437,8 +471,16 @@ class LensFileWriter:
         _finite("transmittance", transmittance)
         if np.any(transmittance < 0):
             raise LensFileError(f"{self.path}: field 'transmittance' has negative values")
+        if aim_offset is not None:
+            aim_offset = np.asarray(aim_offset, dtype=np.float64)
+            if aim_offset.shape != (gv, gu, 2):
+                raise LensFileError(f"{self.path}: field 'aim_offset' must have shape ({gv}, "
+                                    f"{gu}, 2), got {aim_offset.shape}")
+            _finite("aim_offset", aim_offset)
         small = _header(lens, self.node_u, self.node_v)
         tail = _trailer(lens, transmittance)
+        if aim_offset is not None:
+            tail["aim_offset"] = aim_offset
         tmp = self.path.with_name(self.path.name + ".tmp")
         with open(tmp, "wb") as raw:
             with zipfile.ZipFile(raw, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
@@ -543,7 +585,7 @@ def load_lens(path: str | Path) -> MeasuredLens:
                 raise LensFileError(f"field 'metadata_json' is not JSON ({exc})") from exc
         for name in ("node_u", "node_v", "aperture_x_mm", "aperture_y_mm", "weights",
                      "transmittance", "optical_centre_mm", "camera_matrix", "dist_coeffs",
-                     "focus_zones_mm"):
+                     "focus_zones_mm", "aim_offset"):
             dtype = data[name].dtype if name in data else np.dtype(float)
             if not (np.issubdtype(dtype, np.floating) or np.issubdtype(dtype, np.integer)):
                 raise LensFileError(f"field '{name}' must be real numbers, got dtype {dtype}")
@@ -564,6 +606,7 @@ def load_lens(path: str | Path) -> MeasuredLens:
             interpolation=_scalar(data, "interpolation", str),
             camera_matrix=data.get("camera_matrix"), dist_coeffs=data.get("dist_coeffs"),
             metadata=meta, focus_zones_mm=data.get("focus_zones_mm"),
+            aim_offset=data.get("aim_offset"),
         )
     except LensFileError as exc:
         raise LensFileError(f"{path}: {exc}") from exc
