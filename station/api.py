@@ -118,13 +118,16 @@ def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,
                 rig_camera: str | None = None, figures: str | Path | None = None,
                 progress: bool = True, out: str | Path | None = None,
                 workers: int | None = 1, dask: bool = False,
-                scheduler: str | None = None, pixel_samples: int = 0) -> LensResult:
+                scheduler: str | None = None, pixel_samples: int = 0,
+                settings: dict | None = None) -> LensResult:
     """The measured lens of an LTC store: principal rays, optical centre, focus, and K
     aperture samples per node pixel. ``result.lens`` is a :class:`sim.MeasuredLens`
     (``save(path)`` / ``MeasuredLens.load(path)``); ``result.summary()`` reports it.
 
     pixel_samples : how a camera pixel integrates its LCD footprint (0: a box, n: an n x n
         point grid, a simulated camera's subpixels; ``LensFitConfig.pixel_samples``).
+    settings : further ``LensFitConfig`` fields by name (e.g. ``deconvolve_iterations``,
+        ``support_floor``, ``aim_offset_sigma_px``); errors name the field.
     rig, rig_camera : a rig file (``sim.Rig``) giving the camera matrix K, used instead of
         the store's ``camera_matrix``; figures : a folder for the PNG figures.
     out : write the lens file there while the nodes are derived (memory does not grow with
@@ -143,9 +146,10 @@ def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,
     from station.ltc.store import open_ltc_volume
 
     try:
-        cfg = LensFitConfig(samples=samples, grid_step=grid_step, interpolation=interpolation,
-                            centre_method=centre, focus_distance_mm=focus_distance_mm,
-                            pixel_samples=pixel_samples)
+        cfg = LensFitConfig(**{"samples": samples, "grid_step": grid_step,
+                               "interpolation": interpolation, "centre_method": centre,
+                               "focus_distance_mm": focus_distance_mm,
+                               "pixel_samples": pixel_samples, **(settings or {})})
     except ValidationError as exc:
         raise UsageError(format_validation_error("lens settings", exc)) from exc
     volume = open_ltc_volume(ltc)

@@ -203,6 +203,7 @@ class Sequence:
         result = derive_lens(self.out / "ltc.zarr", samples=s.lens_samples,
                              grid_step=s.lens_grid_step, figures=figures,
                              pixel_samples=s.lens_pixel_samples,
+                             settings=dict(s.lens_settings),
                              progress=self.progress, out=self.out / "lens.npz")
         summary = result.summary()
         return {k: summary[k] for k in ("optical_centre_mm", "focus_distance_mm",

@@ -227,6 +227,10 @@ class SequenceConfig(_Strict):
                                     "integrates its LCD footprint in the lens fit: 0 a box "
                                     "(a real camera), n an n x n point grid (a simulated "
                                     "camera rendered with n x n subpixels)")
+    lens_settings: dict[str, float | int | bool] = Field(
+        default_factory=dict, description="further settings of the lens step by name "
+        "(station.lens.geometry.LensFitConfig: e.g. deconvolve_iterations, support_floor, "
+        "aim_offset_sigma_px); checked when the lens step starts")
 
 
 class StationConfig(_Strict):

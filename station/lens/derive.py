@@ -32,6 +32,7 @@ from scipy import ndimage
 from tqdm import tqdm
 
 from sim.optics.measured_lens import LensFileWriter, MeasuredLens, read_lens_nodes
+from sim.optics.projection import pixel_to_normalized
 from station.lens import aperture as ap
 from station.lens.centroids import STATUS_OK, region_stats
 from station.ltc.parallel import Engine, run_ordered
@@ -283,6 +284,31 @@ def local_ray_centres(geom: LensGeometry, pixels: np.ndarray, radius_px: int) ->
     per-pixel noise (centroid noise magnified ~4x by the extrapolation from the LCD depths
     to the centre) averages out. Only the rows the pixels' windows reach are evaluated, so
     a block's cost does not grow with the sensor."""
+    def at_centre(rays, band):
+        dz = float(geom.centre.position[2]) - rays.z_ref[band]
+        own = rays.xy_ref[band] + rays.slope[band] * dz[:, None] - geom.centre.position[:2]
+        return own, rays.var_ref[band] + dz**2 * rays.var_slope[band]
+
+    return _local_ray_fit(geom, pixels, radius_px, at_centre)
+
+
+def local_ray_slopes(geom: LensGeometry, pixels: np.ndarray, radius_px: int) -> np.ndarray:
+    """Principal-ray slopes (n, 2) of the given flat pixels in the camera frame (dx/dz,
+    dy/dz), by ``local_plane_fit`` of the station-frame slopes over the same windows as
+    ``local_ray_centres``, then rotated (``geom.rotation``)."""
+    def slope(rays, band):
+        return rays.slope[band], rays.var_slope[band]
+
+    s = _local_ray_fit(geom, pixels, radius_px, slope)
+    d = np.concatenate([s, np.ones((len(s), 1))], axis=1) @ np.asarray(geom.rotation).T
+    return d[:, :2] / d[:, 2:]
+
+
+def _local_ray_fit(geom: LensGeometry, pixels: np.ndarray, radius_px: int,
+                   values) -> np.ndarray:
+    """``local_plane_fit`` of ``values(rays, band)`` -> (per-pixel values (m, 2), variances
+    (m,)) over the camera rows the pixels' windows reach (a block's cost does not grow with
+    the sensor)."""
     rays = geom.rays
     w, h = geom.camera_size
     pixels = np.asarray(pixels, dtype=np.int64)
@@ -291,11 +317,43 @@ def local_ray_centres(geom: LensGeometry, pixels: np.ndarray, radius_px: int) ->
     v0 = max(0, int(pixels.min()) // w - radius_px)
     v1 = min(h, int(pixels.max()) // w + radius_px + 1)
     band = slice(v0 * w, v1 * w)
-    dz = float(geom.centre.position[2]) - rays.z_ref[band]
-    own = rays.xy_ref[band] + rays.slope[band] * dz[:, None] - geom.centre.position[:2]
-    var = rays.var_ref[band] + dz**2 * rays.var_slope[band]
+    own, var = values(rays, band)
     return local_plane_fit(own, var, (rays.flags[band] & UNUSABLE) == 0, (w, v1 - v0),
                            pixels - v0 * w, radius_px)
+
+
+def aim_offsets(slope_term: np.ndarray, moment: np.ndarray, good: np.ndarray,
+                sigma_nodes: float) -> np.ndarray:
+    """The nodes' aim offsets (Gv, Gu, 2) (the lens file's ``aim_offset``): with a node's
+    samples aiming at ``(xy_n + e) z_k``, its principal ray (the samples' weighted centroid
+    line) has the slope ``xy_n + e - sum_k w_k p_k / z_k``; ``e`` makes that the station's
+    measured slope ``s``. slope_term : (Gv, Gu, 2) ``s - xy_n``; moment : (Gv, Gu, 2)
+    ``sum_k w_k p_k / z_k`` of the node's samples (weights summing to 1, p mm, z mm);
+    good : (Gv, Gu) nodes with their own samples (the others take the nearest good node's
+    offset). The mean over the good nodes is removed (a uniform offset is a camera-matrix
+    error, and the optical centre's error puts one there) and the field is smoothed by a
+    Gaussian of ``sigma_nodes`` (the measured slopes' noise, ~20 urad per node over 9 x 9
+    pixels, against offsets of a few urad; 0: not smoothed)."""
+    from scipy.ndimage import gaussian_filter
+
+    e = slope_term + moment
+    if not good.all():
+        near = ndimage.distance_transform_edt(~good, return_distances=False,
+                                              return_indices=True)
+        e = e[near[0], near[1]]
+    e = e - e[good].mean(axis=0)
+    if sigma_nodes > 0:
+        e = np.stack([gaussian_filter(e[..., c], sigma_nodes, mode="nearest")
+                      for c in range(2)], axis=-1)
+    return e
+
+
+def sample_moment(x: np.ndarray, y: np.ndarray, w: np.ndarray, lens_focus) -> np.ndarray:
+    """``sum_k w_k p_k / z_k`` (..., 2) of samples x, y mm and weights (..., K) (normalised
+    here), ``z_k = lens_focus(x, y)`` mm (a scalar focus distance or the zones' focus)."""
+    w = w / w.sum(axis=-1, keepdims=True)
+    z = np.broadcast_to(lens_focus(x, y), x.shape)
+    return np.stack([(w * x / z).sum(axis=-1), (w * y / z).sum(axis=-1)], axis=-1)
 
 
 def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
@@ -509,6 +567,8 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
                      "coverage": np.zeros(shape + (len(volume.depths_mm),)),
                      "mean": np.zeros(shape + (2,)), "cov": np.zeros(shape + (2, 2))}
         job = aperture_job(geom, grid, cfg, samples=True)
+        aim = cfg.aim_offset_sigma_px > 0 and geom.camera_matrix is not None
+        slope_term = np.zeros(shape + (2,)) if aim else None  # s - xy_n per node
         tr, tc = tile_shape(volume)
         blocks = []
         for r0 in range(0, h, tr):
@@ -523,6 +583,12 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
         def tasks():
             for r0, r1, c0, c1, jv, iu in blocks:
                 pix = (nv[jv][:, None] * w + nu[iu][None, :]).ravel()
+                if slope_term is not None:
+                    uv = np.stack([pix % w, pix // w], axis=1).astype(np.float64)
+                    xn = pixel_to_normalized(uv, geom.camera_matrix, geom.dist_coeffs)
+                    slope_term[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = (
+                        local_ray_slopes(geom, pix, cfg.ray_window_px) - xn
+                    ).reshape(len(jv), len(iu), 2)
                 yield ((jv, iu), aperture_block,
                        (volume, job, r0, r1, c0, c1, pix, pixel_inputs(geom, pix, cfg)))
 
@@ -573,13 +639,29 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
                                     pixel_samples=cfg.pixel_samples)
             if found is not None:
                 zones, zone_fit = found
+        offset = None
+        if slope_term is not None:
+            def focus(x_mm, y_mm):
+                if zones is None:
+                    return geom.focus_distance_mm
+                return np.interp(np.hypot(x_mm, y_mm), zones[:, 0], zones[:, 1])
+
+            moment = np.empty(shape + (2,))
+            for j0 in range(0, len(nv), max(1, GRID_PIXELS // len(nu))):
+                j1 = min(len(nv), j0 + max(1, GRID_PIXELS // len(nu)))
+                xs, ys, ws = (writer.read_rows(j0, j1) if writer is not None
+                              else (x[j0:j1, ..., 0], x[j0:j1, ..., 1], wk[j0:j1]))
+                moment[j0:j1] = sample_moment(xs, ys, ws, focus)
+            offset = aim_offsets(slope_term, moment, good,
+                                 cfg.aim_offset_sigma_px / cfg.grid_step)
+            del moment, slope_term
         meta = {"source": volume.name, "config": cfg.model_dump(mode="json"),
                 "summary_at_fit": None, "focus_zone_fit": zone_fit}
         fields_ = dict(focus_distance_mm=geom.focus_distance_mm,
                        optical_centre_mm=geom.centre.position, camera_size=volume.camera_size,
                        transmittance=trans, interpolation=cfg.interpolation,
                        camera_matrix=geom.camera_matrix, dist_coeffs=geom.dist_coeffs,
-                       metadata=meta, focus_zones_mm=zones)
+                       metadata=meta, focus_zones_mm=zones, aim_offset=offset)
         if writer is None:
             lens = MeasuredLens(node_u=nu.astype(np.float64), node_v=nv.astype(np.float64),
                                 aperture_x_mm=x[..., 0], aperture_y_mm=x[..., 1], weights=wk,

@@ -70,19 +70,29 @@ class LensFitConfig(BaseModel):
     deconvolve_iterations: int = Field(0, ge=0, le=1000, description="Richardson-Lucy "
                                        "steps removing the known LCD-pixel and camera-pixel "
                                        "blur from the fused aperture distribution before the "
-                                       "samples are drawn (aperture.deblur; 20 measured best); "
-                                       "0: off (benchmarks/README.md: the demo gains, the "
-                                       "reduced experiment test's size ordering does not hold)")
+                                       "samples are drawn (aperture.deblur; 20 measured best, "
+                                       "about 0.5 ms per node); 0: off (the experiment sets "
+                                       "it: benchmarks/README.md)")
     support_floor: float = Field(0.0, ge=0, lt=1, description="before the samples are "
                                  "drawn, the fused aperture distribution is cut to its main "
                                  "body: the connected cells above this fraction of its largest "
                                  "cell (aperture.support_floor; 0.1 measured); 0: only "
-                                 "negative noise cut (off, as deconvolve_iterations)")
+                                 "negative noise cut (off, as deconvolve_iterations; the "
+                                 "experiment sets 0.1)")
     focus_zones: bool = Field(False, description="fit a focus distance per pupil zone "
                               "(spherical aberration) from the LTCs at the optical centre and "
                               "store it as the lens file's focus_zones_mm (needs K). Off: with "
                               "the station's samples it does not improve the experiment's "
                               "scanners yet (benchmarks/README.md)")
+    aim_offset_sigma_px: float = Field(0.0, ge=0, description="give each node the aim "
+                                       "offset (the lens file's aim_offset) that makes its "
+                                       "principal ray's slope the station's measured one "
+                                       "(local-plane fits over ray_window_px), smoothed over "
+                                       "this many pixels (Gaussian sigma) and without its "
+                                       "mean over the sensor (a uniform offset is the camera "
+                                       "matrix's, not the lens's); needs K; 0: off (every "
+                                       "principal ray passes its pixel's pinhole point at the "
+                                       "focus plane; benchmarks/README.md)")
     pixel_samples: int = Field(0, ge=0, le=16, description="how a camera pixel integrates "
                                "its footprint on the LCD in the focus-zone fit: 0 a box (a "
                                "real camera), n an n x n grid of points (a simulated camera "
