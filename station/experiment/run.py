@@ -4,7 +4,10 @@ a faithful virtual scanner.
 1. **Station**: for each of the rig's two cameras, a fake bench whose camera *is* that rig
    camera (same K and sensor) carrying that camera's own ground-truth lens (the two lenses
    differ); the station sequence (``station.sequence.run_sequence``: check, alignment report,
-   acquisition at six depths, LTC reconstruction, lens derivation with figures) measures it.
+   acquisition at six depths, LTC reconstruction, lens derivation with figures) measures it,
+   with the lens settings ``lens_settings`` (by default the samples drawn from the deblurred
+   aperture distribution and each node's aim offset from the station's principal-ray
+   slopes: benchmarks/README.md, "What limits the measured lens").
 2. **Scanners** on the same rig and calibration: ``real`` (the ground-truth lenses, sampled
    densely enough that their own sampling noise is negligible), ``ltc`` (the measured lenses,
    smoothed over ``lens_smoothing_nodes`` neighbouring nodes against the station's
@@ -93,6 +96,12 @@ class ExperimentConfig(BaseModel):
     steps: int = Field(3, ge=3, le=4, description="Fourier phase steps")
     lens_samples: int = Field(128, ge=1, description="aperture samples K of the measured lens")
     lens_grid_step: int = Field(4, ge=1, description="measured-lens node spacing, px")
+    lens_settings: dict[str, float | int | bool] = Field(
+        {"support_floor": 0.1, "deconvolve_iterations": 20, "aim_offset_sigma_px": 8.0},
+        description="further settings of the station's lens step "
+        "(station.lens.geometry.LensFitConfig): the samples drawn from the deblurred aperture "
+        "distribution, each node's aim offset from the station's principal-ray slopes "
+        "(benchmarks/README.md, 'What limits the measured lens')")
     seed: int = Field(0, description="fake camera noise seed")
     # the scanners
     lens_smoothing_nodes: float = Field(2.0, ge=0, description="the measured lenses' samples "
@@ -213,7 +222,8 @@ def station_config(cfg: ExperimentConfig, rig, index: int):
         "sequence": {"align": False, "lens_samples": cfg.lens_samples,
                      "lens_grid_step": cfg.lens_grid_step,
                      # the bench renders each camera pixel as BENCH_SUBPIXELS^2 points
-                     "lens_pixel_samples": BENCH_SUBPIXELS},
+                     "lens_pixel_samples": BENCH_SUBPIXELS,
+                     "lens_settings": dict(cfg.lens_settings)},
         "fake": {
             "seed": cfg.seed + index, "stage_maxspeed_mm_s": 1000.0,
             "stage_accel_mm_s2": 10000.0,

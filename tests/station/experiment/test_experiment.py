@@ -13,9 +13,12 @@ from station.cli import main
 from station.experiment.run import ExperimentConfig, cad_part_mesh, run_experiment
 
 # the demo's rig scale (0.1: scale 0.05 leaves too few pixels on a defocused ball for the
-# stereo checks), with a narrower camera, 4 depths and 64 aperture samples
+# stereo checks) and station (LCD pitch, six depths), with a narrower camera, 64 aperture
+# samples and fewer positions (a coarser station, 1 mm LCD pixels at 4 depths, measures a lens
+# whose large-defocus sphere misses real's size by 64 um, benchmarks/README.md)
 REDUCED = dict(
-    scale=0.1, camera_size=(192, 64), lcd_pitch_mm=1.0, depths_mm=(50.0, 130.0, 290.0, 370.0),
+    scale=0.1, camera_size=(192, 64), lcd_pitch_mm=0.75,
+    depths_mm=(50.0, 90.0, 130.0, 290.0, 330.0, 370.0),
     period=12, lens_samples=64, lens_grid_step=4, real_samples=256,
     periods_px=(256.0, 32.0, 8.0),
     sphere_slight=((-30.0, -10.0),), sphere_large=((-150.0, 0.0),),
