@@ -262,18 +262,23 @@ class MeasuredLens:
 
 
 def centre_moments(lens: MeasuredLens) -> tuple[np.ndarray, np.ndarray]:
-    """Mean (2,) mm and covariance (2, 2) mm^2 of a measured lens's aperture samples at the
-    optical centre's pixel (the principal point of its camera matrix, else the sensor centre)."""
+    """Mean (2,) mm and covariance (2, 2) mm^2 of a measured lens's aperture distribution at
+    the optical centre's pixel (the principal point of its camera matrix, else the sensor
+    centre): each node's first and second moments of its samples, read there like the
+    samples (nearest node or bilinear: the moments of the nodes' mixture; blending the
+    samples themselves would narrow them wherever sample k differs from node to node)."""
     if lens.camera_matrix is not None:
         uv = lens.camera_matrix[:2, 2]
     else:
         uv = (np.asarray(lens.camera_size, dtype=np.float64) - 1) / 2
-    x, y, w = (a[0] for a in lens.samples_at(np.asarray(uv, dtype=np.float64)[None]))
-    w = w / w.sum()
-    xy = np.stack([x, y], axis=1)
-    mean = w @ xy
-    d = xy - mean
-    return mean, (w[:, None] * d).T @ d
+    w = lens.weights / lens.weights.sum(axis=2, keepdims=True)
+    x, y = lens.aperture_x_mm, lens.aperture_y_mm
+    m1 = np.stack([(w * x).sum(axis=2), (w * y).sum(axis=2)], axis=-1)
+    m2 = np.stack([(w * x * x).sum(axis=2), (w * x * y).sum(axis=2),
+                   (w * y * y).sum(axis=2)], axis=-1)
+    mean, sq = (a[0] for a in lens._at((m1, m2), np.asarray(uv, dtype=np.float64)[None]))
+    second = np.array([[sq[0], sq[1]], [sq[1], sq[2]]])
+    return mean, second - np.outer(mean, mean)
 
 
 def gaussian_equivalent(lens: MeasuredLens, samples: int | None = None) -> GaussianLens:

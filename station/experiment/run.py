@@ -287,14 +287,17 @@ def measure_cameras(cfg: ExperimentConfig, rig, out: Path, progress: bool, log: 
 # --- the scanners -----------------------------------------------------------------------------
 
 def scanner_lenses(cfg: ExperimentConfig, measured: list) -> dict[str, tuple]:
-    """Per scanner the lens of each camera (the measured lenses smoothed over
-    ``lens_smoothing_nodes``, for "ltc" and the Gaussian's moments)."""
+    """Per scanner the lens of each camera: "ltc" the measured lenses smoothed over
+    ``lens_smoothing_nodes``; "gaussian" from the measured lenses as derived (OPTICS.md
+    section 7: the second moment of the measured LTC at the optical centre, which the
+    derivation gives each node's samples exactly; averaging sample k over nodes narrows
+    the deblurred samples by a few per cent, an artefact of the smoothing, not of the
+    measurement)."""
     from sim.optics.lens import PinholeLens
     from sim.optics.measured_lens import gaussian_equivalent, smoothed_lens
 
-    measured = [smoothed_lens(m, cfg.lens_smoothing_nodes) for m in measured]
     return {"real": tuple(truth_lens(cfg, i, cfg.real_samples) for i in range(2)),
-            "ltc": tuple(measured),
+            "ltc": tuple(smoothed_lens(m, cfg.lens_smoothing_nodes) for m in measured),
             "gaussian": tuple(gaussian_equivalent(m, cfg.gaussian_samples) for m in measured),
             "pinhole": (PinholeLens(), PinholeLens())}
 

@@ -289,3 +289,22 @@ def test_aim_offset_moves_each_pixels_in_focus_point_and_round_trips(tmp_path):
     np.testing.assert_array_equal(load_lens(tmp_path / "streamed.npz").aim_offset, e)
     with pytest.raises(LensFileError, match="aim_offset"):
         make_lens(aim_offset=e[:, :3])
+
+
+def test_gaussian_baseline_reads_moments_between_nodes_not_blended_samples():
+    """Two nodes with the same aperture distribution, its samples in another order: halfway
+    between them the second moment is that distribution's (blending sample k of one node
+    with sample k of the other would shrink it to nothing here)."""
+    from sim.optics.measured_lens import centre_moments
+
+    a = 3.0
+    xs = np.array([[a, -a, 0.0, 0.0], [-a, a, 0.0, 0.0]])
+    ys = np.array([[0.0, 0.0, a, -a], [0.0, 0.0, -a, a]])
+    lens = MeasuredLens(focus_distance_mm=500.0, optical_centre_mm=np.zeros(3), camera_size=(9, 7),
+                        node_u=np.array([0.0, 8.0]), node_v=np.array([0.0]),
+                        aperture_x_mm=xs[None], aperture_y_mm=ys[None],
+                        weights=np.full((1, 2, 4), 0.25), transmittance=np.ones((1, 2)),
+                        camera_matrix=np.array([[50.0, 0, 4.0], [0, 50.0, 3.0], [0, 0, 1]]))
+    mean, cov = centre_moments(lens)
+    np.testing.assert_allclose(mean, 0, atol=1e-12)
+    np.testing.assert_allclose(cov, np.diag([a * a / 2, a * a / 2]), atol=1e-12)
