@@ -164,10 +164,7 @@ class MeasuredLens:
                                     f"{self.dist_coeffs.shape}")
             _finite("dist_coeffs", self.dist_coeffs)
         if self.aim_offset is not None:
-            if self.aim_offset.shape != (gv, gu, 2):
-                raise LensFileError(f"field 'aim_offset' must have shape ({gv}, {gu}, 2), got "
-                                    f"{self.aim_offset.shape}")
-            _finite("aim_offset", self.aim_offset)
+            _check_aim_offset(self.aim_offset, gv, gu)
         zones = self.focus_zones_mm
         if zones is not None:
             if zones.ndim != 2 or zones.shape[1] != 2 or zones.shape[0] < 2:
@@ -183,11 +180,8 @@ class MeasuredLens:
 
     def aim_depths(self, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray | float:
         """Focus distance mm that samples at aperture points (x_mm, y_mm) aim at: their zone's
-        (``focus_zones_mm``, by pupil radius) or ``focus_distance_mm``."""
-        if self.focus_zones_mm is None:
-            return self.focus_distance_mm
-        return np.interp(np.hypot(x_mm, y_mm), self.focus_zones_mm[:, 0],
-                         self.focus_zones_mm[:, 1])
+        (``focus_zones_mm``, by pupil radius) or ``focus_distance_mm`` (``aim_depths``)."""
+        return aim_depths(self.focus_zones_mm, self.focus_distance_mm, x_mm, y_mm)
 
     def save(self, path: str | Path) -> Path:
         """Write this lens as a lens file (``save_lens``); returns the path written."""
@@ -206,7 +200,7 @@ class MeasuredLens:
     def samples_at(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Aperture samples of pixels uv (n, 2): x (n, K), y (n, K) mm and weights (n, K)
         times the relative transmittance."""
-        t = self.transmittance[..., None] * self.weights
+        t = _Transmitted(self.transmittance, self.weights)
         return self._at((self.aperture_x_mm, self.aperture_y_mm, t), uv)  # type: ignore
 
     def aim_offset_at(self, uv: np.ndarray) -> np.ndarray:
@@ -217,22 +211,8 @@ class MeasuredLens:
         return self._at((self.aim_offset,), uv)[0]
 
     def _at(self, arrays: tuple[np.ndarray, ...], uv: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Per-node arrays (Gv, Gu, ...) at pixels uv (n, 2): nearest node or bilinear."""
-        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        if self.interpolation == "nearest":
-            i = np.abs(uv[:, 0, None] - self.node_u[None]).argmin(axis=1)
-            j = np.abs(uv[:, 1, None] - self.node_v[None]).argmin(axis=1)
-            return tuple(a[j, i] for a in arrays)  # type: ignore[return-value]
-        i0, fu = _bracket(self.node_u, uv[:, 0])
-        j0, fv = _bracket(self.node_v, uv[:, 1])
-        i1 = np.minimum(i0 + 1, len(self.node_u) - 1)
-        j1 = np.minimum(j0 + 1, len(self.node_v) - 1)
-        fu, fv = fu[:, None], fv[:, None]
-        return tuple(  # type: ignore[return-value]
-            (1 - fv) * ((1 - fu) * a[j0, i0] + fu * a[j0, i1])
-            + fv * ((1 - fu) * a[j1, i0] + fu * a[j1, i1])
-            for a in arrays
-        )
+        """Per-node arrays (Gv, Gu, ...) at pixels uv (n, 2) (``_between_nodes``)."""
+        return _between_nodes(self.node_u, self.node_v, self.interpolation, arrays, uv)
 
     def bundle(self, xy_n: np.ndarray, uv: np.ndarray | None = None) -> RayBundle:
         """Rays (n, K) of pixels with normalised coordinates xy_n (n, 2) and pixel
@@ -247,10 +227,16 @@ class MeasuredLens:
         if len(uv) != len(xy_n):
             raise LensFileError(f"MeasuredLens.bundle: xy_n has {len(xy_n)} rows but uv has "
                                 f"{len(uv)}")
-        x, y, w = self.samples_at(uv)
+        t = _Transmitted(self.transmittance, self.weights)
+        if self.aim_offset is None:
+            x, y, w = self._at((self.aperture_x_mm, self.aperture_y_mm, t), uv)
+            xy_aim = xy_n
+        else:  # the offsets read with the samples (one bracketing of the nodes)
+            x, y, w, e = self._at((self.aperture_x_mm, self.aperture_y_mm, t,
+                                   self.aim_offset), uv)
+            xy_aim = xy_n + e
         zf = np.broadcast_to(self.aim_depths(x, y), x.shape)
         aim = np.empty(x.shape + (3,))
-        xy_aim = xy_n if self.aim_offset is None else xy_n + self.aim_offset_at(uv)
         aim[..., :2] = xy_aim[:, None, :] * zf[..., None]
         aim[..., 2] = zf
         origins = np.zeros(x.shape + (3,))
@@ -271,12 +257,19 @@ def centre_moments(lens: MeasuredLens) -> tuple[np.ndarray, np.ndarray]:
         uv = lens.camera_matrix[:2, 2]
     else:
         uv = (np.asarray(lens.camera_size, dtype=np.float64) - 1) / 2
-    w = lens.weights / lens.weights.sum(axis=2, keepdims=True)
-    x, y = lens.aperture_x_mm, lens.aperture_y_mm
+    uv = np.asarray(uv, dtype=np.float64)
+    # only the (up to) 2 x 2 nodes about uv: the nearest one is among them too
+    i0 = int(_bracket(lens.node_u, uv[:1])[0][0])
+    j0 = int(_bracket(lens.node_v, uv[1:])[0][0])
+    cols, rows = slice(i0, i0 + 2), slice(j0, j0 + 2)
+    w = lens.weights[rows, cols]
+    w = w / w.sum(axis=2, keepdims=True)
+    x, y = lens.aperture_x_mm[rows, cols], lens.aperture_y_mm[rows, cols]
     m1 = np.stack([(w * x).sum(axis=2), (w * y).sum(axis=2)], axis=-1)
     m2 = np.stack([(w * x * x).sum(axis=2), (w * x * y).sum(axis=2),
                    (w * y * y).sum(axis=2)], axis=-1)
-    mean, sq = (a[0] for a in lens._at((m1, m2), np.asarray(uv, dtype=np.float64)[None]))
+    mean, sq = (a[0] for a in _between_nodes(lens.node_u[cols], lens.node_v[rows],
+                                             lens.interpolation, (m1, m2), uv[None]))
     second = np.array([[sq[0], sq[1]], [sq[1], sq[2]]])
     return mean, second - np.outer(mean, mean)
 
@@ -324,6 +317,53 @@ def smoothed_lens(lens: MeasuredLens, sigma_nodes: float) -> MeasuredLens:
     return replace(lens, aperture_x_mm=x - centroid(x, w) + cx,
                    aperture_y_mm=y - centroid(y, w) + cy, weights=w,
                    transmittance=f(lens.transmittance))
+
+
+def aim_depths(focus_zones_mm: np.ndarray | None, focus_distance_mm: float,
+               x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray | float:
+    """Focus distance mm that aperture points (x_mm, y_mm) aim at: by pupil radius from the
+    zones table (rows: radius mm, focus mm; linear between rows, clamped at the ends), or
+    ``focus_distance_mm`` without one."""
+    if focus_zones_mm is None:
+        return focus_distance_mm
+    return np.interp(np.hypot(x_mm, y_mm), focus_zones_mm[:, 0], focus_zones_mm[:, 1])
+
+
+class _Transmitted:
+    """``transmittance[..., None] * weights`` read node by node (``a[j, i]``), without the
+    whole (Gv, Gu, K) product: the nodes a pixel reads are multiplied when read."""
+
+    def __init__(self, transmittance: np.ndarray, weights: np.ndarray) -> None:
+        self.t, self.w = transmittance, weights
+
+    def __getitem__(self, index):
+        return self.t[index][..., None] * self.w[index]
+
+
+def _check_aim_offset(a: np.ndarray, gv: int, gu: int) -> None:
+    """An aim offset field must be finite, of shape (Gv, Gu, 2)."""
+    if a.shape != (gv, gu, 2):
+        raise LensFileError(f"field 'aim_offset' must have shape ({gv}, {gu}, 2), got "
+                            f"{a.shape}")
+    _finite("aim_offset", a)
+
+
+def _between_nodes(node_u: np.ndarray, node_v: np.ndarray, interpolation: str,
+                   arrays: tuple[np.ndarray, ...], uv: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per-node arrays (Gv, Gu, ...) at pixels uv (n, 2): the nearest node, or bilinear
+    between the four surrounding nodes (clamped at the border)."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if interpolation == "nearest":
+        i = np.abs(uv[:, 0, None] - node_u[None]).argmin(axis=1)
+        j = np.abs(uv[:, 1, None] - node_v[None]).argmin(axis=1)
+        return tuple(a[j, i] for a in arrays)
+    i0, fu = _bracket(node_u, uv[:, 0])
+    j0, fv = _bracket(node_v, uv[:, 1])
+    i1 = np.minimum(i0 + 1, len(node_u) - 1)
+    j1 = np.minimum(j0 + 1, len(node_v) - 1)
+    fu, fv = fu[:, None], fv[:, None]
+    return tuple((1 - fv) * ((1 - fu) * a[j0, i0] + fu * a[j0, i1])
+                 + fv * ((1 - fu) * a[j1, i0] + fu * a[j1, i1]) for a in arrays)
 
 
 def _bracket(nodes: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -478,10 +518,10 @@ class LensFileWriter:
             raise LensFileError(f"{self.path}: field 'transmittance' has negative values")
         if aim_offset is not None:
             aim_offset = np.asarray(aim_offset, dtype=np.float64)
-            if aim_offset.shape != (gv, gu, 2):
-                raise LensFileError(f"{self.path}: field 'aim_offset' must have shape ({gv}, "
-                                    f"{gu}, 2), got {aim_offset.shape}")
-            _finite("aim_offset", aim_offset)
+            try:
+                _check_aim_offset(aim_offset, gv, gu)
+            except LensFileError as exc:
+                raise LensFileError(f"{self.path}: {exc}") from exc
         small = _header(lens, self.node_u, self.node_v)
         tail = _trailer(lens, transmittance)
         if aim_offset is not None:
