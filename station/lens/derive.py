@@ -31,7 +31,7 @@ import numpy as np
 from scipy import ndimage
 from tqdm import tqdm
 
-from sim.optics.measured_lens import LensFileWriter, MeasuredLens, read_lens_nodes
+from sim.optics.measured_lens import LensFileWriter, MeasuredLens, aim_depths, read_lens_nodes
 from sim.optics.projection import pixel_to_normalized
 from station.lens import aperture as ap
 from station.lens.centroids import STATUS_OK, region_stats
@@ -641,14 +641,13 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
                 zones, zone_fit = found
         offset = None
         if slope_term is not None:
-            def focus(x_mm, y_mm):
-                if zones is None:
-                    return geom.focus_distance_mm
-                return np.interp(np.hypot(x_mm, y_mm), zones[:, 0], zones[:, 1])
+            def focus(x_mm, y_mm):  # where the lens file's samples will aim
+                return aim_depths(zones, geom.focus_distance_mm, x_mm, y_mm)
 
             moment = np.empty(shape + (2,))
-            for j0 in range(0, len(nv), max(1, GRID_PIXELS // len(nu))):
-                j1 = min(len(nv), j0 + max(1, GRID_PIXELS // len(nu)))
+            step = max(1, GRID_PIXELS // len(nu))  # node rows per block
+            for j0 in range(0, len(nv), step):
+                j1 = min(len(nv), j0 + step)
                 xs, ys, ws = (writer.read_rows(j0, j1) if writer is not None
                               else (x[j0:j1, ..., 0], x[j0:j1, ..., 1], wk[j0:j1]))
                 moment[j0:j1] = sample_moment(xs, ys, ws, focus)
