@@ -97,7 +97,11 @@ class FakeCamera(SettableExposure, Camera):
     seed : noise seed (None: a fresh one). seed_per_scene : draw each capture's noise from
     ``(seed, scene_key)``, the scene being what the LCD shows and where the stage is, so a
     frame does not depend on what was captured before it (a run interrupted and resumed, or
-    a retried frame, gives the same frames); otherwise one stream from ``seed``.
+    a retried frame, gives the same frames); the k-th further frame of an unchanged scene
+    (frames averaged per pattern) from ``(seed, scene_key, k)``, so each has noise of its
+    own; a garbage-fault frame is not counted. Otherwise one stream from ``seed``. The
+    noise-free electrons of the last scene are kept, so further frames of it cost only
+    their noise.
     """
 
     def __init__(
@@ -129,6 +133,10 @@ class FakeCamera(SettableExposure, Camera):
         self.faults = CameraFaults()
         self._frame_id = -1
         self._last: Frame | None = None
+        # the last scene: its key (with the exposure), noise-free electrons and frames so far
+        self._scene: tuple | None = None
+        self._scene_electrons: np.ndarray | None = None
+        self._scene_frames = 0
 
     def scene_key(self, z_mm: float) -> tuple[int, ...]:
         """Identity of the scene of a capture: a hash of the LCD's luminance (H, W) and of the
@@ -174,12 +182,20 @@ class FakeCamera(SettableExposure, Camera):
             f.drop = 0
         z = self._position()
         self._frame_id += 1
+        key = self.scene_key(z)
+        scene = (key, self._exposure_ms)
+        if scene != self._scene:
+            self._scene, self._scene_frames = scene, 0
+            self._scene_electrons = self.expected_electrons(z)
         if self.seed_per_scene and self.seed is not None:
-            self.rng = np.random.default_rng([self.seed, *self.scene_key(z)])
-        image = self._digitise(self.expected_electrons(z))
+            k = self._scene_frames
+            self.rng = np.random.default_rng([self.seed, *key] + ([k] if k else []))
+        image = self._digitise(self._scene_electrons)
         if f.garbage > 0:
             f.garbage -= 1
             image = np.full_like(image, 2 ** (self.noise.bit_depth - 1))
+        else:
+            self._scene_frames += 1
         frame = Frame(
             image=image,
             timestamp=time.monotonic(),

@@ -30,7 +30,8 @@ column equal) go through the Gaussian marginal along their axis, from tables of 
 blurred at ``SIGMA_LEVELS`` widths, interpolated
 bilinearly in width and position. Noise: Gaussian with the shot-noise variance plus read
 noise, seeded per scene (the image shown and the stage reading), so a resumed run captures
-the same frames.
+the same frames; the k-th further frame of an unchanged scene (frames averaged per pattern)
+is seeded with k too, so it has noise of its own.
 """
 
 from __future__ import annotations
@@ -335,6 +336,8 @@ class SyntheticCamera(SettableExposure, Camera):
         self.seed = seed
         self._exposure_ms = float(exposure_ms)
         self._frame_id = -1
+        self._scene: tuple | None = None  # the last scene's key and its frames so far
+        self._scene_frames = 0
 
     @property
     def size(self) -> tuple[int, int]:
@@ -354,9 +357,14 @@ class SyntheticCamera(SettableExposure, Camera):
         n = c.camera
         electrons = rel * np.float32(n.electrons_per_ms_white() * self._exposure_ms)
         rng = None
+        scene = (self.display.key, z, self._exposure_ms)
+        if scene != self._scene:
+            self._scene, self._scene_frames = scene, 0
         if n.enabled:  # noise drawn per scene: a resumed or retried frame is the same frame
             seed = np.frombuffer(self.display.key + np.float64(z).tobytes(), dtype="<u4")
-            rng = np.random.default_rng([self.seed or 0, *seed.tolist()])
+            k = self._scene_frames
+            rng = np.random.default_rng([self.seed or 0, *seed.tolist()] + ([k] if k else []))
+        self._scene_frames += 1
         sensor = n.sensor
         image = sensor.digitise(sensor.expose_gaussian(electrons, rng))
         self._frame_id += 1

@@ -37,7 +37,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -61,6 +61,7 @@ from station.acquisition.run_store import FrameMeta, RunStore, RunStoreError
 from station.errors import StationError, describe_os_error
 
 log = logging.getLogger(__name__)
+CODE_FAILURES = ("unreadable check code", "wrong check code")  # the pattern is shown again
 
 WRITER_QUEUE_FRAMES = 4  # frames captured ahead of the writer (memory: this many frames)
 
@@ -368,19 +369,17 @@ class Acquisition:
         for attempt in range(max_retries + 1):
             if shown is None:
                 shown = self._show(image)
-            frame, why = self._capture(shown)
-            if frame is not None and code is not None:
-                why = self._verify(frame, code)
-                if why is not None:
-                    shown = None  # show the pattern again
+            frame, peak, why = self._capture_pattern(shown, code)
             if why is None:
                 break
+            if why[0] in CODE_FAILURES:
+                shown = None  # show the pattern again
             reasons.append(f"{why[0]}: {why[1]}")
             self._retry(why[0], f"frame (depth {d}, pattern {p})", attempt, why[1])
         else:
             raise AcquisitionError(f"frame (depth {d}, pattern {p}): no good frame in "
                                    f"{max_retries + 1} attempts: {'; '.join(reasons)}")
-        self._check_saturation(event, frame.image)
+        self._check_saturation(event, peak)
         target, measured = self.stage_mm
         meta = FrameMeta(stage_target_mm=target, stage_measured_mm=measured,
                          swap_index=shown.index, swap_time_s=shown.swap_time,
@@ -393,6 +392,31 @@ class Acquisition:
 
     def _show(self, image: np.ndarray) -> ShownFrame:
         return self.hw.show_settled(image, self.config.display.settled_s)
+
+    def _capture_pattern(self, shown: ShownFrame, code: int | None
+                         ) -> tuple[Frame | None, np.ndarray | None, tuple[str, str] | None]:
+        """``camera.average_frames`` fresh frames of the pattern on screen, each verified
+        when the check code is on: (frame, peak, None) with the frames' mean rounded to whole
+        ADU (half up) as the image, the last frame's timestamp and counter, and ``peak`` the
+        per-pixel maximum over the frames (for the saturation count); or (None, None, (kind,
+        detail)) for the first frame that is not good (the attempt is retried whole)."""
+        n = self.config.camera.average_frames
+        total = peak = None
+        for _ in range(n):
+            frame, why = self._capture(shown)
+            if frame is not None and code is not None:
+                why = self._verify(frame, code)
+            if why is not None:
+                return None, None, why
+            if n == 1:
+                return frame, frame.image, None
+            if total is None:
+                total, peak = frame.image.astype(np.uint64), frame.image.copy()
+            else:
+                total += frame.image
+                np.maximum(peak, frame.image, out=peak)
+        mean = ((total + n // 2) // n).astype(frame.image.dtype)
+        return replace(frame, image=mean), peak, None
 
     def _capture(self, shown: ShownFrame) -> tuple[Frame | None, tuple[str, str] | None]:
         """One capture: (frame, None) when it is fresh (taken after ``shown`` went on screen,
@@ -417,9 +441,9 @@ class Acquisition:
             seen = read_code(frame.image, self.calibration,
                              min_margin=self.config.frame_check.min_margin)
         except FrameCodeError as exc:
-            return "unreadable check code", str(exc)
+            return CODE_FAILURES[0], str(exc)
         if seen != code:
-            return "wrong check code", f"frame shows code {seen}, expected {code}"
+            return CODE_FAILURES[1], f"frame shows code {seen}, expected {code}"
         return None
 
     def _retry(self, kind: str, what: str, attempt: int, detail: str) -> None:

@@ -82,6 +82,10 @@ class _CameraCommon(_Strict):
 
     exposure_ms: float = Field(33.333, gt=0, description="exposure, ms (a multiple of the refresh period)")
     timeout_s: float = Field(2.0, gt=0, description="capture deadline, s")
+    average_frames: int = Field(
+        1, ge=1, le=256, description="frames captured of each pattern and averaged: the run "
+        "store keeps their mean rounded to whole ADU; frame noise / sqrt(N), capture time x N"
+    )
     saturation_fraction: float = Field(
         0.98, gt=0, le=1, description="pixels at or above this fraction of full scale count as saturated"
     )

@@ -102,6 +102,9 @@ class ExperimentConfig(BaseModel):
         "(station.lens.geometry.LensFitConfig): the samples drawn from the deblurred aperture "
         "distribution, each node's aim offset from the station's principal-ray slopes "
         "(benchmarks/README.md, 'What limits the measured lens')")
+    average_frames: int = Field(4, ge=1, description="camera frames averaged per station "
+                                "pattern ([camera] average_frames): the noise of the principal "
+                                "rays' intercepts / sqrt(N) (benchmarks/README.md)")
     seed: int = Field(0, description="fake camera noise seed")
     # the scanners
     lens_smoothing_nodes: float = Field(2.0, ge=0, description="the measured lenses' samples "
@@ -215,7 +218,8 @@ def station_config(cfg: ExperimentConfig, rig, index: int):
                   "tolerance_um": 1.0, "timeout_s": 0.5, "settle_s": 0.0},
         "display": {"monitor": 0, "latency_frames": 0, "frame_code": False,
                     "pitch_mm": cfg.lcd_pitch_mm},
-        "camera": {"exposure_ms": 20.0, "timeout_s": 2.0, "matrix": K.tolist()},
+        "camera": {"exposure_ms": 20.0, "timeout_s": 2.0, "matrix": K.tolist(),
+                   "average_frames": cfg.average_frames},
         "patterns": {"period": cfg.period, "steps": cfg.steps, "offset": 0.5, "amplitude": 0.5},
         # the check code proves the frame order on real hardware; here it would only mask pixels
         "frame_check": {"enabled": False},

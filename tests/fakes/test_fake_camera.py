@@ -71,6 +71,48 @@ def test_noise_mean_and_variance_match_the_model(lcd):
     assert np.mean(var) == pytest.approx(np.mean(var_model), rel=0.05)
 
 
+def test_frames_of_one_scene_have_noise_of_their_own_and_the_first_is_the_scenes(lcd):
+    """seed_per_scene: the first frame of a scene depends on the scene alone (a resumed run
+    recaptures it exactly); further frames of the unchanged scene (frames averaged per
+    pattern) draw their own noise, with the model's variance, and a garbage-fault frame does
+    not count; a new scene starts again from its first frame."""
+    bench = FakeBench(BenchConfig.small(pupil_samples=64, subpixels=1))
+    noise = NoiseModel()
+    rng = np.random.default_rng(5)
+    a = rng.integers(60, 200, size=(IDEAL.lcd_size[1], IDEAL.lcd_size[0]), dtype=np.uint8)
+    b = 255 - a
+
+    def camera():
+        return FakeCamera(bench, lcd, lambda: 60.0, noise, seed=11, seed_per_scene=True)
+
+    cam = camera()
+    lcd.show(a)
+    e = cam.expected_electrons()
+    frames = [cam.capture().image for _ in range(3)]
+    cam.faults.garbage = 1
+    assert (cam.capture().image == 2 ** (noise.bit_depth - 1)).all()
+    frames.append(cam.capture().image)
+    later = [cam.capture().image.astype(np.float64) for _ in range(200)]
+    lcd.show(b)
+    other = cam.capture().image
+    lcd.show(a)
+    again = cam.capture().image
+    fresh = camera()
+    lcd.show(a)
+    np.testing.assert_array_equal(fresh.capture().image, frames[0])
+    fresh.capture(), fresh.capture()
+    np.testing.assert_array_equal(fresh.capture().image, frames[3])  # the garbage not counted
+    lcd.show(b)
+    np.testing.assert_array_equal(fresh.capture().image, other)
+    np.testing.assert_array_equal(again, frames[0])
+    lit = e > 100
+    for i in range(3):
+        assert np.count_nonzero(frames[i][lit] != frames[i + 1][lit]) > 0.9 * lit.sum()
+    stack = np.stack(later)
+    var = stack.var(axis=0, ddof=1)[lit]
+    assert np.mean(var) == pytest.approx(np.mean(noise.variance_adu(e)[lit]), rel=0.05)
+
+
 def test_saturation_clips_at_full_scale(lcd):
     noise = NoiseModel(white_fraction=3.0)
     cam = FakeCamera(FakeBench(BenchConfig.small(pupil_samples=16, subpixels=1)), lcd,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.special import ndtr
 
 from fakes.synthetic import SyntheticBench, SyntheticConfig, describe_image
@@ -60,3 +61,29 @@ def test_phase_steps_from_the_kept_transfer_equal_a_fresh_bench() -> None:
         a = warm.response(kind, data, 140.0)
     b = SyntheticBench(SyntheticConfig(), rows=(0, 4)).response(kind, data, 140.0)
     np.testing.assert_array_equal(a, b)
+
+
+def test_frames_of_one_scene_have_noise_of_their_own_and_the_first_is_the_scenes() -> None:
+    """The first frame of a scene is the scene's alone (a resumed run recaptures it); further
+    frames of the unchanged scene (frames averaged per pattern) have noise of their own, with
+    the variance of the first about the noise-free response."""
+    from fakes.synthetic import SyntheticHardware, SyntheticSettings
+
+    plan = StationPatternPlan.for_lcd(LCD, 24, 4)
+    settings = SyntheticSettings(rows=(0, 4))
+
+    def frames(n: int) -> list[np.ndarray]:
+        with SyntheticHardware(settings, period=24, travel_mm=(0.0, 300.0)) as hw:
+            hw.stage.move_to(140.0)
+            hw.lcd.show(plan.image(30, LCD))
+            return [hw.camera.capture().image.astype(np.float64) for _ in range(n)]
+
+    many, again = frames(24), frames(1)
+    np.testing.assert_array_equal(again[0], many[0])
+    diffs = [np.mean(many[k] != many[k + 1]) for k in range(len(many) - 1)]
+    assert min(diffs) > 0.5
+    stack = np.stack(many)
+    # independent frames: the variance of a difference of two is twice that of one
+    var_one = stack.var(axis=0, ddof=1).mean()
+    var_diff = np.var(stack[1:] - stack[:-1], axis=0, ddof=1).mean()
+    assert var_diff == pytest.approx(2 * var_one, rel=0.1)

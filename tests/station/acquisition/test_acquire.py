@@ -303,6 +303,53 @@ def test_camera_timeout_and_stale_frames_are_retried_and_recorded(reference, tmp
     np.testing.assert_array_equal(arrays["frames"], reference["arrays"]["frames"])
 
 
+def test_averaged_frames_store_the_rounded_mean_of_fresh_verified_frames(reference, tmp_path):
+    """camera.average_frames = 4: every stored frame is the mean, rounded half up, of the four
+    frames the camera delivered of its pattern (pixel-exact against a recording of them),
+    the frames have noise of their own, and the first of each is the single frame of the
+    fault-free run; an unreadable check code in the third frame re-shows the pattern and
+    captures all four again."""
+    out = tmp_path / "run.zarr"
+    seen: dict[Event, list[np.ndarray]] = {}
+    state: dict = {}
+    faulty = Event(1, 7)
+
+    def hook(event, hw):
+        last = state.get("event")
+        if last is not None and last.depth != event.depth:  # drop the check code's calibration
+            del seen[last][7 if last == faulty else 4:]  # frames at the new depth
+        state["event"], state["frames"] = event, seen.setdefault(event, [])
+        if "wrapped" in state:
+            return
+        capture, state["wrapped"] = hw.camera.capture, True
+
+        def recording(*args, **kwargs):
+            if state["event"] == faulty and len(state["frames"]) == 2:
+                hw.camera.faults.garbage = 1
+            frame = capture(*args, **kwargs)
+            state["frames"].append(frame.image.copy())
+            return frame
+
+        hw.camera.capture = recording
+
+    config = small_config(**{"timeout_s = 2.0": "timeout_s = 0.05\naverage_frames = 4"})
+    assert config.camera.average_frames == 4
+    summary = acquire(config, out, progress=False, before_event=hook)
+    arrays, attrs = read_store(out)
+    assert attrs["config"]["camera"]["average_frames"] == 4
+    assert summary["retries"] == {"unreadable check code": 1}
+    assert arrays["retries"].sum() == 1 and arrays["retries"][1, 7] == 1
+    ref = reference["arrays"]["frames"]
+    assert len(seen) == ref.shape[0] * ref.shape[1]
+    for event, frames in seen.items():
+        assert len(frames) == (7 if event == faulty else 4)  # 2 good, the garbage, 4 again
+        at = (event.depth, event.pattern)
+        np.testing.assert_array_equal(frames[0], ref[at])
+        stack = np.stack(frames[-4:]).astype(np.uint64)
+        np.testing.assert_array_equal(arrays["frames"][at], (stack.sum(0) + 2) // 4)
+        assert all((stack[k] != stack[k + 1]).mean() > 0.3 for k in range(3))
+
+
 def test_a_frame_that_stays_bad_stops_the_run_and_keeps_what_is_done(tmp_path):
     out = tmp_path / "run.zarr"
 
