@@ -52,7 +52,7 @@ SPHERE_DIAMETER_MM = 50.8007
 BALLBAR_LENGTH_MM = 209.8219
 BALLBAR_BALL_MM = 38.1
 FOCAL_MM = 16.0  # the reference system's lens (OPTICS.md section 1)
-BENCH_SUBPIXELS = 2  # the fake benches sample each camera pixel on a 2 x 2 grid
+BENCH_SUBPIXELS = 2  # the fake benches integrate each camera pixel as 2 x 2 subpixel footprints
 REFERENCE_PITCH_UM = 3.45  # the reference cameras' pixel pitch (sim.optics.rig)
 SHELL_MM = 2.0  # points this close to a true sphere go to its fit
 MODELS = ("real", "ltc", "gaussian", "pinhole")
@@ -225,8 +225,9 @@ def station_config(cfg: ExperimentConfig, rig, index: int):
         "frame_check": {"enabled": False},
         "sequence": {"align": False, "lens_samples": cfg.lens_samples,
                      "lens_grid_step": cfg.lens_grid_step,
-                     # the bench renders each camera pixel as BENCH_SUBPIXELS^2 points
-                     "lens_pixel_samples": BENCH_SUBPIXELS,
+                     # the bench integrates each camera pixel's area (sim.optics.plane_ltc):
+                     # a box, as a real camera's pixel
+                     "lens_pixel_samples": 0,
                      "lens_settings": dict(cfg.lens_settings)},
         "fake": {
             "seed": cfg.seed + index, "stage_maxspeed_mm_s": 1000.0,

@@ -77,3 +77,31 @@ def test_selected_pixels_only_and_plane_behind_camera_is_dark():
     t_behind[2] = 200.0
     dark = plane_ltc(K, None, (W, H), lens, R, t_behind, PLANE, PITCH, subpixels=1)
     assert dark.nnz == 0
+
+
+def test_pinhole_ltc_is_the_area_overlap_of_the_pixels_footprint():
+    """Through a pinhole a camera pixel sees a square of F_PX^-1 d mm on a plane facing it: its
+    LTC is that square's area overlap with each plane pixel (analytic), whatever the
+    subpixel grid (the subpixels' footprints tile the pixel's)."""
+    d = 200.0
+    R, t = _pose(d)
+    side = d / F_PX / PITCH  # the footprint's side, plane pixels (1.15)
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    cx = (t[0] + (u - K[0, 2]) / F_PX * d) / PITCH
+    cy = (t[1] + (v - K[1, 2]) / F_PX * d) / PITCH
+    cells = np.arange(-3, 4)
+
+    def overlap(centre):  # (H, W, 7): overlap of [centre +- side/2] with cells c +- 0.5
+        c = np.rint(centre)[..., None] + cells
+        over = np.minimum(centre[..., None] + side / 2, c + 0.5) - \
+            np.maximum(centre[..., None] - side / 2, c - 0.5)
+        return c, np.clip(over, 0, None) / side
+
+    (ix, fx), (iy, fy) = overlap(cx), overlap(cy)
+    want = np.zeros((H * W, PLANE[0] * PLANE[1]))
+    rows = np.broadcast_to(np.arange(H * W).reshape(H, W, 1, 1), (H, W, 7, 7))
+    col = (iy[..., :, None] * PLANE[0] + ix[..., None, :]).astype(int)
+    np.add.at(want, (rows.ravel(), col.ravel()), (fy[..., :, None] * fx[..., None, :]).ravel())
+    for n in (1, 2, 3):
+        m = plane_ltc(K, None, (W, H), PinholeLens(), R, t, PLANE, PITCH, subpixels=n)
+        np.testing.assert_allclose(m.toarray(), want, atol=1e-12)

@@ -458,7 +458,7 @@ def test_local_plane_fit_passes_a_linear_field_and_averages_the_noise():
 
 def test_focus_zones_recover_the_spherical_aberration(bench, clean):
     """The focus per pupil zone, fitted to the LTCs at the optical centre with the bench's
-    2 x 2 pixel sampling, follows the true ``z_f + spherical (rho / rho_max)^2`` (250 ->
+    pixels as boxes (the fake integrates each pixel's area), follows the true ``z_f + spherical (rho / rho_max)^2`` (250 ->
     256 mm) and finds the pupil radius; the lens file carries the table and its rays aim at
     their zone's focus."""
     from station.lens.zones import fit_focus_zones
@@ -467,7 +467,7 @@ def test_focus_zones_recover_the_spherical_aberration(bench, clean):
     c, g = bench.config, r.geometry
     rim = bench.lens.pupil_radius_mm
     table, fit = fit_focus_zones(vol, float(g.centre.position[2]), g.camera_matrix,
-                                 g.focus_distance_mm, 0.9 * rim, pixel_samples=2)
+                                 g.focus_distance_mm, 0.9 * rim, pixel_samples=0)
     truth = c.focus_distance_mm + c.spherical_mm * (table[:, 0] / rim) ** 2
     print(f"\nfocus zones: rho {np.round(table[:, 0], 2)} mm\n fitted {np.round(table[:, 1], 2)}"
           f"\n true   {np.round(truth, 2)}; radius {fit['radius_mm']:.3f} (true {rim}) mm")
