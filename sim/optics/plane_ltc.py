@@ -24,7 +24,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from sim.optics.lens import LensModel
-from sim.optics.plane_kernels import deposit_footprints
 from sim.optics.projection import pixel_to_normalized
 
 RAYS_PER_CHUNK = 1 << 21
@@ -66,6 +65,8 @@ def plane_ltc(
     ``j * plane_w + i``; each row sums to the fraction of the pixel's light that comes
     from the plane (its relative transmittance when the plane fills the view).
     """
+    from sim.optics.plane_kernels import deposit_footprints  # numba: loaded on first use
+
     w, h = camera_size
     pw, ph = plane_size
     R = np.asarray(R_cam_to_plane, dtype=np.float64)
