@@ -97,7 +97,7 @@ class ExperimentConfig(BaseModel):
     lens_samples: int = Field(128, ge=1, description="aperture samples K of the measured lens")
     lens_grid_step: int = Field(4, ge=1, description="measured-lens node spacing, px")
     lens_settings: dict[str, float | int | bool] = Field(
-        {"support_floor": 0.1, "deconvolve_iterations": 20, "aim_offset_sigma_px": 8.0},
+        {"support_floor": 0.1, "deconvolve_iterations": 5, "aim_offset_sigma_px": 8.0},
         description="further settings of the station's lens step "
         "(station.lens.geometry.LensFitConfig): the samples drawn from the deblurred aperture "
         "distribution, each node's aim offset from the station's principal-ray slopes "
@@ -111,8 +111,14 @@ class ExperimentConfig(BaseModel):
                                         "averaged over neighbouring nodes (Gaussian sigma, node "
                                         "spacings; sim.optics.measured_lens.smoothed_lens): "
                                         "removes node-to-node measurement noise; 0: off")
-    real_samples: int = Field(512, ge=1, description="pupil samples of the real scanner's "
-                              "lenses (soft clipping edge: converged within ~2 um RMSE)")
+    real_samples: int = Field(4096, ge=1, description="pupil samples of the real scanner's "
+                              "lenses (soft clipping edge): converged, twice as many move its "
+                              "clouds <= 0.4 um and its sizes <= 2.4 um (512 left a 26 um "
+                              "size at the farthest sphere: benchmarks/README.md)")
+    bench_samples: int = Field(512, ge=1, description="pupil samples of each fake bench's "
+                               "ground-truth lens (soft clipping edge), traced from each of a "
+                               "camera pixel's 2 x 2 subpixels, each ray spread over its "
+                               "subpixel's footprint on the LCD (sim.optics.plane_ltc)")
     gaussian_samples: int | None = Field(None, ge=1, description="aperture samples of the "
                                          "Gaussian lens (default: the measured lens's K)")
     periods_px: tuple[float, ...] = Field((256.0, 32.0, 8.0), description="fringe periods, "
@@ -242,11 +248,11 @@ def station_config(cfg: ExperimentConfig, rig, index: int):
                 "spherical_mm": lens.spherical_mm, "coma_mm": 0.0,
                 "lcd_distance_at_zero_mm": cfg.lcd_distance_at_zero_mm,
                 "tilt_deg": [0.0, 0.0], "subpixels": BENCH_SUBPIXELS,
-                # the real scanner's lens, sampled as the real scanner samples it: the LTC the
-                # station measures is then the lens's own, not a 200-sample hard-edged
-                # rendering of it (whose principal rays sit ~70 um RMS off the converged
-                # lens's at the optical centre, node to node)
-                "pupil_samples": cfg.real_samples, "pupil_edge": "soft",
+                # the true lens with a soft-edged pupil: the LTC the station measures is then
+                # the lens's own, not a 200-sample hard-edged rendering of it (whose principal
+                # rays sit ~70 um RMS off the converged lens's at the optical centre); each
+                # ray's footprint smooths what the scanner's single rays cannot, so 512 do
+                "pupil_samples": cfg.bench_samples, "pupil_edge": "soft",
             },
             "noise": {"enabled": True, "bit_depth": 12, "full_well_e": 10000.0,
                       "read_noise_e": 5.0},

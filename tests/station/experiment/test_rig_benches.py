@@ -20,7 +20,10 @@ def test_each_station_bench_is_its_rig_camera_with_its_own_true_lens():
         bench = FakeBench(parse_fake_settings(config.fake).bench_config())
         np.testing.assert_allclose(bench.K, cam.K_array, rtol=1e-12)
         assert tuple(bench.config.camera_size) == tuple(cam.size)
-        assert bench.lens == truth_lens(cfg, i, cfg.real_samples)  # the real scanner's lens
+        assert bench.lens == truth_lens(cfg, i, cfg.bench_samples)
+        # the real scanner's lens is the same lens, sampled more densely
+        assert truth_lens(cfg, i, cfg.real_samples) == bench.lens.model_copy(
+            update={"samples": cfg.real_samples})
         np.testing.assert_allclose(config.camera.matrix, cam.K_array)
         assert config.display.pitch_mm == bench.config.lcd_pitch_mm == cfg.lcd_pitch_mm
         lenses.append(bench.lens)
