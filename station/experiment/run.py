@@ -52,7 +52,8 @@ SPHERE_DIAMETER_MM = 50.8007
 BALLBAR_LENGTH_MM = 209.8219
 BALLBAR_BALL_MM = 38.1
 FOCAL_MM = 16.0  # the reference system's lens (OPTICS.md section 1)
-BENCH_SUBPIXELS = 2  # the fake benches integrate each camera pixel as 2 x 2 subpixel footprints
+BENCH_SUBPIXELS = 1  # the fake benches trace each pixel's rays from its centre, each spread over
+# the pixel's whole footprint on the LCD: the pixel's area, with all the rays for the pupil
 REFERENCE_PITCH_UM = 3.45  # the reference cameras' pixel pitch (sim.optics.rig)
 SHELL_MM = 2.0  # points this close to a true sphere go to its fit
 MODELS = ("real", "ltc", "gaussian", "pinhole")
@@ -97,7 +98,7 @@ class ExperimentConfig(BaseModel):
     lens_samples: int = Field(128, ge=1, description="aperture samples K of the measured lens")
     lens_grid_step: int = Field(4, ge=1, description="measured-lens node spacing, px")
     lens_settings: dict[str, float | int | bool] = Field(
-        {"support_floor": 0.1, "deconvolve_iterations": 5, "aim_offset_sigma_px": 8.0},
+        {"support_floor": 0.1, "deconvolve_iterations": 20, "aim_offset_sigma_px": 8.0},
         description="further settings of the station's lens step "
         "(station.lens.geometry.LensFitConfig): the samples drawn from the deblurred aperture "
         "distribution, each node's aim offset from the station's principal-ray slopes "
@@ -115,10 +116,12 @@ class ExperimentConfig(BaseModel):
                               "lenses (soft clipping edge): converged, twice as many move its "
                               "clouds <= 0.4 um and its sizes <= 2.4 um (512 left a 26 um "
                               "size at the farthest sphere: benchmarks/README.md)")
-    bench_samples: int = Field(512, ge=1, description="pupil samples of each fake bench's "
-                               "ground-truth lens (soft clipping edge), traced from each of a "
-                               "camera pixel's 2 x 2 subpixels, each ray spread over its "
-                               "subpixel's footprint on the LCD (sim.optics.plane_ltc)")
+    bench_samples: int = Field(2048, ge=1, description="pupil samples of each fake bench's "
+                               "ground-truth lens (soft clipping edge), traced from each camera "
+                               "pixel's centre, each ray spread over the pixel's footprint on "
+                               "the LCD (sim.optics.plane_ltc): its principal rays then sit "
+                               "~4 um RMS from the converged lens's at the pupil (512: 13 um, "
+                               "which the measured lens inherited: benchmarks/README.md)")
     gaussian_samples: int | None = Field(None, ge=1, description="aperture samples of the "
                                          "Gaussian lens (default: the measured lens's K)")
     periods_px: tuple[float, ...] = Field((256.0, 32.0, 8.0), description="fringe periods, "
@@ -250,8 +253,8 @@ def station_config(cfg: ExperimentConfig, rig, index: int):
                 "tilt_deg": [0.0, 0.0], "subpixels": BENCH_SUBPIXELS,
                 # the true lens with a soft-edged pupil: the LTC the station measures is then
                 # the lens's own, not a 200-sample hard-edged rendering of it (whose principal
-                # rays sit ~70 um RMS off the converged lens's at the optical centre); each
-                # ray's footprint smooths what the scanner's single rays cannot, so 512 do
+                # rays sit ~70 um RMS off the converged lens's at the optical centre); the
+                # same rays per pixel as 2 x 2 subpixels of 512, a better pupil quadrature
                 "pupil_samples": cfg.bench_samples, "pupil_edge": "soft",
             },
             "noise": {"enabled": True, "bit_depth": 12, "full_well_e": 10000.0,

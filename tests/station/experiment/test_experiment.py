@@ -19,7 +19,7 @@ from station.experiment.run import ExperimentConfig, cad_part_mesh, run_experime
 REDUCED = dict(
     scale=0.1, camera_size=(192, 64), lcd_pitch_mm=0.75,
     depths_mm=(50.0, 90.0, 130.0, 290.0, 330.0, 370.0),
-    period=12, lens_samples=64, lens_grid_step=4, real_samples=256, bench_samples=256,
+    period=12, lens_samples=64, lens_grid_step=4, real_samples=256, bench_samples=1024,
     periods_px=(256.0, 32.0, 8.0),
     sphere_slight=((-30.0, -10.0),), sphere_large=((-150.0, 0.0),),
     ballbar_slight=(), ballbar_large=((-110.0, 0.0),), ballbar_roll_deg=12.0, cad_z_mm=-40.0)
