@@ -42,8 +42,10 @@ cells; sample j is the same part of the aperture at every node, so bilinear inte
 between nodes blends like with like. (It replaced weighted k-means from raster-quantile
 seeds plus an optimal-assignment reordering per node (scipy, a Python loop over nodes).)
 An affine map about the mean then gives the samples the target covariance exactly (the grid
-covariance plus the cell's own ``cell^2/12``, minus the known box blurs, so the samples
-describe the aperture, not the measurement's pixels).
+covariance less a cell's own ``cell^2/12``, Sheppard's correction for binned masses, and less
+the known box blurs: the LCD pixel's twice, once for binning the light and once for the
+resampling's hold, and the camera pixel's once; so the samples describe the aperture, not the
+measurement's pixels).
 """
 
 from __future__ import annotations
