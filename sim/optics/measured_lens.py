@@ -287,13 +287,19 @@ def gaussian_equivalent(lens: MeasuredLens, samples: int | None = None) -> Gauss
 
 def smoothed_lens(lens: MeasuredLens, sigma_nodes: float) -> MeasuredLens:
     """The lens with its per-node aperture shape averaged over neighbouring nodes (a
-    Gaussian of ``sigma_nodes`` node spacings, edges held): sample k is the same part of the
-    aperture at every node, so this removes the station's node-to-node measurement noise
-    (sample offsets from the node's centroid, weights, transmittance) while keeping the slow
-    field dependence (vignetting). Each node keeps its own samples' centroid (its principal
-    ray, which the station already fits over neighbouring pixels): smoothing that curved
-    field too would bias it, most at the sensor's border. Weights are renormalised per node.
-    ``sigma_nodes = 0``: the lens itself."""
+    Gaussian of ``sigma_nodes`` node spacings, edges held): this removes the station's
+    node-to-node measurement noise (sample offsets from the node's centroid, weights,
+    transmittance) while keeping the slow field dependence (vignetting). Each node keeps its
+    own samples' centroid (its principal ray, which the station already fits over neighbouring
+    pixels): smoothing that curved field too would bias it, most at the sensor's border.
+
+    Sample k is only roughly the same part of the aperture at neighbouring nodes, so averaging
+    the samples alone would shrink the aperture (two nodes' samples blended 50/50 keep about
+    0.96 of their spread) and pile its light towards the middle. So the averaged samples are
+    then reshaped, in each node's frame whitened by its second moment: their radii are mapped
+    onto the smoothed radial profile (the nodes' radius quantiles averaged, which keeps a
+    disk a disk), and an affine map about the centroid restores the smoothed second moment
+    (mm^2) exactly. Weights are renormalised per node. ``sigma_nodes = 0``: the lens itself."""
     if sigma_nodes < 0:
         raise ValueError(f"smoothed_lens: sigma_nodes must be >= 0, got {sigma_nodes}")
     if sigma_nodes == 0:
@@ -306,17 +312,89 @@ def smoothed_lens(lens: MeasuredLens, sigma_nodes: float) -> MeasuredLens:
         return gaussian_filter(a, (sigma_nodes, sigma_nodes) + (0,) * (a.ndim - 2),
                                mode="nearest")
 
-    def centroid(x: np.ndarray, w: np.ndarray) -> np.ndarray:
-        return (x * w).sum(axis=2, keepdims=True)
-
-    cx = centroid(lens.aperture_x_mm, lens.weights)
-    cy = centroid(lens.aperture_y_mm, lens.weights)
-    w = f(lens.weights)
+    x, y, w = lens.aperture_x_mm, lens.aperture_y_mm, lens.weights
     w = w / w.sum(axis=2, keepdims=True)
-    x, y = f(lens.aperture_x_mm - cx), f(lens.aperture_y_mm - cy)
-    return replace(lens, aperture_x_mm=x - centroid(x, w) + cx,
-                   aperture_y_mm=y - centroid(y, w) + cy, weights=w,
-                   transmittance=f(lens.transmittance))
+    c, cov = _node_moments(x, y, w)
+    ranks = (np.arange(_PROFILE_LEVELS) + 0.5) / _PROFILE_LEVELS
+    profile = f(_quantiles(_whitened_radius(x, y, c, cov), w, ranks))  # (Gv, Gu, M)
+    target = f(cov)
+    w = f(w)
+    w = w / w.sum(axis=2, keepdims=True)
+    x, y = f(x - c[..., :1]), f(y - c[..., 1:])
+    m, now = _node_moments(x, y, w)
+    dx, dy = x - m[..., :1], y - m[..., 1:]
+    rho = _whitened_radius(dx, dy, np.zeros_like(m), now)
+    scale = _at_ranks(rho, w, ranks, profile) / np.maximum(rho, 1e-300)
+    dx, dy = dx * scale, dy * scale
+    m, now = _node_moments(dx, dy, w)
+    a = _sym_power(target, 0.5) @ _sym_power(now, -0.5)  # (Gv, Gu, 2, 2)
+    dx, dy = dx - m[..., :1], dy - m[..., 1:]
+    return replace(lens, aperture_x_mm=a[..., 0, :1] * dx + a[..., 0, 1:] * dy + c[..., :1],
+                   aperture_y_mm=a[..., 1, :1] * dx + a[..., 1, 1:] * dy + c[..., 1:],
+                   weights=w, transmittance=f(lens.transmittance))
+
+
+_PROFILE_LEVELS = 64  # radius quantiles per node that ``smoothed_lens`` averages
+
+
+def _node_moments(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-node centroid (..., 2) mm and covariance (..., 2, 2) mm^2 of samples x, y (..., K)
+    with weights w (..., K) summing to 1."""
+    c = np.stack([(w * x).sum(axis=-1), (w * y).sum(axis=-1)], axis=-1)
+    dx, dy = x - c[..., :1], y - c[..., 1:]
+    sxy = (w * dx * dy).sum(axis=-1)
+    cov = np.stack([np.stack([(w * dx * dx).sum(axis=-1), sxy], axis=-1),
+                    np.stack([sxy, (w * dy * dy).sum(axis=-1)], axis=-1)], axis=-2)
+    return c, cov
+
+
+def _sym_power(cov: np.ndarray, power: float) -> np.ndarray:
+    """cov^power of symmetric 2 x 2 matrices (..., 2, 2), eigenvalues clamped above 0."""
+    val, vec = np.linalg.eigh(cov)
+    val = np.maximum(val, 1e-12 * max(float(val.max()), 1e-300)) ** power
+    return (vec * val[..., None, :]) @ np.swapaxes(vec, -1, -2)
+
+
+def _whitened_radius(x: np.ndarray, y: np.ndarray, c: np.ndarray, cov: np.ndarray
+                     ) -> np.ndarray:
+    """Radius (..., K) of samples about centroids c (..., 2) in the frame whitened by cov."""
+    s = _sym_power(cov, -0.5)
+    dx, dy = x - c[..., :1], y - c[..., 1:]
+    return np.hypot(s[..., 0, :1] * dx + s[..., 0, 1:] * dy,
+                    s[..., 1, :1] * dx + s[..., 1, 1:] * dy)
+
+
+def _weighted_cdf(v: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per node (last axis): the sort order of v, v sorted and its mid-point weighted CDF."""
+    order = np.argsort(v, axis=-1, kind="stable")
+    ws = np.take_along_axis(w, order, axis=-1)
+    return order, np.take_along_axis(v, order, axis=-1), np.cumsum(ws, axis=-1) - 0.5 * ws
+
+
+def _interp_rows(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """np.interp along the last axis, row by row (xp increasing in each row; clamped)."""
+    rows = int(np.prod(xp.shape[:-1]))
+    xp2, fp2 = xp.reshape(rows, -1), fp.reshape(rows, -1)
+    x2 = np.clip(x.reshape(rows, -1), xp2[:, :1], xp2[:, -1:])
+    shift = 2.0 * (np.abs(xp2).max() + 1.0) * np.arange(rows)[:, None]  # rows never overlap
+    return np.interp(x2 + shift, (xp2 + shift).ravel(), fp2.ravel()).reshape(x.shape)
+
+
+def _quantiles(v: np.ndarray, w: np.ndarray, ranks: np.ndarray) -> np.ndarray:
+    """Weighted quantiles (..., M) of v (..., K) at ``ranks`` (M,) in (0, 1)."""
+    _, vs, cdf = _weighted_cdf(v, w)
+    return _interp_rows(np.broadcast_to(ranks, v.shape[:-1] + ranks.shape), cdf, vs)
+
+
+def _at_ranks(v: np.ndarray, w: np.ndarray, ranks: np.ndarray, profile: np.ndarray
+              ) -> np.ndarray:
+    """Each value of v (..., K) replaced by ``profile`` (..., M, given at ``ranks``) at its own
+    weighted mid-rank: a monotone remap of v onto the profile."""
+    order, _, cdf = _weighted_cdf(v, w)
+    out = np.empty_like(v)
+    np.put_along_axis(out, order,
+                      _interp_rows(cdf, np.broadcast_to(ranks, profile.shape), profile), axis=-1)
+    return out
 
 
 def aim_depths(focus_zones_mm: np.ndarray | None, focus_distance_mm: float,
