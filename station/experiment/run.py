@@ -95,7 +95,9 @@ class ExperimentConfig(BaseModel):
                                          "depths, mm (six in the paper)")
     period: int = Field(12, ge=4, description="Fourier pattern period P, LCD px")
     steps: int = Field(3, ge=3, le=4, description="Fourier phase steps")
-    lens_samples: int = Field(128, ge=1, description="aperture samples K of the measured lens")
+    lens_samples: int = Field(256, ge=1, description="aperture samples K of the measured "
+                              "lens: 256 keeps the large-defocus sizes off K = 128's "
+                              "quadrature floor (benchmarks/README.md)")
     lens_grid_step: int = Field(4, ge=1, description="measured-lens node spacing, px")
     lens_settings: dict[str, float | int | bool] = Field(
         {"support_floor": 0.1, "deconvolve_iterations": 20, "aim_offset_sigma_px": 8.0},
@@ -108,10 +110,12 @@ class ExperimentConfig(BaseModel):
                                 "rays' intercepts / sqrt(N) (benchmarks/README.md)")
     seed: int = Field(0, description="fake camera noise seed")
     # the scanners
-    lens_smoothing_nodes: float = Field(2.0, ge=0, description="the measured lenses' samples "
-                                        "averaged over neighbouring nodes (Gaussian sigma, node "
-                                        "spacings; sim.optics.measured_lens.smoothed_lens): "
-                                        "removes node-to-node measurement noise; 0: off")
+    lens_smoothing_nodes: float = Field(2.0, ge=0, description="the measured lenses' aperture "
+                                        "shape averaged over neighbouring nodes (Gaussian "
+                                        "sigma, node spacings; sim.optics.measured_lens."
+                                        "smoothed_lens, which keeps each node's centroid, "
+                                        "second moment and radial profile): removes "
+                                        "node-to-node measurement noise; 0: off")
     real_samples: int = Field(4096, ge=1, description="pupil samples of the real scanner's "
                               "lenses (soft clipping edge): converged, twice as many move its "
                               "clouds <= 0.4 um and its sizes <= 2.4 um (512 left a 26 um "
