@@ -286,20 +286,25 @@ def gaussian_equivalent(lens: MeasuredLens, samples: int | None = None) -> Gauss
 
 
 def smoothed_lens(lens: MeasuredLens, sigma_nodes: float) -> MeasuredLens:
-    """The lens with its per-node aperture shape averaged over neighbouring nodes (a
-    Gaussian of ``sigma_nodes`` node spacings, edges held): this removes the station's
-    node-to-node measurement noise (sample offsets from the node's centroid, weights,
-    transmittance) while keeping the slow field dependence (vignetting). Each node keeps its
-    own samples' centroid (its principal ray, which the station already fits over neighbouring
-    pixels): smoothing that curved field too would bias it, most at the sensor's border.
+    """The lens with the station's node-to-node measurement noise averaged out over
+    neighbouring nodes (Gaussian weights of ``sigma_nodes`` node spacings), keeping the slow
+    field dependence (vignetting, the principal rays' curved field).
 
-    Sample k is only roughly the same part of the aperture at neighbouring nodes, so averaging
-    the samples alone would shrink the aperture (two nodes' samples blended 50/50 keep about
-    0.96 of their spread) and pile its light towards the middle. So the averaged samples are
-    then reshaped, in each node's frame whitened by its second moment: their radii are mapped
-    onto the smoothed radial profile (the nodes' radius quantiles averaged, which keeps a
-    disk a disk), and an affine map about the centroid restores the smoothed second moment
-    (mm^2) exactly. Weights are renormalised per node. ``sigma_nodes = 0``: the lens itself."""
+    - The samples' centroids (each node's principal ray on the aperture plane, mm) by a local
+      quadratic regression over the nodes' positions: quadratic fields pass unbiased, also at
+      the sensor's border, where a plain average would pull a curved field inwards. The
+      centroids' noise drives the large-defocus sizes (benchmarks/README.md). The aim offsets
+      are kept: each node's principal ray aims at the same point of the focus plane.
+    - The shape about the centroid (sample offsets, weights, transmittance) by a plain
+      Gaussian average, edges held. Sample k is only roughly the same part of the aperture at
+      neighbouring nodes, so averaging the samples alone would shrink the aperture (two nodes'
+      samples blended 50/50 keep about 0.96 of their spread) and pile its light towards the
+      middle. So the averaged samples are then reshaped, in each node's frame whitened by its
+      second moment: their radii are mapped onto the smoothed radial profile (the nodes'
+      radius quantiles averaged, which keeps a disk a disk), and an affine map restores the
+      smoothed second moment (mm^2) exactly.
+
+    Weights are renormalised per node. ``sigma_nodes = 0``: the lens itself."""
     if sigma_nodes < 0:
         raise ValueError(f"smoothed_lens: sigma_nodes must be >= 0, got {sigma_nodes}")
     if sigma_nodes == 0:
@@ -329,9 +334,36 @@ def smoothed_lens(lens: MeasuredLens, sigma_nodes: float) -> MeasuredLens:
     m, now = _node_moments(dx, dy, w)
     a = _sym_power(target, 0.5) @ _sym_power(now, -0.5)  # (Gv, Gu, 2, 2)
     dx, dy = dx - m[..., :1], dy - m[..., 1:]
+    c = _local_quadratic(c, lens.node_u, lens.node_v, sigma_nodes)
     return replace(lens, aperture_x_mm=a[..., 0, :1] * dx + a[..., 0, 1:] * dy + c[..., :1],
                    aperture_y_mm=a[..., 1, :1] * dx + a[..., 1, 1:] * dy + c[..., 1:],
                    weights=w, transmittance=f(lens.transmittance))
+
+
+def _local_quadratic(values: np.ndarray, node_u: np.ndarray, node_v: np.ndarray,
+                     sigma_nodes: float) -> np.ndarray:
+    """Per-node values (Gv, Gu, C) smoothed by a local quadratic regression: at each node,
+    the weighted least-squares fit of ``a + b du + c dv + d du^2 + e du dv + f dv^2`` over all
+    nodes, weights a Gaussian of the offsets (du, dv) in node spacings with sigma
+    ``sigma_nodes``; its value at the node. Quadratic fields pass exactly; along an axis with
+    fewer than 3 (2) nodes the fit drops the square (linear) terms."""
+    def axis(nodes: np.ndarray, power: int) -> np.ndarray:
+        """(G, G) weights g(d) d^power, d the offset from row node to column node."""
+        spacing = float(np.median(np.diff(nodes))) if len(nodes) > 1 else 1.0
+        d = (nodes[None, :] - nodes[:, None]) / spacing
+        return np.exp(-0.5 * (d / sigma_nodes) ** 2) * d**power
+
+    gv, gu = values.shape[:2]
+    terms = [(a, b) for a in range(min(2, gu - 1) + 1) for b in range(min(2, gv - 1) + 1)
+             if a + b <= 2]
+    pu = {p: axis(node_u, p) for p in range(5)}
+    pv = {p: axis(node_v, p) for p in range(5)}
+    ones = np.ones((gv, gu))
+    normal = np.stack([np.stack([pv[b + e] @ ones @ pu[a + d].T for d, e in terms], axis=-1)
+                       for a, b in terms], axis=-2)  # (Gv, Gu, T, T)
+    rhs = np.stack([np.einsum("ij,jkc,lk->ilc", pv[b], values, pu[a]) for a, b in terms],
+                   axis=-2)  # (Gv, Gu, T, C)
+    return np.linalg.solve(normal, rhs)[..., 0, :]
 
 
 _PROFILE_LEVELS = 64  # radius quantiles per node that ``smoothed_lens`` averages

@@ -110,12 +110,13 @@ class ExperimentConfig(BaseModel):
                                 "rays' intercepts / sqrt(N) (benchmarks/README.md)")
     seed: int = Field(0, description="fake camera noise seed")
     # the scanners
-    lens_smoothing_nodes: float = Field(2.0, ge=0, description="the measured lenses' aperture "
-                                        "shape averaged over neighbouring nodes (Gaussian "
-                                        "sigma, node spacings; sim.optics.measured_lens."
-                                        "smoothed_lens, which keeps each node's centroid, "
-                                        "second moment and radial profile): removes "
-                                        "node-to-node measurement noise; 0: off")
+    lens_smoothing_nodes: float = Field(2.0, ge=0, description="the measured lenses' "
+                                        "node-to-node measurement noise averaged over "
+                                        "neighbouring nodes (Gaussian sigma, node spacings; "
+                                        "sim.optics.measured_lens.smoothed_lens: the "
+                                        "centroids by a local quadratic regression, the "
+                                        "shape keeping its second moment and radial "
+                                        "profile); 0: off")
     real_samples: int = Field(4096, ge=1, description="pupil samples of the real scanner's "
                               "lenses (soft clipping edge): converged, twice as many move its "
                               "clouds <= 0.4 um and its sizes <= 2.4 um (512 left a 26 um "

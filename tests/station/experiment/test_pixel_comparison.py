@@ -40,7 +40,7 @@ def test_pinhole_against_pinhole_with_another_noise_seed_is_zero_on_average():
 
 def test_smoothing_a_measured_lens_removes_node_noise_and_keeps_the_field():
     """Node-to-node noise in the aperture's shape averages out, the slow field dependence
-    stays, and each node keeps its own samples' centroid (its principal ray) exactly. The
+    stays, and the centroids' linear field (the principal rays) passes exactly. The
     aperture is a 3 mm disk of K = 64 sunflower samples (as the station's ring strata spread
     them), stretched along x with the field."""
     from sim.optics.measured_lens import MeasuredLens, smoothed_lens
@@ -112,3 +112,40 @@ def test_smoothing_keeps_the_apertures_size_when_samples_do_not_correspond():
     plain = x[4, 5].var()  # what averaging alone does, for scale
     assert (np.mean([x[j, i] for j in range(3, 6) for i in range(4, 7)], axis=0).var()
             < 0.3 * plain)
+
+
+def test_smoothing_averages_the_centroids_noise_and_keeps_their_curved_field():
+    """The node centroids (principal rays on the aperture plane) lose their noise, while a
+    quadratic field passes exactly, at the border too and with an irregular last column (the
+    station's nodes: every 4th pixel plus the last)."""
+    from sim.optics.measured_lens import MeasuredLens, smoothed_lens
+
+    rng = np.random.default_rng(11)
+    nu, nv = np.r_[np.arange(0, 64, 4.0), 66.0], np.arange(0, 48, 4.0)
+    gv, gu, k = len(nv), len(nu), 16
+    uu, vv = (nu[None, :] - 33) / 33, (nv[:, None] - 22) / 22
+    field_x = 0.5 * uu + 0.2 * uu**2 - 0.1 * uu * vv  # mm, strongly curved (vignetting)
+    field_y = 0.3 * vv - 0.15 * vv**2 + 0.05 * uu**2
+    j = np.arange(k)
+    r, t = 2.0 * np.sqrt((j + 0.5) / k), j * np.pi * (3.0 - np.sqrt(5.0))
+    px, py = r * np.cos(t), r * np.sin(t)
+    px, py = px - px.mean(), py - py.mean()  # the samples about their centroid
+    w = np.full((gv, gu, k), 1 / k)
+
+    def centroids(noise_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        e = rng.normal(0, noise_mm, (2, gv, gu))
+        lens = MeasuredLens(800.0, np.zeros(3), (67, 45), nu, nv,
+                            px + (field_x + e[0])[..., None],
+                            py + (field_y + e[1])[..., None], w,
+                            np.ones((gv, gu)), "bilinear")
+        s = smoothed_lens(lens, 2)
+        return ((s.aperture_x_mm * s.weights).sum(axis=2) - field_x,
+                (s.aperture_y_mm * s.weights).sum(axis=2) - field_y)
+
+    for err in centroids(0.0):
+        np.testing.assert_allclose(err, 0.0, atol=1e-9)
+    ex, ey = centroids(0.010)
+    rms = np.sqrt(np.mean(ex**2 + ey**2) / 2)
+    border = np.sqrt(np.mean(np.r_[ex[0], ex[-1], ex[:, 0], ex[:, -1]] ** 2))
+    assert rms < 0.4 * 0.010 and border < 0.75 * 0.010  # noise of 10 um per node averaged
+
