@@ -28,8 +28,8 @@ def section(res: dict, command: str) -> str:
              "`ltc demo` (station/experiment/). Method and figures: the run's `report.md`; "
              "every number: its `results.json`.", "",
              f"    {command}", "",
-             f"Run of {res['date']} on {res['machine']}; {res['seconds']['total']:.0f} s in all "
-             + (f"(demo wall clock {res['seconds']['demo']:.0f} s)" if "demo" in res["seconds"]
+             f"Run of {res['date']} on {res['machine']}; {res['seconds']['total']:.0f} s in all"
+             + (f" (demo wall clock {res['seconds']['demo']:.0f} s)" if "demo" in res["seconds"]
                 else "") + ".", "",
              f"- Rig `small_rig({cfg['scale']})`, cameras {cfg['camera_size'][0]} x "
              f"{cfg['camera_size'][1]} px; real = true lenses, {cfg['real_samples']} samples, "
