@@ -317,27 +317,29 @@ def smoothed_lens(lens: MeasuredLens, sigma_nodes: float) -> MeasuredLens:
         return gaussian_filter(a, (sigma_nodes, sigma_nodes) + (0,) * (a.ndim - 2),
                                mode="nearest")
 
-    x, y, w = lens.aperture_x_mm, lens.aperture_y_mm, lens.weights
-    w = w / w.sum(axis=2, keepdims=True)
-    c, cov = _node_moments(x, y, w)
+    gv, gu, k = lens.aperture_x_mm.shape
     ranks = (np.arange(_PROFILE_LEVELS) + 0.5) / _PROFILE_LEVELS
-    profile = f(_quantiles(_whitened_radius(x, y, c, cov), w, ranks))  # (Gv, Gu, M)
-    target = f(cov)
-    w = f(w)
-    w = w / w.sum(axis=2, keepdims=True)
-    x, y = f(x - c[..., :1]), f(y - c[..., 1:])
-    m, now = _node_moments(x, y, w)
-    dx, dy = x - m[..., :1], y - m[..., 1:]
-    rho = _whitened_radius(dx, dy, np.zeros_like(m), now)
-    scale = _at_ranks(rho, w, ranks, profile) / np.maximum(rho, 1e-300)
-    dx, dy = dx * scale, dy * scale
-    m, now = _node_moments(dx, dy, w)
-    a = _sym_power(target, 0.5) @ _sym_power(now, -0.5)  # (Gv, Gu, 2, 2)
-    dx, dy = dx - m[..., :1], dy - m[..., 1:]
-    c = _local_quadratic(c, lens.node_u, lens.node_v, sigma_nodes)
-    return replace(lens, aperture_x_mm=a[..., 0, :1] * dx + a[..., 0, 1:] * dy + c[..., :1],
-                   aperture_y_mm=a[..., 1, :1] * dx + a[..., 1, 1:] * dy + c[..., 1:],
-                   weights=w, transmittance=f(lens.transmittance))
+
+    def flat(a: np.ndarray) -> np.ndarray:
+        return a.reshape((gv * gu,) + a.shape[2:])
+
+    xy = flat(np.stack([lens.aperture_x_mm, lens.aperture_y_mm], axis=-1))  # (n, K, 2)
+    w = flat(lens.weights / lens.weights.sum(axis=2, keepdims=True))
+    c, cov = sample_moments(xy, w)
+    profile = f(_quantiles(_whitened_radius(xy - c[:, None], cov), w, ranks)
+                .reshape(gv, gu, -1))  # (Gv, Gu, M)
+    target = f(cov.reshape(gv, gu, 2, 2))
+    w = f(w.reshape(gv, gu, k))
+    w = flat(w / w.sum(axis=2, keepdims=True))
+    d = flat(f((xy - c[:, None]).reshape(gv, gu, k, 2)))
+    mean, now = sample_moments(d, w)
+    d = d - mean[:, None]
+    rho = _whitened_radius(d, now)
+    d = d * (_at_ranks(rho, w, ranks, flat(profile)) / np.maximum(rho, 1e-300))[..., None]
+    centre = flat(_local_quadratic(c.reshape(gv, gu, 2), lens.node_u, lens.node_v, sigma_nodes))
+    xy = match_moments(d, w, centre, flat(target)).reshape(gv, gu, k, 2)
+    return replace(lens, aperture_x_mm=xy[..., 0], aperture_y_mm=xy[..., 1],
+                   weights=w.reshape(gv, gu, k), transmittance=f(lens.transmittance))
 
 
 def _local_quadratic(values: np.ndarray, node_u: np.ndarray, node_v: np.ndarray,
@@ -358,8 +360,8 @@ def _local_quadratic(values: np.ndarray, node_u: np.ndarray, node_v: np.ndarray,
              if a + b <= 2]
     pu = {p: axis(node_u, p) for p in range(5)}
     pv = {p: axis(node_v, p) for p in range(5)}
-    ones = np.ones((gv, gu))
-    normal = np.stack([np.stack([pv[b + e] @ ones @ pu[a + d].T for d, e in terms], axis=-1)
+    normal = np.stack([np.stack([np.outer(pv[b + e].sum(axis=1), pu[a + d].sum(axis=1))
+                                 for d, e in terms], axis=-1)
                        for a, b in terms], axis=-2)  # (Gv, Gu, T, T)
     rhs = np.stack([np.einsum("ij,jkc,lk->ilc", pv[b], values, pu[a]) for a, b in terms],
                    axis=-2)  # (Gv, Gu, T, C)
@@ -369,31 +371,36 @@ def _local_quadratic(values: np.ndarray, node_u: np.ndarray, node_v: np.ndarray,
 _PROFILE_LEVELS = 64  # radius quantiles per node that ``smoothed_lens`` averages
 
 
-def _node_moments(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-node centroid (..., 2) mm and covariance (..., 2, 2) mm^2 of samples x, y (..., K)
-    with weights w (..., K) summing to 1."""
-    c = np.stack([(w * x).sum(axis=-1), (w * y).sum(axis=-1)], axis=-1)
-    dx, dy = x - c[..., :1], y - c[..., 1:]
-    sxy = (w * dx * dy).sum(axis=-1)
-    cov = np.stack([np.stack([(w * dx * dx).sum(axis=-1), sxy], axis=-1),
-                    np.stack([sxy, (w * dy * dy).sum(axis=-1)], axis=-1)], axis=-2)
-    return c, cov
+def sample_moments(x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean (n, 2) mm and covariance (n, 2, 2) mm^2 of samples x (n, k, 2) with
+    weights w (n, k) summing to 1."""
+    mu = np.einsum("nk,nki->ni", w, x)
+    d = x - mu[:, None]
+    return mu, np.einsum("nk,nki,nkj->nij", w, d, d)
 
 
-def _sym_power(cov: np.ndarray, power: float) -> np.ndarray:
-    """cov^power of symmetric 2 x 2 matrices (..., 2, 2), eigenvalues clamped above 0."""
-    val, vec = np.linalg.eigh(cov)
-    val = np.maximum(val, 1e-12 * max(float(val.max()), 1e-300)) ** power
-    return (vec * val[..., None, :]) @ np.swapaxes(vec, -1, -2)
+def sym_sqrtm(c: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """Square root (or its inverse) of symmetric 2 x 2 matrices c (n, 2, 2), eigenvalues
+    clamped at 1e-18."""
+    val, vec = np.linalg.eigh(c)
+    val = np.maximum(val, 1e-18)
+    f = val**-0.5 if inverse else np.sqrt(val)
+    return np.einsum("nij,nj,nkj->nik", vec, f, vec)
 
 
-def _whitened_radius(x: np.ndarray, y: np.ndarray, c: np.ndarray, cov: np.ndarray
-                     ) -> np.ndarray:
-    """Radius (..., K) of samples about centroids c (..., 2) in the frame whitened by cov."""
-    s = _sym_power(cov, -0.5)
-    dx, dy = x - c[..., :1], y - c[..., 1:]
-    return np.hypot(s[..., 0, :1] * dx + s[..., 0, 1:] * dy,
-                    s[..., 1, :1] * dx + s[..., 1, 1:] * dy)
+def match_moments(
+    x: np.ndarray, w: np.ndarray, mean: np.ndarray, cov: np.ndarray
+) -> np.ndarray:
+    """Affine map of samples x (n, k, 2) with weights w (n, k) about their mean so that their
+    weighted mean and covariance become ``mean`` (n, 2) and ``cov`` (n, 2, 2)."""
+    mu, c = sample_moments(x, w)
+    t = sym_sqrtm(cov) @ sym_sqrtm(c, inverse=True)
+    return mean[:, None] + np.einsum("nij,nkj->nki", t, x - mu[:, None])
+
+
+def _whitened_radius(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Radius (n, K) of offsets d (n, K, 2) in the frame whitened by cov (n, 2, 2)."""
+    return np.linalg.norm(np.einsum("nij,nkj->nki", sym_sqrtm(cov, inverse=True), d), axis=-1)
 
 
 def _weighted_cdf(v: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

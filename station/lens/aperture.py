@@ -54,6 +54,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sim.optics.measured_lens import match_moments, sym_sqrtm  # noqa: F401  (ap.match_moments)
+
 
 SQRT_2_OVER_PI = float(np.sqrt(2.0 / np.pi))
 EDGE_L1_PER_SIGMA = 0.8  # L1 error of a blurred step edge per unit blur std and edge length
@@ -212,13 +214,6 @@ def grid_moments(mass: np.ndarray, grid: ApertureGrid) -> tuple[np.ndarray, np.n
     return mean, cov
 
 
-def _sqrtm(c: np.ndarray, inverse: bool = False) -> np.ndarray:
-    val, vec = np.linalg.eigh(c)
-    val = np.maximum(val, 1e-18)
-    f = val**-0.5 if inverse else np.sqrt(val)
-    return np.einsum("nij,nj,nkj->nik", vec, f, vec)
-
-
 def ring_counts(k: int) -> np.ndarray:
     """Samples per ring of ``ring_samples``: R = round(sqrt(k / pi)) rings (at least 1), ring
     i holding about k (2 i + 1) / R^2 (equal areas per sample for a uniform disk)."""
@@ -257,7 +252,7 @@ def ring_samples(mass: np.ndarray, grid: ApertureGrid, k: int,
                          "positive mass")
     m = np.ascontiguousarray(m / tot[:, None, None])
     mean, cov = grid_moments(m, grid)
-    white = _sqrtm(cov + np.eye(2) * grid.cell_mm**2 / 12.0, inverse=True)
+    white = sym_sqrtm(cov + np.eye(2) * grid.cell_mm**2 / 12.0, inverse=True)
     counts = ring_counts(k)
     offsets = np.arange(len(counts)) * np.pi * (3.0 - np.sqrt(5.0))
     x, w = np.empty((n, k, 2)), np.empty((n, k))
@@ -266,18 +261,6 @@ def ring_samples(mass: np.ndarray, grid: ApertureGrid, k: int,
     if iterations:
         lloyd_kernel(m, grid.centres_mm, x, w, iterations)
     return x, w / w.sum(axis=1, keepdims=True)
-
-
-def match_moments(
-    x: np.ndarray, w: np.ndarray, mean: np.ndarray, cov: np.ndarray
-) -> np.ndarray:
-    """Affine map of samples x (n, k, 2) with weights w (n, k) about their mean so that their
-    weighted mean and covariance become ``mean`` (n, 2) and ``cov`` (n, 2, 2)."""
-    mu = np.einsum("nk,nki->ni", w, x)
-    d = x - mu[:, None]
-    c = np.einsum("nk,nki,nkj->nij", w, d, d)
-    t = _sqrtm(cov) @ _sqrtm(c, inverse=True)
-    return mean[:, None] + np.einsum("nij,nkj->nki", t, d)
 
 
 def blur_kernels(ratio: np.ndarray, pitch_mm: float, footprint_mm: np.ndarray,
