@@ -73,8 +73,11 @@ def test_free_run_delivers_every_frame_in_order(fake):
     assert ids[1:] == [_next_id(i) for i in ids[:-1]]
     for frame in frames[::5]:
         np.testing.assert_array_equal(frame.image, expected_pattern(frame.frame_id, *DEFAULT_SIZE))
-    # 100 Hz free run: 19 periods of 10 ms between the first and last device timestamps
-    assert frames[-1].timestamp - frames[0].timestamp == pytest.approx(0.19, abs=0.03)
+    # 100 Hz free run: 19 periods of 10 ms between the first and last device timestamps. The
+    # fake's frame thread can only run late on a loaded machine (0.28 s seen under the full
+    # suite), never early; a timestamp in the wrong unit or the fake's default 25 Hz (0.76 s)
+    # still fails
+    assert 0.16 <= frames[-1].timestamp - frames[0].timestamp <= 0.45
 
 
 def test_exposure_and_gain_round_trip(fake):
