@@ -65,7 +65,8 @@ def plane_ltc(
     ``j * plane_w + i``; each row sums to the fraction of the pixel's light that comes
     from the plane (its relative transmittance when the plane fills the view).
     """
-    from sim.optics.plane_kernels import deposit_footprints  # numba: loaded on first use
+    # numba: loaded on first use
+    from sim.optics.plane_kernels import MAX_HALF_PX, deposit_footprints, hit_plane
 
     w, h = camera_size
     pw, ph = plane_size
@@ -75,6 +76,7 @@ def plane_ltc(
     offsets = subpixel_offsets(subpixels)
     s = len(offsets)
     k = lens.bundle(np.zeros((1, 2))).weights.shape[1]
+    half_scale = 0.5 / (subpixels * pitch_mm) / np.asarray(K, dtype=np.float64)[[0, 1], [0, 1]]
     per_chunk = max(1, RAYS_PER_CHUNK // (s * k))
     rows, cols, vals = [], [], []
     for start in range(0, len(flat), per_chunk):
@@ -83,28 +85,24 @@ def plane_ltc(
         uv_sub = (uv[:, None, :] + offsets[None, :, :]).reshape(-1, 2)
         xy_n = pixel_to_normalized(uv_sub, K, dist)
         b = lens.bundle(xy_n, uv_sub)
-        o = b.origins @ R.T + t
-        d = b.directions @ R.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tt = -o[..., 2] / d[..., 2]
-        xy = (o[..., :2] + tt[..., None] * d[..., :2]) / pitch_mm  # plane pixels
-        depth = b.origins[..., 2] + tt * b.directions[..., 2]  # camera frame, mm
         n = len(pix)
-        ok = ((tt > 0) & (b.weights > 0)).reshape(n, -1)
-        xy = np.where(ok[..., None], xy.reshape(n, -1, 2), 0.0)
-        # the footprints' half-widths (n, s k, 2), plane pixels
-        half = np.where(ok, 0.5 / (subpixels * pitch_mm) * depth.reshape(n, -1), 0.0)
-        half = half[..., None] / np.diag(K)[:2]
-        lo = np.where(ok[..., None], np.floor(xy - half + 0.5), np.inf).min(axis=1)
-        hi = np.where(ok[..., None], np.floor(xy + half + 0.5), -np.inf).max(axis=1)
-        some = ok.any(axis=1)
-        lo = np.where(some[:, None], lo, 0).astype(np.int64)
-        hi = np.where(some[:, None], hi, 0).astype(np.int64)
-        span = np.maximum(hi - lo + 1, 1)
+        r = b.weights.size // n
+        xy = np.empty((n, r, 2))
+        half = np.empty((n, r, 2))
+        weight = np.empty((n, r))
+        box = np.empty((n, 4), dtype=np.int64)
+        hit_plane(b.origins.reshape(n, r, 3), b.directions.reshape(n, r, 3),
+                  np.ascontiguousarray(b.weights.reshape(n, r)), R, t, float(pitch_mm),
+                  half_scale, xy, half, weight, box)
+        if n and half.max() >= MAX_HALF_PX:
+            raise ValueError("plane_ltc: a subpixel's footprint spans more than 16 plane "
+                             "pixels; use more subpixels")
+        weight /= s
+        lo = box[:, :2]
+        span = np.maximum(box[:, 2:] - lo + 1, 1)
         wx, wy = int(span[:, 0].max()), int(span[:, 1].max())
         acc = np.zeros((n, wy, wx))
-        deposit_footprints(xy, half, np.where(ok, b.weights.reshape(n, -1), 0.0) / s, lo,
-                           np.array([pw, ph], dtype=np.int64), acc)
+        deposit_footprints(xy, half, weight, lo, np.array([pw, ph], dtype=np.int64), acc)
         acc = acc.ravel()
         nz = np.flatnonzero(acc)
         p_loc, rem = np.divmod(nz, wx * wy)

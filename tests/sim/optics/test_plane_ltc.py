@@ -105,3 +105,14 @@ def test_pinhole_ltc_is_the_area_overlap_of_the_pixels_footprint():
     for n in (1, 2, 3):
         m = plane_ltc(K, None, (W, H), PinholeLens(), R, t, PLANE, PITCH, subpixels=n)
         np.testing.assert_allclose(m.toarray(), want, atol=1e-12)
+
+
+def test_a_footprint_too_wide_for_the_kernel_asks_for_more_subpixels():
+    # at 3 m a camera pixel's footprint is 17 plane pixels wide: one subpixel's is refused,
+    # 2 x 2 subpixels' (8.6 plane pixels) deposit the centre pixel's whole light on the plane
+    R, t = _pose(3000.0)
+    with pytest.raises(ValueError, match="more subpixels"):
+        plane_ltc(K, None, (W, H), PinholeLens(), R, t, PLANE, PITCH, subpixels=1)
+    m = plane_ltc(K, None, (W, H), PinholeLens(), R, t, PLANE, PITCH, subpixels=2)
+    centre = (H // 2) * W + W // 2
+    assert m[[centre], :].sum() == pytest.approx(1.0, abs=1e-12)
