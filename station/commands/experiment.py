@@ -5,7 +5,7 @@ measured-LTC, Gaussian and pinhole scanners, scan the 50.8007 mm sphere at 8 pos
 209.8219 mm ball bar at 4 and a CAD part, compare every virtual cloud with the real one
 (unaligned and after ICP) and write DIR/report.md, DIR/figures/*.png and DIR/results.json.
 With --json the one JSON object holds the report's path and every position's numbers
-(micrometres).
+(micrometres). Run it again with the same config and --out after an interruption to resume.
 """
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ import argparse
 import sys
 from pathlib import Path
 
-OPTIONS = {"out": "new (or empty) output folder", "json": None, "quiet": None}
+OPTIONS = {"out": "new (or empty) output folder, or an interrupted experiment's folder to "
+           "resume it (same config)", "json": None, "quiet": None}
 
 
 def arguments(p: argparse.ArgumentParser) -> None:

@@ -25,8 +25,10 @@ a faithful virtual scanner.
 5. **Report**: ``report.md`` with PNG figures and ``results.json`` with every number.
 
 Everything is written under one folder ``out``: ``experiment.json`` (the config),
-``station/cam0``, ``station/cam1`` (sequence folders), ``cad_part.ply``, ``figures/``,
-``results.json``, ``report.md``.
+``station/cam0``, ``station/cam1`` (sequence folders), ``lenses.json`` (the measured lenses'
+SHA-256), ``cad_part.ply``, ``positions/`` (each finished position's numbers and arrays),
+``figures/``, ``results.json``, ``report.md``. An interrupted experiment resumes where it
+stopped when run again with the same config and folder.
 """
 
 from __future__ import annotations
@@ -565,18 +567,127 @@ def compare_position(pos: Position, cfg: ExperimentConfig, scans: dict[str, Scan
     return row, maps
 
 
+POSITIONS = "positions"  # one finished position per file pair: NAME.npz, then NAME.json
+
+
+def start_or_resume(cfg: ExperimentConfig, out: Path) -> bool:
+    """Make ``out`` this experiment's folder, or take up the unfinished one there; returns
+    whether it resumes. Refuses a finished experiment, one with another config, and a folder
+    that is not an experiment's."""
+    config_path = out / "experiment.json"
+    data = cfg.model_dump(mode="json")
+    if config_path.exists():
+        if (out / "results.json").exists():
+            raise UsageError(f"{out} holds a finished experiment ({out / 'results.json'}); "
+                             "choose a new --out folder")
+        try:
+            same = json.loads(config_path.read_text(encoding="utf-8")) == data
+        except (OSError, ValueError):
+            same = False
+        if not same:
+            raise UsageError(f"{out} holds an experiment started with another config "
+                             f"({config_path}); use a new --out, or the same config to "
+                             "resume it")
+        return True
+    if out.exists() and any(out.iterdir()):
+        raise UsageError(f"--out {out} exists and is not an experiment's folder; choose a new "
+                         "--out folder")
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(config_path, data)
+    return False
+
+
+def _sha256(path: str | Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def check_lenses(out: Path, lens_paths: list[str]) -> None:
+    """Record the measured lenses' digests (``out/lenses.json``) before the first position is
+    scanned; on resume, refuse lenses that differ from those the scanned positions used."""
+    record = out / "lenses.json"
+    now = [{"file": str(p), "sha256": _sha256(p)} for p in lens_paths]
+    if not record.exists():
+        write_json(record, {"lenses": now})
+        return
+    before = json.loads(record.read_text(encoding="utf-8"))["lenses"]
+    for i, (a, b) in enumerate(zip(before, now)):
+        if a["sha256"] != b["sha256"]:
+            raise UsageError(f"{b['file']}: camera {i}'s measured lens differs from the one "
+                             f"this experiment's positions were scanned with ({record}: "
+                             f"{a['file']}); use a new --out")
+
+
+def image_position(poss: list[Position]) -> str | None:
+    """The position whose fringe images the report shows: the first large-defocus sphere or
+    ball bar, else the first one."""
+    objects = [p for p in poss if p.kind != "cad"]
+    pick = [p for p in objects if p.defocus == "large"] or objects
+    return pick[0].name if pick else None
+
+
+def save_position(folder: Path, name: str, row: dict, maps: dict, images: dict | None) -> None:
+    """One finished position, durably: its arrays (``NAME.npz``: per map
+    ``KEY.points_mm`` (n, 3) and ``KEY.distances_mm`` (n,), per model ``images.MODEL``),
+    then its numbers (``NAME.json``), which mark it done."""
+    folder.mkdir(exist_ok=True)
+    arrays = {}
+    for key, (pts, d) in maps.items():
+        arrays[f"{key}.points_mm"] = np.asarray(pts)
+        arrays[f"{key}.distances_mm"] = np.asarray(d)
+    for model, im in (images or {}).items():
+        arrays[f"images.{model}"] = np.asarray(im)
+    tmp = folder / f"{name}.npz.tmp"
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, folder / f"{name}.npz")
+    write_json(folder / f"{name}.json", row)
+
+
+def load_position(folder: Path, name: str) -> tuple[dict, dict, dict | None] | None:
+    """A position finished in an earlier run (row, maps, images or None), or None."""
+    import zipfile
+
+    row_path, arr_path = folder / f"{name}.json", folder / f"{name}.npz"
+    if not row_path.exists():
+        return None
+    again = f"delete {row_path} and {arr_path} to scan position {name} again"
+    try:
+        row = json.loads(row_path.read_text(encoding="utf-8"))
+        with np.load(arr_path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}  # every member's CRC-32 is checked here
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+        raise StationError(f"{arr_path}: unreadable ({exc}); {again}") from exc
+    if row.get("name") != name:
+        raise StationError(f"{row_path}: holds position {row.get('name')!r}, not {name}; {again}")
+    maps = {k[: -len(".points_mm")]: (v, arrays[k[: -len(".points_mm")] + ".distances_mm"])
+            for k, v in arrays.items() if k.endswith(".points_mm")}
+    images = {k[len("images."):]: v for k, v in arrays.items() if k.startswith("images.")}
+    return row, maps, images or None
+
+
 def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = True,
                    log: Log = print, lenses: list[str | Path] | None = None) -> dict:
-    """The whole experiment into the new folder ``out`` (see the module docstring); returns
-    the results (also ``out/results.json``). ``lenses``: two measured-lens files made with
-    this config, used instead of running the station."""
+    """The whole experiment into the folder ``out`` (see the module docstring); returns the
+    results (also ``out/results.json``). ``lenses``: two measured-lens files made with this
+    config, used instead of running the station.
+
+    Resumable: run again with the same config and ``out`` after an interruption, and the
+    station's steps and the positions already finished (``out/positions``) are taken up, not
+    redone; a different config or different lenses are refused."""
     from sim.optics.measured_lens import load_lens
 
     out = Path(out)
-    if out.exists() and any(out.iterdir()):
-        raise UsageError(f"--out {out} exists and is not empty; choose a new --out folder")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "experiment.json").write_text(cfg.model_dump_json(indent=2))
+    resumed = start_or_resume(cfg, out)
+    if resumed:
+        log(f"resuming the experiment in {out}")
     t_start = time.perf_counter()
     rig = build_rig(cfg)
     if lenses is None:
@@ -589,26 +700,43 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
         if tuple(m.camera_size) != tuple(cfg.camera_size):
             raise StationError(f"{lens_paths[i]}: the lens is for a {m.camera_size} camera, "
                                f"this experiment's cameras are {cfg.camera_size}")
+    check_lenses(out, lens_paths)
     models = scanner_lenses(cfg, measured)
     cad_path, cad_mesh = None, None
     if cfg.cad:
         cad_mesh = cad_part_mesh()
         cad_path = out / "cad_part.ply"
-        cad_mesh.export(cad_path)
+        if not cad_path.exists():
+            tmp = out / "cad_part.tmp.ply"
+            cad_mesh.export(tmp)
+            os.replace(tmp, cad_path)
     rows, maps, images = [], {}, {}
     poss = positions(cfg, rig)
-    t_scan = time.perf_counter()
+    shown = image_position(poss)
+    folder = out / POSITIONS
+    t_scan, earlier = time.perf_counter(), 0
     for k, pos in enumerate(poss):
         t0 = time.perf_counter()
-        scans = scan_position(pos, cfg, rig, models, cad_path)
-        row, mp = compare_position(pos, cfg, scans, cad_path, cad_mesh)
+        done = load_position(folder, pos.name)
+        if done is None:
+            scans = scan_position(pos, cfg, rig, models, cad_path)
+            row, mp = compare_position(pos, cfg, scans, cad_path, cad_mesh)
+            pics = {n: scans[n].images for n in MODELS} if pos.name == shown else None
+            save_position(folder, pos.name, row, mp, pics)
+            took = f"{time.perf_counter() - t0:.0f} s"
+        else:
+            row, mp, pics = done
+            earlier += 1
+            took = "scanned in an earlier run"
         rows.append(row)
         maps[pos.name] = mp
-        if pos.kind != "cad" and (not images or (pos.defocus == "large"
-                                                  and images["defocus"] != "large")):
-            images = {"name": pos.name, "defocus": pos.defocus,
-                      **{n: scans[n].images for n in MODELS}}
-        log(f"[{k + 1}/{len(poss)}] {position_line(row)} [{time.perf_counter() - t0:.0f} s]")
+        if pos.name == shown:
+            if pics is None:
+                raise StationError(f"{folder / (pos.name + '.npz')}: has no fringe images; "
+                                   f"delete {folder / (pos.name + '.json')} and it to scan "
+                                   f"position {pos.name} again")
+            images = {"name": pos.name, "defocus": pos.defocus, **pics}
+        log(f"[{k + 1}/{len(poss)}] {position_line(row)} [{took}]")
     scan_s = time.perf_counter() - t_scan
     render_s = {n: float(sum(r["models"][n]["render_s"] for r in rows)) for n in MODELS}
     results = {
@@ -623,6 +751,7 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
         "render_vs_pinhole": {n: render_s[n] / render_s["pinhole"] for n in MODELS},
         "acceptance": acceptance(rows),
         "seconds": {"total": time.perf_counter() - t_start, "scan": scan_s},
+        "resumed": {"resumed": resumed, "positions_from_earlier_runs": earlier},
         "config": cfg.model_dump(mode="json"),
         "date": _dt.date.today().isoformat(),
         "machine": machine(),

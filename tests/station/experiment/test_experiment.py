@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from station.cli import main
+from station.errors import StationError, UsageError
 from station.experiment.run import ExperimentConfig, cad_part_mesh, run_experiment
 
 # the demo's rig scale (0.1: scale 0.05 leaves too few pixels on a defocused ball for the
@@ -106,3 +107,61 @@ def test_ltc_experiment_refuses_an_existing_output_and_a_bad_config(tmp_path, ca
     err = capsys.readouterr().err
     assert err.startswith("ltc experiment: error: ") and "scale" in err
     assert (out / "keep.txt").read_text() == "precious" and not (tmp_path / "o2").exists()
+
+
+def _unfinished_copy(reduced, tmp_path, drop=("S2",)):
+    """The reduced experiment's folder as an interrupted run leaves it: no report, results or
+    figures, and the positions ``drop`` not yet scanned."""
+    import shutil
+
+    src, _ = reduced
+    out = tmp_path / "run"
+    shutil.copytree(src, out)
+    for name in ("results.json", "report.md"):
+        (out / name).unlink()
+    shutil.rmtree(out / "figures")
+    for name in drop:
+        for suffix in (".json", ".npz"):
+            (out / "positions" / f"{name}{suffix}").unlink()
+    return out
+
+
+def test_an_interrupted_experiment_resumes_with_the_same_numbers(reduced, tmp_path):
+    _, first = reduced
+    out = _unfinished_copy(reduced, tmp_path)
+    lines: list[str] = []
+    again = run_experiment(ExperimentConfig(**REDUCED), out, progress=False, log=lines.append)
+    assert again["resumed"] == {"resumed": True, "positions_from_earlier_runs": 3}
+    earlier = [line.split()[1] for line in lines if "scanned in an earlier run" in line]
+    assert earlier == ["S1", "B1", "C1"]
+    # S2 scanned again from the same lenses gives the same numbers (render time aside), and
+    # the numbers read back are the first run's exactly
+    for a, b in zip(first["rows"], again["rows"]):
+        for m in a["models"]:
+            a["models"][m].pop("render_s"), b["models"][m].pop("render_s")
+        assert a == b
+    assert (out / "report.md").exists() and (out / "figures" / "fringes.png").stat().st_size > 1000
+    # a finished folder is not overwritten
+    with pytest.raises(UsageError, match="finished experiment"):
+        run_experiment(ExperimentConfig(**REDUCED), out, progress=False, log=lambda s: None)
+
+
+def test_a_resume_refuses_another_config_other_lenses_and_a_damaged_position(reduced, tmp_path):
+    out = _unfinished_copy(reduced, tmp_path, drop=())
+    quiet = dict(progress=False, log=lambda s: None)
+    with pytest.raises(UsageError, match="another config"):
+        run_experiment(ExperimentConfig(**{**REDUCED, "lens_samples": 32}), out, **quiet)
+    # one byte of S1's arrays changed: the zip's CRC-32 names the file
+    npz = out / "positions" / "S1.npz"
+    data = bytearray(npz.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    npz.write_bytes(bytes(data))
+    with pytest.raises(StationError, match="S1.npz: unreadable"):
+        run_experiment(ExperimentConfig(**REDUCED), out, **quiet)
+    # a lens re-derived since the first positions were scanned
+    record = json.loads((out / "lenses.json").read_text())
+    record["lenses"][1]["sha256"] = "0" * 64
+    (out / "lenses.json").write_text(json.dumps(record))
+    with pytest.raises(UsageError, match="camera 1's measured lens differs"):
+        run_experiment(ExperimentConfig(**REDUCED), out, **quiet)
+    assert not (out / "results.json").exists()
