@@ -16,7 +16,7 @@ The stage moves the camera away from the LCD as its reading grows:
 
 from __future__ import annotations
 
-from functools import lru_cache
+from collections import OrderedDict
 from typing import Literal
 
 import numpy as np
@@ -25,6 +25,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from sim.optics.lens import AberratedLens
 from sim.optics.plane_ltc import plane_ltc
+
+LTC_CACHE_BYTES = 4 << 30  # true LTCs kept in memory, bytes
 
 
 class BenchGeometry(BaseModel):
@@ -102,7 +104,20 @@ class FakeBench:
 
     def __init__(self, config: BenchConfig) -> None:
         self.config = config
-        self._ltc = lru_cache(maxsize=8)(self._compute_ltc)
+        self._cache: OrderedDict[float, sp.csr_array] = OrderedDict()
+
+    def _ltc(self, z_key: float) -> sp.csr_array:
+        """The true LTC at a stage reading, kept while the kept ones stay within
+        ``LTC_CACHE_BYTES`` (the latest always: a paper-size depth is ~1.6 GB)."""
+        m = self._cache.pop(z_key, None)
+        if m is None:
+            m = self._compute_ltc(z_key)
+        self._cache[z_key] = m
+        while len(self._cache) > 1 and sum(
+                a.data.nbytes + a.indices.nbytes + a.indptr.nbytes
+                for a in self._cache.values()) > LTC_CACHE_BYTES:
+            self._cache.popitem(last=False)
+        return m
 
     @property
     def lens(self) -> AberratedLens:

@@ -58,8 +58,8 @@ def plane_ltc(
     R_cam_to_plane, t_cam_to_plane_mm : ``X_plane = R X_cam + t``.
     plane_size : (width, height) of the plane in its pixels; pitch_mm : plane pixel pitch.
     subpixels : the pixel area is sampled on a subpixels x subpixels grid.
-    pixels : optional (m,) flat camera pixel indices ``v * width + u`` to compute; others
-        get empty rows.
+    pixels : optional (m,) flat camera pixel indices ``v * width + u`` to compute (each
+        once); others get empty rows.
 
     Returns a (height*width, plane_h*plane_w) CSR array; row ``v * width + u``, column
     ``j * plane_w + i``; each row sums to the fraction of the pixel's light that comes
@@ -72,13 +72,15 @@ def plane_ltc(
     pw, ph = plane_size
     R = np.asarray(R_cam_to_plane, dtype=np.float64)
     t = np.asarray(t_cam_to_plane_mm, dtype=np.float64).ravel()
-    flat = np.arange(w * h) if pixels is None else np.asarray(pixels, dtype=np.int64).ravel()
+    flat = np.arange(w * h) if pixels is None else np.unique(np.asarray(pixels, np.int64))
     offsets = subpixel_offsets(subpixels)
     s = len(offsets)
     k = lens.bundle(np.zeros((1, 2))).weights.shape[1]
     half_scale = 0.5 / (subpixels * pitch_mm) / np.asarray(K, dtype=np.float64)[[0, 1], [0, 1]]
     per_chunk = max(1, RAYS_PER_CHUNK // (s * k))
-    rows, cols, vals = [], [], []
+    counts = np.zeros(w * h, dtype=np.int64)
+    col_type = np.int32 if pw * ph < 2**31 else np.int64
+    cols, vals = [], []
     for start in range(0, len(flat), per_chunk):
         pix = flat[start : start + per_chunk]
         uv = np.stack([pix % w, pix // w], axis=1).astype(np.float64)
@@ -107,11 +109,14 @@ def plane_ltc(
         nz = np.flatnonzero(acc)
         p_loc, rem = np.divmod(nz, wx * wy)
         jj, ii = np.divmod(rem, wx)
-        rows.append(pix[p_loc])
-        cols.append((lo[p_loc, 1] + jj) * pw + lo[p_loc, 0] + ii)
+        counts[pix] = np.bincount(p_loc, minlength=n)
+        cols.append(((lo[p_loc, 1] + jj) * pw + lo[p_loc, 0] + ii).astype(col_type))
         vals.append(acc[nz])
-    rows_a = np.concatenate(rows) if rows else np.zeros(0, np.int64)
-    cols_a = np.concatenate(cols) if cols else np.zeros(0, np.int64)
-    vals_a = np.concatenate(vals) if vals else np.zeros(0)
-    return sp.csr_array((vals_a, (rows_a, cols_a)), shape=(w * h, pw * ph))
+    # the pixels increase within each chunk and from chunk to chunk, and each pixel's window
+    # is row-major: the CSR rows and their sorted columns are assembled directly
+    indptr = np.zeros(w * h + 1, dtype=np.int32 if counts.sum() < 2**31 else np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    data = np.concatenate(vals) if vals else np.zeros(0)
+    indices = np.concatenate(cols) if cols else np.zeros(0, col_type)
+    return sp.csr_array((data, indices, indptr), shape=(w * h, pw * ph))
 

@@ -233,3 +233,18 @@ def test_fake_camera_ltc_equals_the_virtual_scanners_for_the_same_pixel_and_dept
         np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-7)
     sums = truth.sum(axis=1)
     assert sums.min() < 0.8 * sums.max()  # vignetting at the corners is part of what agrees
+
+
+def test_the_bench_keeps_its_true_ltcs_within_the_memory_budget(monkeypatch):
+    import fakes.bench
+
+    bench = FakeBench(BenchConfig.small(pupil_samples=64, subpixels=1))
+    first = bench.true_ltc(10.0)
+    one = first.data.nbytes + first.indices.nbytes + first.indptr.nbytes
+    assert bench.true_ltc(10.0) is first  # kept
+    monkeypatch.setattr(fakes.bench, "LTC_CACHE_BYTES", int(1.5 * one))
+    bench.true_ltc(20.0)
+    # over the budget: the older depth was dropped, and computed again it is the same LTC
+    again = bench.true_ltc(10.0)
+    assert again is not first and (again != first).nnz == 0
+    assert bench.true_ltc(10.0) is again  # the latest is always kept
