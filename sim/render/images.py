@@ -305,14 +305,25 @@ def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
     bar = tqdm(total=w * h, desc=f"render {cam.name}", unit="px", unit_scale=True,
                disable=not progress)
     kept: list[Transport] = []
-    for tr in tiles if tiles is not None else _traced_tiles(geom, rig, index, lens):
+    pixels, dark = None, None
+    if tiles is None:
+        pixels, dark = _pixels_to_trace(geom, rig, index, lens)
+        if dark is not None:  # the pixels no lens ray can bring light to: the chief pass's
+            rad[:, dark.pixels] = 0.0
+            p = dark.pixels
+            depth[p], pmap[p], lit[p], obj[p] = dark.depth, dark.proj_chief, dark.lit, \
+                dark.object_id
+            t_trace, n_rays = dark.seconds, dark.rays
+            if keep_transport:
+                kept.append(dark)
+            bar.update(len(p))
+    for tr in tiles if tiles is not None else _traced_tiles(geom, rig, index, lens, pixels):
         t0 = time.perf_counter()
         gather_into(tr, projected, rad)
         t_gather += time.perf_counter() - t0
         t_trace += tr.seconds if tiles is None else 0.0
         n_rays += tr.rays
-        p = tr.pixels if tiles is not None else slice(int(tr.pixels[0]),
-                                                       int(tr.pixels[0]) + len(tr.pixels))
+        p = tr.pixels
         depth[p], pmap[p], lit[p], obj[p] = tr.depth, tr.proj_chief, tr.lit, tr.object_id
         if keep_transport and tiles is None:
             kept.append(tr)
@@ -330,15 +341,97 @@ def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
     return res
 
 
-def _traced_tiles(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel):
+def _traced_tiles(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
+                  pixels: np.ndarray | None = None):
     """The transports of camera ``index``, tile by tile (``TILE_RAYS`` rays each), in pixel
-    order; they cover the frame."""
+    order; they cover the frame, or the flat pixel indices ``pixels``."""
     cam = rig.cameras[index]
     w, h = cam.size
+    pix = np.arange(w * h, dtype=np.int64) if pixels is None else pixels
     k = lens.bundle(np.zeros((1, 2)), np.zeros((1, 2))).weights.shape[1]
     step = max(1, TILE_RAYS // (k + 1))
-    for s in range(0, w * h, step):
-        yield trace_camera(geom, cam, rig.projector, lens, pixels=np.arange(s, min(s + step, w * h)))
+    for s in range(0, len(pix), step):
+        yield trace_camera(geom, cam, rig.projector, lens, pixels=pix[s : s + step])
+
+
+def _subset(tr: Transport, rows: np.ndarray) -> Transport:
+    """The transport of some of its pixels (row indices)."""
+    return Transport(tr.camera_size, tr.projector_size, tr.pixels[rows], tr.proj_uv[rows],
+                     tr.weight[rows], tr.depth[rows], tr.proj_chief[rows], tr.lit[rows],
+                     tr.object_id[rows], tr.seconds, tr.rays)
+
+
+def blur_reach_px(camera, lens: LensModel, z_mm: tuple[float, float], step_px: int = 8) -> float:
+    """How far from its pixel (px, through the pinhole) a lens ray of weight > 0 can cross any
+    depth in ``z_mm`` (camera frame, both > 0): the largest such distance over a grid of pixels
+    every ``step_px`` (and the last row and column). A ray's offset from its pixel's chief ray
+    is affine in depth, so seen from the pinhole it is largest at one of the two depths."""
+    from sim.optics.projection import pixel_to_normalized
+
+    w, h = camera.size
+    us = np.unique(np.r_[np.arange(0, w, step_px), w - 1])
+    vs = np.unique(np.r_[np.arange(0, h, step_px), h - 1])
+    uv = np.stack(np.meshgrid(us, vs), axis=-1).reshape(-1, 2).astype(np.float64)
+    f = np.abs(np.diag(camera.K_array)[:2])
+    k = lens.bundle(np.zeros((1, 2)), np.zeros((1, 2))).weights.shape[1]
+    per = max(1, (1 << 20) // k)
+    reach = 0.0
+    for a in range(0, len(uv), per):
+        xy = pixel_to_normalized(uv[a : a + per], camera.K_array, camera.dist_array)
+        b = lens.bundle(xy, uv[a : a + per])
+        ok = b.weights > 0
+        for z in z_mm:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = (z - b.origins[..., 2]) / b.directions[..., 2]
+                hit = b.origins[..., :2] + t[..., None] * b.directions[..., :2]
+                off = (hit / z - xy[:, None, :]) * f
+            d = np.hypot(off[..., 0], off[..., 1])
+            if np.any(ok & ~np.isfinite(d)):
+                return math.inf
+            if np.any(ok):
+                reach = max(reach, float(d[ok].max()))
+    return reach
+
+
+REACH_MARGIN = (1.25, 2.0)  # the traced region: blur_reach_px x 1.25 + 2 px around the scene
+
+
+def _pixels_to_trace(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel):
+    """(pixels, dark): the flat pixels whose lens rays can meet the scene and the chief-ray
+    transport of the others, or (None, None) to trace every pixel (a pinhole lens, a scene
+    reaching the camera's plane, or nothing in view).
+
+    Every pixel's chief ray is traced; a lens ray of weight > 0 crosses the scene's depths
+    within ``blur_reach_px`` of its pixel, where the chief ray of the pixel it is seen at
+    meets the scene (up to the pixel grid at the silhouette: ``REACH_MARGIN``). So pixels
+    farther than that from every pixel whose chief ray meets the scene receive no light, and
+    are not traced with the lens: their radiance is 0 and their truth maps are the chief
+    ray's, as a full trace would give them."""
+    from scipy.ndimage import distance_transform_edt
+
+    from sim.optics.lens import PinholeLens
+
+    if isinstance(lens, PinholeLens):
+        return None, None
+    cam = rig.cameras[index]
+    z = cam.to_device(geom.vertices)[:, 2]
+    z_lo, z_hi = float(z.min()), float(z.max())
+    if len(geom.spheres):
+        zc = cam.to_device(geom.spheres[:, :3])[:, 2]
+        z_lo = min(z_lo, float((zc - geom.spheres[:, 3]).min()))
+        z_hi = max(z_hi, float((zc + geom.spheres[:, 3]).max()))
+    if z_lo <= 0:
+        return None, None
+    w, h = cam.size
+    chief = trace_camera(geom, cam, rig.projector, PinholeLens())
+    seen = (chief.object_id >= 0).reshape(h, w)
+    if not seen.any():
+        return None, None
+    reach = blur_reach_px(cam, lens, (z_lo, z_hi)) * REACH_MARGIN[0] + REACH_MARGIN[1]
+    if not math.isfinite(reach):
+        return None, None
+    near = (distance_transform_edt(~seen) <= reach).ravel()
+    return np.flatnonzero(near), _subset(chief, np.flatnonzero(~near))
 
 
 def _transport_tiles(transport: Transport | Sequence[Transport] | None, name: str,

@@ -425,3 +425,33 @@ def test_render_camera_from_a_kept_transport_equals_full_renders_without_tracing
     with pytest.raises(ValueError, match=r"render_camera transport: it is of a \(7, 5\) camera"):
         render_camera(geom, rig, 1, lens, proj_a, cam, np.random.default_rng(1),
                       transport=(other, *kept.transport[1:]))
+
+
+def test_pixels_no_lens_ray_reaches_are_not_traced_and_the_images_are_unchanged(monkeypatch):
+    """A defocused sphere alone in view: only the pixels within the lens's blur reach of its
+    silhouette are traced with the lens; the images, truth maps and a render from the kept
+    transport equal a full trace's bit for bit, and the blur halo beyond the silhouette is
+    inside the traced region."""
+    import sim.render.images as images
+
+    rig = small_rig(0.03)
+    geom = Scene(objects=[SphereObject()]).trace_geometry()
+    pats = PhaseShiftSet(periods_px=[8.0], steps=3).images(rig.projector.size)
+    proj = project_patterns(pats, ProjectorResponse())
+    cam = CameraResponse(quantize=False)
+    lens = AberratedLens(pupil_diameter_mm=40.0, focus_distance_mm=300.0, samples=64,
+                         vignetting_shift_mm=20.0, spherical_mm=8.0)
+    masked = render_camera(geom, rig, 0, lens, proj, cam, None, keep_transport=True)
+    with monkeypatch.context() as m:
+        m.setattr(images, "_pixels_to_trace", lambda *a: (None, None))
+        full = render_camera(geom, rig, 0, lens, proj, cam, None)
+    for key in ("images", "radiance", "depth", "projector_map", "lit", "object_id"):
+        np.testing.assert_array_equal(getattr(masked, key), getattr(full, key), err_msg=key)
+    again = render_camera(geom, rig, 0, lens, proj, cam, None, transport=masked.transport)
+    np.testing.assert_array_equal(again.radiance, full.radiance)
+    w, h = rig.cameras[0].size
+    dark = masked.transport[0]
+    assert dark.weight.shape[1] == 1 and 0 < len(dark.pixels) < w * h  # the chief pass's
+    halo = (full.radiance.max(axis=0) > 0) & (full.object_id < 0)
+    assert halo.sum() > 50  # light beyond the silhouette: the blur the region must hold
+    assert not np.isin(np.flatnonzero(halo), dark.pixels).any()
