@@ -15,7 +15,9 @@ import sys
 from pathlib import Path
 
 OPTIONS = {"out": "new (or empty) output folder, or an interrupted experiment's folder to "
-           "resume it (same config)", "json": None, "quiet": None}
+           "resume it (same config)",
+           "force": "take over the writer lock a killed run left (never a live writer's)",
+           "json": None, "quiet": None}
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
@@ -34,7 +36,7 @@ def run(args: argparse.Namespace) -> dict:
     if args.paper_size:
         cfg = paper_size_config(**cfg.model_dump(exclude_unset=True))
     return report(run_experiment(cfg, args.out, progress=not args.quiet, log=log(args),
-                                 lenses=args.lenses))
+                                 lenses=args.lenses, force=args.force))
 
 
 def log(args: argparse.Namespace):

@@ -273,10 +273,12 @@ def station_config(cfg: ExperimentConfig, rig, index: int):
     })
 
 
-def measure_cameras(cfg: ExperimentConfig, rig, out: Path, progress: bool, log: Log) -> list[dict]:
+def measure_cameras(cfg: ExperimentConfig, rig, out: Path, progress: bool, log: Log,
+                    force: bool = False) -> list[dict]:
     """The station sequence (``ltc run``) for each camera into ``out/station/camI``; returns
     per camera the lens file, its figures and a summary (steps' seconds, optical centre and
-    its error against the fake bench's true one)."""
+    its error against the fake bench's true one). ``force`` takes over a run store's writer
+    lock that a killed run left (never a live writer's)."""
 
     results = []
     for i, cam in enumerate(rig.cameras):
@@ -285,7 +287,7 @@ def measure_cameras(cfg: ExperimentConfig, rig, out: Path, progress: bool, log: 
         log(f"station, camera {i} ({cam.name}): check, acquire {len(cfg.depths_mm)} depths, "
             f"reconstruct, lens -> {folder}")
         t0 = time.perf_counter()
-        summary = run_sequence(config, folder, progress=progress)
+        summary = run_sequence(config, folder, progress=progress, force=force)
         lens = summary["steps"]["lens"]["result"]
         w, h = lcd_size(cfg, cam)
         true_centre = np.array([(w - 1) / 2 * cfg.lcd_pitch_mm, (h - 1) / 2 * cfg.lcd_pitch_mm,
@@ -674,14 +676,16 @@ def load_position(folder: Path, name: str) -> tuple[dict, dict, dict | None] | N
 
 
 def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = True,
-                   log: Log = print, lenses: list[str | Path] | None = None) -> dict:
+                   log: Log = print, lenses: list[str | Path] | None = None,
+                   force: bool = False) -> dict:
     """The whole experiment into the folder ``out`` (see the module docstring); returns the
     results (also ``out/results.json``). ``lenses``: two measured-lens files made with this
     config, used instead of running the station.
 
     Resumable: run again with the same config and ``out`` after an interruption, and the
     station's steps and the positions already finished (``out/positions``) are taken up, not
-    redone; a different config or different lenses are refused."""
+    redone; a different config or different lenses are refused. ``force`` takes over the
+    writer lock a killed acquisition left on its run store (never a live writer's)."""
     from sim.optics.measured_lens import load_lens
 
     out = Path(out)
@@ -691,7 +695,7 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
     t_start = time.perf_counter()
     rig = build_rig(cfg)
     if lenses is None:
-        station = measure_cameras(cfg, rig, out, progress, log)
+        station = measure_cameras(cfg, rig, out, progress, log, force)
         lens_paths = [s["lens"] for s in station]
     else:
         station, lens_paths = [], [str(p) for p in lenses]
