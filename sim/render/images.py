@@ -364,7 +364,7 @@ def _subset(tr: Transport, rows: np.ndarray) -> Transport:
 def blur_reach_px(camera, lens: LensModel, z_mm: tuple[float, float], step_px: int = 8) -> float:
     """How far from its pixel (px, through the pinhole) a lens ray of weight > 0 can cross any
     depth in ``z_mm`` (camera frame, both > 0): the largest such distance over a grid of pixels
-    every ``step_px`` (and the last row and column). A ray's offset from its pixel's chief ray
+    every ``step_px`` (and the last row and column) and, for a measured lens, every node. A ray's offset from its pixel's chief ray
     is affine in depth, so seen from the pinhole it is largest at one of the two depths."""
     from sim.optics.projection import pixel_to_normalized
 
@@ -372,6 +372,10 @@ def blur_reach_px(camera, lens: LensModel, z_mm: tuple[float, float], step_px: i
     us = np.unique(np.r_[np.arange(0, w, step_px), w - 1])
     vs = np.unique(np.r_[np.arange(0, h, step_px), h - 1])
     uv = np.stack(np.meshgrid(us, vs), axis=-1).reshape(-1, 2).astype(np.float64)
+    if hasattr(lens, "node_u"):  # a measured lens: every node too (pixels between nodes
+        # interpolate their rays, whose offsets are then bounded by the nodes')
+        nodes = np.stack(np.meshgrid(lens.node_u, lens.node_v), axis=-1).reshape(-1, 2)
+        uv = np.concatenate([uv, nodes.astype(np.float64)])
     f = np.abs(np.diag(camera.K_array)[:2])
     k = lens.bundle(np.zeros((1, 2)), np.zeros((1, 2))).weights.shape[1]
     per = max(1, (1 << 20) // k)
