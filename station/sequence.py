@@ -28,7 +28,7 @@ from pathlib import Path
 import tomli_w
 
 from station.acquisition.config import StationConfig, load_config, parse_config
-from station.errors import StationError, UsageError
+from station.errors import StationError, UsageError, describe_os_error
 
 STEPS = ("check", "gamma", "align", "acquire", "reconstruct", "lens")
 log = logging.getLogger("station.sequence")
@@ -138,9 +138,12 @@ class Sequence:
         except BaseException as exc:
             status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
             self.summary["status"] = f"{status} at {step}"
-            self._record(step, status=status, error=str(exc) or type(exc).__name__,
+            # an OSError as the one line the CLI prints: the path, what went wrong, what to do
+            error = (describe_os_error(exc) if isinstance(exc, OSError)
+                     else str(exc) or type(exc).__name__)
+            self._record(step, status=status, error=error,
                          seconds=round(time.perf_counter() - t0, 3))
-            log.error("%s: %s: %s", step, status, exc)
+            log.error("%s: %s: %s", step, status, error)
             raise
         self._record(step, status="done", ended=_now(),
                      seconds=round(time.perf_counter() - t0, 3), result=result)
