@@ -521,7 +521,12 @@ def scan_position(pos: Position, cfg: ExperimentConfig, rig, lenses: dict[str, t
         t0 = time.perf_counter()
         images = s.render()
         dt = time.perf_counter() - t0
-        out[name] = Scan(s.scan(images), images.cameras[0].images, dt)
+        try:
+            cloud = s.scan(images)
+        except ValueError as exc:  # name where: a long run's one line must say which scan
+            raise StationError(f"position {pos.name} ({pos.kind}, {pos.defocus} defocus), "
+                               f"scanner {name}: {exc}") from exc
+        out[name] = Scan(cloud, images.cameras[0].images, dt)
     return out
 
 

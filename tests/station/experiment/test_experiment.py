@@ -165,3 +165,26 @@ def test_a_resume_refuses_another_config_other_lenses_and_a_damaged_position(red
     with pytest.raises(UsageError, match="camera 1's measured lens differs"):
         run_experiment(ExperimentConfig(**REDUCED), out, **quiet)
     assert not (out / "results.json").exists()
+
+
+def test_a_failed_scan_names_the_position_and_the_scanner(monkeypatch):
+    from sim.optics.lens import PinholeLens
+    from sim.scanner import Scanner
+    from station.experiment.run import build_rig, positions, scan_position
+
+    cfg = ExperimentConfig(**REDUCED)
+    rig = build_rig(cfg)
+    lenses = {n: (PinholeLens(), PinholeLens()) for n in ("real", "ltc", "gaussian", "pinhole")}
+    original, calls = Scanner.scan, []
+
+    def scan(self, images, **kw):
+        calls.append(1)
+        if len(calls) == 2:  # the second scanner, "ltc"
+            raise ValueError("stereo matching found no pixel with the same projector "
+                             "coordinate in both cameras")
+        return original(self, images, **kw)
+
+    monkeypatch.setattr(Scanner, "scan", scan)
+    with pytest.raises(StationError, match=r"^position S1 \(sphere, slight defocus\), scanner "
+                                           r"ltc: stereo matching found no pixel"):
+        scan_position(positions(cfg, rig)[0], cfg, rig, lenses, None)
