@@ -54,7 +54,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.optics.measured_lens import match_moments, sym_sqrtm  # noqa: F401  (ap.match_moments)
+from sim.optics.measured_lens import sym_sqrtm
 
 
 SQRT_2_OVER_PI = float(np.sqrt(2.0 / np.pi))

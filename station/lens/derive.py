@@ -31,7 +31,8 @@ import numpy as np
 from scipy import ndimage
 from tqdm import tqdm
 
-from sim.optics.measured_lens import LensFileWriter, MeasuredLens, aim_depths, read_lens_nodes
+from sim.optics.measured_lens import (LensFileWriter, MeasuredLens, aim_depths, match_moments,
+                                     read_lens_nodes)
 from sim.optics.projection import pixel_to_normalized
 from station.lens import aperture as ap
 from station.lens.centroids import STATUS_OK, region_stats
@@ -241,7 +242,7 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
                                                cfg.pixel_samples, cfg.deconvolve_iterations,
                                                cfg.support_floor),
                                      grid, cfg.samples)
-            out["x"][idx[good]] = ap.match_moments(xs, ws, mean_c[good], cov_c[good])
+            out["x"][idx[good]] = match_moments(xs, ws, mean_c[good], cov_c[good])
             out["w"][idx[good]] = ws
     out["ok"] = out["weight"].sum(axis=1) > 0
     return out

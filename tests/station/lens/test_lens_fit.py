@@ -28,13 +28,13 @@ import pytest
 
 from fakes.bench import BenchConfig, FakeBench
 from fakes.camera import NoiseModel
+from sim.optics.measured_lens import match_moments
 from sim.optics.plane_ltc import plane_ltc
 from station.lens.aperture import (
     ApertureGrid,
     fusion_weights,
     grid_moments,
     ring_samples,
-    match_moments,
     resample,
     scale_ratio,
 )
