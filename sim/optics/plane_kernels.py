@@ -1,5 +1,5 @@
-"""Compiled footprint deposition of ``sim.optics.plane_ltc`` (numba), kept out of
-``plane_ltc.py`` so that importing it does not load numba."""
+"""Compiled ray-plane hits and footprint deposition of ``sim.optics.plane_ltc`` (numba),
+kept out of ``plane_ltc.py`` so that importing it does not load numba."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def deposit_footprints(xy, half, weight, lo, plane_size, out):
 
 
 @nb.njit(parallel=True, nogil=True, cache=True, error_model="numpy", boundscheck=False)
-def hit_plane(origins, directions, weights, R, t, pitch_mm, half_scale, xy, half, w_out,
+def plane_hits(origins, directions, weights, R, t, pitch_mm, half_scale, xy, half, w_out,
               box):
     """Intersect each ray with the plane ``z = 0`` of the plane frame, one pixel per thread.
     origins, directions : (n, r, 3) camera frame, mm; weights : (n, r); R (3, 3), t (3,):

@@ -66,7 +66,7 @@ def plane_ltc(
     from the plane (its relative transmittance when the plane fills the view).
     """
     # numba: loaded on first use
-    from sim.optics.plane_kernels import MAX_HALF_PX, deposit_footprints, hit_plane
+    from sim.optics.plane_kernels import MAX_HALF_PX, deposit_footprints, plane_hits
 
     w, h = camera_size
     pw, ph = plane_size
@@ -93,7 +93,7 @@ def plane_ltc(
         half = np.empty((n, r, 2))
         weight = np.empty((n, r))
         box = np.empty((n, 4), dtype=np.int64)
-        hit_plane(b.origins.reshape(n, r, 3), b.directions.reshape(n, r, 3),
+        plane_hits(b.origins.reshape(n, r, 3), b.directions.reshape(n, r, 3),
                   np.ascontiguousarray(b.weights.reshape(n, r)), R, t, float(pitch_mm),
                   half_scale, xy, half, weight, box)
         if n and half.max() >= MAX_HALF_PX:

@@ -32,7 +32,7 @@ import zarr
 from pydantic import BaseModel, ConfigDict, Field
 from tqdm import tqdm
 
-from sim.optics.lens import LensModel
+from sim.optics.lens import LensModel, hit_plane
 from sim.render.pattern_stack import PatternStack
 from sim.render.image_kernels import BLOCK_RAYS, IDENTITY, digitise, gather_rows
 from sim.optics.rig import Rig
@@ -363,9 +363,10 @@ def _subset(tr: Transport, rows: np.ndarray) -> Transport:
 
 def blur_reach_px(camera, lens: LensModel, z_mm: tuple[float, float], step_px: int = 8) -> float:
     """How far from its pixel (px, through the pinhole) a lens ray of weight > 0 can cross any
-    depth in ``z_mm`` (camera frame, both > 0): the largest such distance over a grid of pixels
-    every ``step_px`` (and the last row and column) and, for a measured lens, every node. A ray's offset from its pixel's chief ray
-    is affine in depth, so seen from the pinhole it is largest at one of the two depths."""
+    depth in ``z_mm`` (camera frame, both > 0): the largest such distance over a grid of
+    pixels every ``step_px`` (and the last row and column) and, for a measured lens, every
+    node. A ray's offset from its pixel's chief ray is affine in depth, so seen from the
+    pinhole it is largest at one of the two depths."""
     from sim.optics.projection import pixel_to_normalized
 
     w, h = camera.size
@@ -386,9 +387,7 @@ def blur_reach_px(camera, lens: LensModel, z_mm: tuple[float, float], step_px: i
         ok = b.weights > 0
         for z in z_mm:
             with np.errstate(divide="ignore", invalid="ignore"):
-                t = (z - b.origins[..., 2]) / b.directions[..., 2]
-                hit = b.origins[..., :2] + t[..., None] * b.directions[..., :2]
-                off = (hit / z - xy[:, None, :]) * f
+                off = (hit_plane(b.origins, b.directions, z) / z - xy[:, None, :]) * f
             d = np.hypot(off[..., 0], off[..., 1])
             if np.any(ok & ~np.isfinite(d)):
                 return math.inf
