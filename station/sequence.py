@@ -17,13 +17,15 @@ leaves no half output under the final name). A different config refuses to conti
 from __future__ import annotations
 
 import datetime as _dt
+import contextlib
 import json
 import logging
 import os
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import IO
 
 import tomli_w
 
@@ -38,14 +40,27 @@ def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
-def write_json(path: Path, data: dict) -> None:
-    """Write JSON durably: temporary file, fsync, atomic rename."""
+@contextlib.contextmanager
+def durable_file(path: Path, mode: str = "w") -> Iterator[IO]:
+    """A file written durably: the block writes a temporary file beside ``path`` (text modes
+    UTF-8), which is fsynced and renamed to ``path`` when the block completes, removed if it
+    raises."""
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
+    try:
+        with open(tmp, mode, encoding=None if "b" in mode else "utf-8") as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: Path, data: dict) -> None:
+    """Write JSON durably (``durable_file``)."""
+    with durable_file(path) as f:
         json.dump(data, f, indent=2)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def _remove(path: Path) -> None:

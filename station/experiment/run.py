@@ -48,7 +48,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from station.errors import StationError, UsageError
-from station.sequence import run_sequence, write_json
+from station.sequence import durable_file, run_sequence, write_json
 
 SPHERE_DIAMETER_MM = 50.8007
 BALLBAR_LENGTH_MM = 209.8219
@@ -649,12 +649,8 @@ def save_position(folder: Path, name: str, row: dict, maps: dict, images: dict |
         arrays[f"{key}.distances_mm"] = np.asarray(d)
     for model, im in (images or {}).items():
         arrays[f"images.{model}"] = np.asarray(im)
-    tmp = folder / f"{name}.npz.tmp"
-    with open(tmp, "wb") as f:
+    with durable_file(folder / f"{name}.npz", "wb") as f:
         np.savez(f, **arrays)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, folder / f"{name}.npz")
     write_json(folder / f"{name}.json", row)
 
 
@@ -716,9 +712,8 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
         cad_mesh = cad_part_mesh()
         cad_path = out / "cad_part.ply"
         if not cad_path.exists():
-            tmp = out / "cad_part.tmp.ply"
-            cad_mesh.export(tmp)
-            os.replace(tmp, cad_path)
+            with durable_file(cad_path, "wb") as f:
+                cad_mesh.export(f, file_type="ply")
     rows, maps, images = [], {}, {}
     poss = positions(cfg, rig)
     shown = image_position(poss)
