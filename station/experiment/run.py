@@ -147,6 +147,11 @@ class ExperimentConfig(BaseModel):
     ballbar_large: tuple[tuple[float, float], ...] = Field(
         ((-120.0, 0.0), (150.0, 0.0)), description="large-defocus ball-bar centres (z, y), mm")
     ballbar_roll_deg: float = Field(20.0, description="ball bar turned about the view axis, deg")
+    ballbar_large_tilt_deg: float = Field(0.0, description="large-defocus ball bars then turned "
+                                          "about the world's vertical (y) axis, deg: one ball "
+                                          "nearer the cameras than the other, as in a "
+                                          "diagonal of the measuring volume; lets the 248 mm "
+                                          "bar fit a narrow crop (--paper-size)")
     cad: bool = Field(True, description="scan the CAD part")
     cad_z_mm: float = Field(0.0, description="CAD part's world z, mm")
 
@@ -155,7 +160,11 @@ def paper_size_config(**overrides) -> ExperimentConfig:
     """The reference camera's pixel pitch and focal length (scale 1: f = 4638 px), the
     camera cropped to the region the objects occupy (LCD pitch and period of the paper)."""
     base = dict(scale=1.0, camera_size=(1536, 768), lcd_pitch_mm=0.2715, period=24, steps=4,
-                lens_grid_step=8, periods_px=(1920.0, 240.0, 30.0))
+                lens_grid_step=8, periods_px=(1920.0, 240.0, 30.0),
+                # the crop's common view of both cameras is ~160 mm wide at 640 mm: no pose of
+                # the 248 mm bar fits it there (check_views), so the large-defocus bars are on
+                # the far side, receding (balls at 820 / 940 and 840 / 960 mm)
+                ballbar_large=((120.0, 0.0), (140.0, 0.0)), ballbar_large_tilt_deg=-35.0)
     base.update(overrides)
     return ExperimentConfig(**base)
 
@@ -400,14 +409,58 @@ def scene_of(pos: Position, cfg: ExperimentConfig, cad_path: Path | None):
         obj = SphereObject(name=pos.name, pose={"t": list(pos.centre_mm)})
     elif pos.kind == "ballbar":
         a = np.radians(cfg.ballbar_roll_deg)
-        R = [[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]]
+        b = np.radians(cfg.ballbar_large_tilt_deg if pos.defocus == "large" else 0.0)
+        roll = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0],
+                         [0.0, 0.0, 1.0]])
+        tilt = np.array([[np.cos(b), 0.0, np.sin(b)], [0.0, 1.0, 0.0],
+                         [-np.sin(b), 0.0, np.cos(b)]])
         obj = BallBarObject(name=pos.name, diameter_mm=BALLBAR_BALL_MM,
                             centre_distance_mm=BALLBAR_LENGTH_MM,
-                            pose={"t": list(pos.centre_mm), "R": R})
+                            pose={"t": list(pos.centre_mm), "R": (tilt @ roll).tolist()})
     else:
         obj = MeshObject(name=pos.name, path=cad_path, smooth_angle_deg=30.0,
                          pose={"t": list(pos.centre_mm)})
     return Scene(objects=[obj])
+
+
+def view_extents_px(pos: Position, cfg: ExperimentConfig, rig, cad_mesh=None) -> np.ndarray:
+    """Per camera the pixel box (u0, u1, v0, v1) the position's object covers (pinhole, the
+    OpenCV pixel-centre convention): its balls' surfaces, or the CAD part's bounding box
+    corners (``cad_mesh``, object frame)."""
+    import trimesh
+
+    scene = scene_of(pos, cfg, None) if pos.kind != "cad" else None
+    if scene is not None:
+        unit = trimesh.creation.icosphere(3).vertices
+        pts = np.concatenate([c[:3] + c[3] * unit for c in scene.objects[0].spheres()])
+    else:
+        lo, hi = (cad_mesh if cad_mesh is not None else cad_part_mesh()).bounds
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                            for z in (lo[2], hi[2])])
+        pts = corners + np.asarray(pos.centre_mm)
+    boxes = []
+    for cam in rig.cameras:
+        uv = cam.project(pts)
+        boxes.append([uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()])
+    return np.asarray(boxes)
+
+
+def check_views(cfg: ExperimentConfig, rig, cad_mesh=None) -> None:
+    """Refuse a config with an object that does not lie wholly inside both cameras' crops
+    (which would leave a scan with too few, or no, pixels seen by both cameras), naming each
+    such position, its overhang and what to change."""
+    w, h = cfg.camera_size
+    bad = []
+    for pos in positions(cfg, rig):
+        for i, (u0, u1, v0, v1) in enumerate(view_extents_px(pos, cfg, rig, cad_mesh)):
+            over = max(-u0, u1 - (w - 1), -v0, v1 - (h - 1))
+            if over > 0:
+                bad.append(f"{pos.name} ({pos.kind} at z {pos.centre_mm[2]:g} mm) overhangs "
+                           f"camera {i}'s {w} x {h} crop by {over:.0f} px (u {u0:.0f}..{u1:.0f},"
+                           f" v {v0:.0f}..{v1:.0f})")
+    if bad:
+        raise StationError("experiment config: " + "; ".join(bad) + "; move or turn the "
+                           "object (sphere_*, ballbar_*, cad_z_mm) or enlarge camera_size")
 
 
 # --- measuring and comparing ------------------------------------------------------------------
@@ -690,11 +743,13 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
     from sim.optics.measured_lens import load_lens
 
     out = Path(out)
+    t_start = time.perf_counter()
+    rig = build_rig(cfg)
+    cad_mesh = cad_part_mesh() if cfg.cad else None
+    check_views(cfg, rig, cad_mesh)
     resumed = start_or_resume(cfg, out)
     if resumed:
         log(f"resuming the experiment in {out}")
-    t_start = time.perf_counter()
-    rig = build_rig(cfg)
     if lenses is None:
         station = measure_cameras(cfg, rig, out, progress, log, force)
         lens_paths = [s["lens"] for s in station]
@@ -707,9 +762,8 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
                                f"this experiment's cameras are {cfg.camera_size}")
     check_lenses(out, lens_paths)
     models = scanner_lenses(cfg, measured)
-    cad_path, cad_mesh = None, None
+    cad_path = None
     if cfg.cad:
-        cad_mesh = cad_part_mesh()
         cad_path = out / "cad_part.ply"
         if not cad_path.exists():
             with durable_file(cad_path, "wb") as f:

@@ -18,7 +18,7 @@ from station.experiment.run import ExperimentConfig, cad_part_mesh, run_experime
 # samples and fewer positions (a coarser station, 1 mm LCD pixels at 4 depths, measures a lens
 # whose large-defocus sphere misses real's size by 64 um, benchmarks/README.md)
 REDUCED = dict(
-    scale=0.1, camera_size=(192, 64), lcd_pitch_mm=0.75,
+    scale=0.1, camera_size=(208, 64), lcd_pitch_mm=0.75,
     depths_mm=(50.0, 90.0, 130.0, 290.0, 330.0, 370.0),
     period=12, lens_samples=64, lens_grid_step=4, real_samples=256, bench_samples=1024,
     periods_px=(256.0, 32.0, 8.0),
