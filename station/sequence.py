@@ -11,7 +11,10 @@ Re-running on the same folder skips the steps recorded as done whose outputs exi
 continues with the first one that is not: the acquisition resumes frame by frame
 (``acquire(resume=True)``), the reconstruction and the lens are rebuilt whole (each is
 written under a temporary name and renamed into place when complete, so a killed step
-leaves no half output under the final name). A different config refuses to continue.
+leaves no half output under the final name). A different config refuses to continue, except
+one that differs only in the lens step's settings (``[sequence]`` ``lens_samples``,
+``lens_grid_step``, ``lens_pixel_samples``, ``lens_settings``): then the lens is derived again
+from the LTC store, and nothing before it is redone (``config.toml`` takes the new config).
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from station.acquisition.config import StationConfig, load_config, parse_config
 from station.errors import StationError, UsageError, describe_os_error
 
 STEPS = ("check", "gamma", "align", "acquire", "reconstruct", "lens")
+LENS_FIELDS = ("lens_samples", "lens_grid_step", "lens_pixel_samples", "lens_settings")
 log = logging.getLogger("station.sequence")
 
 
@@ -81,19 +85,33 @@ class Sequence:
         self.config_path = self.out / "config.toml"
         self.summary_path = self.out / "summary.json"
         text = _config_text(config)
+        self.notes: list[str] = []
+        changed: list[str] | None = []
         if self.config_path.exists():
-            if self.config_path.read_text(encoding="utf-8") != text:
+            before = self.config_path.read_text(encoding="utf-8")
+            changed = _lens_settings_changed(before, text) if before != text else []
+            if changed is None:
                 raise UsageError(f"{self.out} holds a sequence started with another config "
-                                 f"({self.config_path}); use a new --out, or the same config")
+                                 f"({self.config_path}); use a new --out, or the same config "
+                                 "(only the lens step's [sequence] lens_* settings may "
+                                 "change: the lens is then derived again)")
         elif self.out.exists() and any(self.out.iterdir()):
             raise UsageError(f"--out {self.out} exists and is not a sequence folder; choose a "
                              "new folder")
         self.out.mkdir(parents=True, exist_ok=True)
-        if not self.config_path.exists():
-            self.config_path.write_text(text, encoding="utf-8")
         self.config = parse_config(text, str(self.config_path))
         self.summary = (json.loads(self.summary_path.read_text()) if self.summary_path.exists()
                         else {"config": str(self.config_path), "steps": {}})
+        if self.config_path.exists() and changed:
+            # the lens step's settings changed: mark the lens outdated first, then take the
+            # new config (a kill between the two leaves the same change to find again)
+            note = (f"lens settings changed ({', '.join(changed)}): the lens is derived again "
+                    "from the LTC store")
+            self._record("lens", status="outdated", reason=note)
+            self.notes.append(note)
+        if not self.config_path.exists() or changed:
+            with durable_file(self.config_path) as f:
+                f.write(text)
 
     def outputs(self, step: str) -> list[Path]:
         """The files a step leaves behind when it is done."""
@@ -125,6 +143,8 @@ class Sequence:
         log.addHandler(handler)
         log.setLevel(logging.INFO)
         try:
+            for note in self.notes:
+                log.info("%s", note)
             log.info("sequence %s: start (steps done: %s)", self.out,
                      [s for s in STEPS if self.done(s)] or "none")
             for step in STEPS:
@@ -236,6 +256,20 @@ def _atomic(final: Path, write: Callable[[Path], dict | None], suffix: str = "")
     _remove(final)
     os.replace(tmp, final)
     return result if isinstance(result, dict) else {"out": str(final)}
+
+
+def _lens_settings_changed(before: str, now: str) -> list[str] | None:
+    """The ``[sequence]`` lens fields in which two config texts differ, or None when they
+    differ anywhere else too (or the earlier text no longer parses)."""
+    try:
+        a, b = (parse_config(t, "config.toml").model_dump(mode="json") for t in (before, now))
+    except (StationError, ValueError):
+        return None
+    changed = [f for f in LENS_FIELDS if a["sequence"].get(f) != b["sequence"].get(f)]
+    for d in (a, b):
+        for f in LENS_FIELDS:
+            d["sequence"].pop(f, None)
+    return changed if a == b else None
 
 
 def _config_text(config: StationConfig | str | Path) -> str:

@@ -44,3 +44,46 @@ def test_a_durable_file_appears_whole_or_not_at_all(tmp_path):
     with durable_file(path, "wb") as f:
         f.write(b"whole")
     assert path.read_bytes() == b"whole" and list(tmp_path.iterdir()) == [path]
+
+
+def test_a_changed_lens_setting_derives_the_lens_again_and_nothing_else(tmp_path,
+                                                                         monkeypatch):
+    """Only the lens step's [sequence] settings may change on a finished folder: the lens is
+    derived again (with the new settings), no earlier step runs; any other change is refused."""
+    from station.errors import UsageError
+
+    cfg = ExperimentConfig()
+    config = station_config(cfg, build_rig(cfg), 0)
+    ran = []
+
+    def fake(step):
+        def run(self):
+            ran.append((step, self.config.sequence.lens_samples))
+            for p in self.outputs(step):
+                p.mkdir() if p.suffix == "" else p.write_text(step)
+            return {}
+        return run
+
+    for step in ("check", "acquire", "reconstruct", "lens"):
+        monkeypatch.setattr(Sequence, f"_{step}", fake(step))
+    out = tmp_path / "seq"
+    Sequence(config, out, progress=False).run()
+    assert [s for s, _ in ran] == ["check", "acquire", "reconstruct", "lens"]
+    ran.clear()
+    Sequence(config, out, progress=False).run()
+    assert ran == []  # the same config: everything done
+    k = config.sequence.lens_samples * 2
+    more = config.model_copy(update={"sequence": config.sequence.model_copy(
+        update={"lens_samples": k, "lens_settings": {"aperture_cells": 64}})})
+    Sequence(more, out, progress=False).run()
+    assert ran == [("lens", k)]
+    assert f"lens_samples = {k}" in (out / "config.toml").read_text()
+    log = (out / "run.log").read_text()
+    assert "lens settings changed (lens_samples, lens_settings): the lens is derived again" in log
+    ran.clear()
+    Sequence(more, out, progress=False).run()
+    assert ran == []
+    other = more.model_copy(update={"depths_mm": [50.0, 90.0, 130.0]})
+    with pytest.raises(UsageError, match="another config"):
+        Sequence(other, out, progress=False)
+    assert f"lens_samples = {k}" in (out / "config.toml").read_text()
