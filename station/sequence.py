@@ -11,7 +11,8 @@ Re-running on the same folder skips the steps recorded as done whose outputs exi
 continues with the first one that is not: the acquisition resumes frame by frame
 (``acquire(resume=True)``), the reconstruction and the lens are rebuilt whole (each is
 written under a temporary name and renamed into place when complete, so a killed step
-leaves no half output under the final name). A different config refuses to continue, except
+leaves no half output under the final name). One sequence writes a folder at a time
+(``writer.lock``, as the stores'). A different config refuses to continue, except
 one that differs only in the lens step's settings (``[sequence]`` ``lens_samples``,
 ``lens_grid_step``, ``lens_pixel_samples``, ``lens_settings``): then the lens is derived again
 from the LTC store, and nothing before it is redone (``config.toml`` takes the new config).
@@ -33,6 +34,7 @@ from typing import IO
 import tomli_w
 
 from station.acquisition.config import StationConfig, load_config, parse_config
+from station.acquisition.lock import LOCK_NAME, StoreLock
 from station.errors import StationError, UsageError, describe_os_error
 
 STEPS = ("check", "gamma", "align", "acquire", "reconstruct", "lens")
@@ -95,23 +97,31 @@ class Sequence:
                                  f"({self.config_path}); use a new --out, or the same config "
                                  "(only the lens step's [sequence] lens_* settings may "
                                  "change: the lens is then derived again)")
-        elif self.out.exists() and any(self.out.iterdir()):
+        elif self.out.exists() and any(p.name != LOCK_NAME for p in self.out.iterdir()):
             raise UsageError(f"--out {self.out} exists and is not a sequence folder; choose a "
                              "new folder")
         self.out.mkdir(parents=True, exist_ok=True)
         self.config = parse_config(text, str(self.config_path))
-        self.summary = (json.loads(self.summary_path.read_text()) if self.summary_path.exists()
-                        else {"config": str(self.config_path), "steps": {}})
-        if self.config_path.exists() and changed:
-            # the lens step's settings changed: mark the lens outdated first, then take the
-            # new config (a kill between the two leaves the same change to find again)
-            note = (f"lens settings changed ({', '.join(changed)}): the lens is derived again "
-                    "from the LTC store")
+        self._text, self._changed = text, changed
+        self.summary = self._read_summary()
+
+    def _read_summary(self) -> dict:
+        return (json.loads(self.summary_path.read_text()) if self.summary_path.exists()
+                else {"config": str(self.config_path), "steps": {}})
+
+    def _take_config(self) -> None:
+        """Under the folder's lock: the summary as it is now; the config kept beside the
+        outputs; with changed lens settings, the lens marked outdated first, then the new
+        config written (a kill between the two leaves the same change to find again)."""
+        self.summary = self._read_summary()
+        if self.config_path.exists() and self._changed:
+            note = (f"lens settings changed ({', '.join(self._changed)}): the lens is derived "
+                    "again from the LTC store")
             self._record("lens", status="outdated", reason=note)
             self.notes.append(note)
-        if not self.config_path.exists() or changed:
+        if not self.config_path.exists() or self._changed:
             with durable_file(self.config_path) as f:
-                f.write(text)
+                f.write(self._text)
 
     def outputs(self, step: str) -> list[Path]:
         """The files a step leaves behind when it is done."""
@@ -137,7 +147,14 @@ class Sequence:
 
     def run(self) -> dict:
         """Run every step not yet done; returns the summary (``status`` "complete" or the
-        step that failed). Raises the failing step's error after recording it."""
+        step that failed). Raises the failing step's error after recording it. One sequence
+        per folder at a time: a second is refused, naming the holder (``writer.lock``; a
+        killed run's lock is taken over with ``force``)."""
+        with StoreLock(self.out, force=self.force):
+            self._take_config()
+            return self._run_steps()
+
+    def _run_steps(self) -> dict:
         handler = logging.FileHandler(self.out / "run.log", encoding="utf-8")
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         log.addHandler(handler)

@@ -47,6 +47,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from station.acquisition.lock import LOCK_NAME, StoreLock
 from station.errors import StationError, UsageError
 from station.sequence import durable_file, run_sequence, write_json
 
@@ -653,7 +654,7 @@ def start_or_resume(cfg: ExperimentConfig, out: Path) -> bool:
                              f"({config_path}); use a new --out, or the same config to "
                              "resume it")
         return True
-    if out.exists() and any(out.iterdir()):
+    if out.exists() and any(p.name != LOCK_NAME for p in out.iterdir()):
         raise UsageError(f"--out {out} exists and is not an experiment's folder; choose a new "
                          "--out folder")
     out.mkdir(parents=True, exist_ok=True)
@@ -742,16 +743,27 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
 
     Resumable: run again with the same config and ``out`` after an interruption, and the
     station's steps and the positions already finished (``out/positions``) are taken up, not
-    redone; a different config or different lenses are refused. ``force`` takes over the
-    writer lock a killed acquisition left on its run store (never a live writer's)."""
-    from sim.optics.measured_lens import load_lens
-
+    redone; a different config or different lenses are refused. One run writes the folder
+    at a time (``writer.lock``, as the stores'). ``force`` takes over the writer locks a
+    killed run left (the folder's, the stations', their run stores'; never a live
+    writer's)."""
     out = Path(out)
     t_start = time.perf_counter()
     rig = build_rig(cfg)
     cad_mesh = cad_part_mesh() if cfg.cad else None
     check_views(cfg, rig, cad_mesh)
     resumed = start_or_resume(cfg, out)
+    with StoreLock(out, force=force):  # one experiment writes a folder at a time
+        return _run_experiment(cfg, out, rig, cad_mesh, resumed, t_start, progress, log,
+                               lenses, force)
+
+
+def _run_experiment(cfg: ExperimentConfig, out: Path, rig, cad_mesh, resumed: bool,
+                    t_start: float, progress: bool, log: Log, lenses: list | None,
+                    force: bool) -> dict:
+    """``run_experiment`` under the folder's writer lock."""
+    from sim.optics.measured_lens import load_lens
+
     if resumed:
         log(f"resuming the experiment in {out}")
     if lenses is None:

@@ -87,3 +87,18 @@ def test_a_changed_lens_setting_derives_the_lens_again_and_nothing_else(tmp_path
     with pytest.raises(UsageError, match="another config"):
         Sequence(other, out, progress=False)
     assert f"lens_samples = {k}" in (out / "config.toml").read_text()
+
+
+def test_a_second_writer_of_a_sequence_folder_is_refused_naming_the_holder(tmp_path):
+    """Two sequences on one folder (a script started twice, or a worker process that
+    re-ran its parent's script) would interleave their summaries: the second is refused."""
+    from station.acquisition.lock import StoreLock, StoreLockedError
+
+    cfg = ExperimentConfig()
+    config = station_config(cfg, build_rig(cfg), 0)
+    out = tmp_path / "seq"
+    out.mkdir()
+    with StoreLock(out):
+        with pytest.raises(StoreLockedError, match=f"locked by another writer .*PID {os.getpid()}"):
+            Sequence(config, out, progress=False).run()
+    assert sorted(p.name for p in out.iterdir()) == []  # nothing written under another's lock

@@ -188,3 +188,16 @@ def test_a_failed_scan_names_the_position_and_the_scanner(monkeypatch):
     with pytest.raises(StationError, match=r"^position S1 \(sphere, slight defocus\), scanner "
                                            r"ltc: stereo matching found no pixel"):
         scan_position(positions(cfg, rig)[0], cfg, rig, lenses, None)
+
+
+def test_a_second_experiment_on_one_folder_is_refused_naming_the_holder(tmp_path):
+    import os
+
+    from station.acquisition.lock import StoreLock, StoreLockedError
+
+    out = tmp_path / "run"
+    out.mkdir()
+    with StoreLock(out):
+        with pytest.raises(StoreLockedError, match=f"locked by another writer .*PID {os.getpid()}"):
+            run_experiment(ExperimentConfig(**REDUCED), out, progress=False, log=lambda s: None)
+    assert not (out / "station").exists() and not (out / "positions").exists()
