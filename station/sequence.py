@@ -114,12 +114,12 @@ class Sequence:
         outputs; with changed lens settings, the lens marked outdated first, then the new
         config written (a kill between the two leaves the same change to find again)."""
         self.summary = self._read_summary()
-        if self.config_path.exists() and self._changed:
+        if self._changed:  # only ever found against an existing config.toml
             note = (f"lens settings changed ({', '.join(self._changed)}): the lens is derived "
                     "again from the LTC store")
             self._record("lens", status="outdated", reason=note)
             self.notes.append(note)
-        if not self.config_path.exists() or self._changed:
+        if self._changed or not self.config_path.exists():
             with durable_file(self.config_path) as f:
                 f.write(self._text)
 

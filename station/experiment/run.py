@@ -434,10 +434,10 @@ def view_extents_px(pos: Position, cfg: ExperimentConfig, rig, cad_mesh=None) ->
     corners (``cad_mesh``, object frame)."""
     import trimesh
 
-    scene = scene_of(pos, cfg, None) if pos.kind != "cad" else None
-    if scene is not None:
+    if pos.kind != "cad":
         unit = trimesh.creation.icosphere(3).vertices
-        pts = np.concatenate([c[:3] + c[3] * unit for c in scene.objects[0].spheres()])
+        balls = scene_of(pos, cfg, None).objects[0].spheres()
+        pts = np.concatenate([c[:3] + c[3] * unit for c in balls])
     else:
         lo, hi = (cad_mesh if cad_mesh is not None else cad_part_mesh()).bounds
         corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
@@ -747,6 +747,8 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
     at a time (``writer.lock``, as the stores'). ``force`` takes over the writer locks a
     killed run left (the folder's, the stations', their run stores'; never a live
     writer's)."""
+    from sim.optics.measured_lens import load_lens
+
     out = Path(out)
     t_start = time.perf_counter()
     rig = build_rig(cfg)
@@ -754,87 +756,77 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
     check_views(cfg, rig, cad_mesh)
     resumed = start_or_resume(cfg, out)
     with StoreLock(out, force=force):  # one experiment writes a folder at a time
-        return _run_experiment(cfg, out, rig, cad_mesh, resumed, t_start, progress, log,
-                               lenses, force)
-
-
-def _run_experiment(cfg: ExperimentConfig, out: Path, rig, cad_mesh, resumed: bool,
-                    t_start: float, progress: bool, log: Log, lenses: list | None,
-                    force: bool) -> dict:
-    """``run_experiment`` under the folder's writer lock."""
-    from sim.optics.measured_lens import load_lens
-
-    if resumed:
-        log(f"resuming the experiment in {out}")
-    if lenses is None:
-        station = measure_cameras(cfg, rig, out, progress, log, force)
-        lens_paths = [s["lens"] for s in station]
-    else:
-        station, lens_paths = [], [str(p) for p in lenses]
-    measured = [load_lens(p) for p in lens_paths]
-    for i, m in enumerate(measured):
-        if tuple(m.camera_size) != tuple(cfg.camera_size):
-            raise StationError(f"{lens_paths[i]}: the lens is for a {m.camera_size} camera, "
-                               f"this experiment's cameras are {cfg.camera_size}")
-    check_lenses(out, lens_paths)
-    models = scanner_lenses(cfg, measured)
-    cad_path = None
-    if cfg.cad:
-        cad_path = out / "cad_part.ply"
-        if not cad_path.exists():
-            with durable_file(cad_path, "wb") as f:
-                cad_mesh.export(f, file_type="ply")
-    rows, maps, images = [], {}, {}
-    poss = positions(cfg, rig)
-    shown = image_position(poss)
-    folder = out / POSITIONS
-    t_scan, earlier = time.perf_counter(), 0
-    for k, pos in enumerate(poss):
-        t0 = time.perf_counter()
-        done = load_position(folder, pos.name)
-        if done is None:
-            scans = scan_position(pos, cfg, rig, models, cad_path)
-            row, mp = compare_position(pos, cfg, scans, cad_path, cad_mesh)
-            pics = {n: scans[n].images for n in MODELS} if pos.name == shown else None
-            save_position(folder, pos.name, row, mp, pics)
-            took = f"{time.perf_counter() - t0:.0f} s"
+        if resumed:
+            log(f"resuming the experiment in {out}")
+        if lenses is None:
+            station = measure_cameras(cfg, rig, out, progress, log, force)
+            lens_paths = [s["lens"] for s in station]
         else:
-            row, mp, pics = done
-            earlier += 1
-            took = "scanned in an earlier run"
-        rows.append(row)
-        maps[pos.name] = mp
-        if pos.name == shown:
-            if pics is None:
-                raise StationError(f"{folder / (pos.name + '.npz')}: has no fringe images; "
-                                   f"delete {folder / (pos.name + '.json')} and it to scan "
-                                   f"position {pos.name} again")
-            images = {"name": pos.name, "defocus": pos.defocus, **pics}
-        log(f"[{k + 1}/{len(poss)}] {position_line(row)} [{took}]")
-    scan_s = time.perf_counter() - t_scan
-    render_s = {n: float(sum(r["models"][n]["render_s"] for r in rows)) for n in MODELS}
-    results = {
-        "report": str(out / "report.md"),
-        "positions": [public_row(r) for r in rows],
-        "rows": rows,
-        "station": station,
-        "lenses": [{"file": p, "samples": m.samples, "focus_distance_mm": m.focus_distance_mm,
-                    "gaussian_sigma_mm": models["gaussian"][i].sigma_mm}
-                   for i, (p, m) in enumerate(zip(lens_paths, measured))],
-        "render_s": render_s,
-        "render_vs_pinhole": {n: render_s[n] / render_s["pinhole"] for n in MODELS},
-        "acceptance": acceptance(rows),
-        "seconds": {"total": time.perf_counter() - t_start, "scan": scan_s},
-        "resumed": {"resumed": resumed, "positions_from_earlier_runs": earlier},
-        "config": cfg.model_dump(mode="json"),
-        "date": _dt.date.today().isoformat(),
-        "machine": machine(),
-    }
-    from station.experiment.report import write_report
+            station, lens_paths = [], [str(p) for p in lenses]
+        measured = [load_lens(p) for p in lens_paths]
+        for i, m in enumerate(measured):
+            if tuple(m.camera_size) != tuple(cfg.camera_size):
+                raise StationError(f"{lens_paths[i]}: the lens is for a {m.camera_size} camera, "
+                                   f"this experiment's cameras are {cfg.camera_size}")
+        check_lenses(out, lens_paths)
+        models = scanner_lenses(cfg, measured)
+        cad_path = None
+        if cfg.cad:
+            cad_path = out / "cad_part.ply"
+            if not cad_path.exists():
+                with durable_file(cad_path, "wb") as f:
+                    cad_mesh.export(f, file_type="ply")
+        rows, maps, images = [], {}, {}
+        poss = positions(cfg, rig)
+        shown = image_position(poss)
+        folder = out / POSITIONS
+        t_scan, earlier = time.perf_counter(), 0
+        for k, pos in enumerate(poss):
+            t0 = time.perf_counter()
+            done = load_position(folder, pos.name)
+            if done is None:
+                scans = scan_position(pos, cfg, rig, models, cad_path)
+                row, mp = compare_position(pos, cfg, scans, cad_path, cad_mesh)
+                pics = {n: scans[n].images for n in MODELS} if pos.name == shown else None
+                save_position(folder, pos.name, row, mp, pics)
+                took = f"{time.perf_counter() - t0:.0f} s"
+            else:
+                row, mp, pics = done
+                earlier += 1
+                took = "scanned in an earlier run"
+            rows.append(row)
+            maps[pos.name] = mp
+            if pos.name == shown:
+                if pics is None:
+                    raise StationError(f"{folder / (pos.name + '.npz')}: has no fringe images; "
+                                       f"delete {folder / (pos.name + '.json')} and it to scan "
+                                       f"position {pos.name} again")
+                images = {"name": pos.name, "defocus": pos.defocus, **pics}
+            log(f"[{k + 1}/{len(poss)}] {position_line(row)} [{took}]")
+        scan_s = time.perf_counter() - t_scan
+        render_s = {n: float(sum(r["models"][n]["render_s"] for r in rows)) for n in MODELS}
+        results = {
+            "report": str(out / "report.md"),
+            "positions": [public_row(r) for r in rows],
+            "rows": rows,
+            "station": station,
+            "lenses": [{"file": p, "samples": m.samples, "focus_distance_mm": m.focus_distance_mm,
+                        "gaussian_sigma_mm": models["gaussian"][i].sigma_mm}
+                       for i, (p, m) in enumerate(zip(lens_paths, measured))],
+            "render_s": render_s,
+            "render_vs_pinhole": {n: render_s[n] / render_s["pinhole"] for n in MODELS},
+            "acceptance": acceptance(rows),
+            "seconds": {"total": time.perf_counter() - t_start, "scan": scan_s},
+            "resumed": {"resumed": resumed, "positions_from_earlier_runs": earlier},
+            "config": cfg.model_dump(mode="json"),
+            "date": _dt.date.today().isoformat(),
+            "machine": machine(),
+        }
+        from station.experiment.report import write_report
 
-    results["figures"] = write_report(results, cfg, rig, measured, models, maps, images, out)
-    write_json(out / "results.json", results)
-    return results
+        results["figures"] = write_report(results, cfg, rig, measured, models, maps, images, out)
+        write_json(out / "results.json", results)
+        return results
 
 
 def public_row(row: dict) -> dict:
