@@ -9,6 +9,15 @@ with ``c_i`` the principal ray at ``z_i``, ``a`` the principal ray at ``z_O`` (b
 frame) and ``Z_F`` the focus plane; ``s_i < 0`` beyond the focus plane inverts the LTC. All
 z enter as differences, so a constant added to every stage reading cancels.
 
+With a focus per pupil zone (spherical aberration, ``station.lens.zones``: ``1 / z(rho) =
+c0 + c1 rho^2`` from the optical centre) the scale depends on the pupil radius rho: a ray
+through the aperture point p (camera frame, from the optical centre) meets the LCD at
+``p g_i(|p|)`` from where the pupil's weighted ``p g_i`` lands (the LTC's centroid),
+``g_i(rho) = 1 - (z_i - z_O) / z(rho)`` (the rim's ``g`` beyond the rim), so the rim of a
+near LCD is wider than one focus predicts and a far one's narrower; one focus for every zone
+maps a vignetted pupil with a skew of 0.04-0.08 on the near side (``zone_map``,
+``resample(..., g2_per_mm2=...)``).
+
 Each LCD pixel becomes a box of side ``pitch |s_i|`` on the aperture plane. A common grid of
 ``G x G`` cells (mm, camera-frame axes, origin at the optical centre) is filled by sampling
 each cell on a ``k x k`` sub-grid (nearest LCD pixel: exact box densities, area-averaged).
@@ -106,6 +115,30 @@ def scale_ratio(depths_mm: np.ndarray, focus_plane_z_mm: float, centre_z_mm: flo
     return (focus_plane_z_mm - centre_z_mm) / dz
 
 
+def zone_map(depths_mm: np.ndarray, centre_z_mm: float, c0_per_mm: float,
+             c1_per_mm3: float, rim_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The radial maps of a lens with a focus per pupil zone, ``1 / z(rho) = c0 + c1 rho^2``
+    up to the pupil's rim ``rim_mm`` and the rim's focus beyond (``station.lens.zones``; z
+    from the optical centre, mm): a ray through pupil radius rho aimed at its zone's focus
+    lands on the LCD at distance ``d_i = z_i - z_O`` at ``p g_i(rho)`` from where the
+    pupil's origin lands, ``g_i = 1 - d_i / z(rho) = g0_i + g2_i rho^2``. Returns ``ratio``
+    (D,) ``1 / g0_i`` (the scale at the pupil's centre), ``g2`` (D,) 1/mm^2, ``fold`` (D,):
+    depths where g changes sign inside the pupil (a zone focuses between the optical centre
+    and the LCD, others beyond it), whose LTC mixes the zones and is not used, and
+    ``blur_ratio`` (D,): the scale whose square is the mean of ``1 / g^2`` over a uniform
+    pupil, ``sign(g0) / sqrt(g0 g_rim)``, so an LCD-plane blur's variance mapped through the
+    zones is that blur's variance times ``blur_ratio^2`` (where one focus would use its
+    ``scale_ratio``)."""
+    d = np.asarray(depths_mm, dtype=np.float64) - centre_z_mm
+    g0 = 1.0 - d * c0_per_mm
+    g2 = -d * c1_per_mm3
+    g_rim = g0 + g2 * rim_mm**2
+    fold = (g0 * g_rim <= 0) | (np.abs(g0) < 1e-9)
+    safe = np.where(fold, 1.0, g0)
+    blur = np.sign(safe) / np.sqrt(np.where(fold, 1.0, g0 * g_rim))
+    return 1.0 / safe, g2, fold, blur
+
+
 def resample(
     h: np.ndarray,
     origin: np.ndarray,
@@ -116,6 +149,8 @@ def resample(
     grid: ApertureGrid,
     rotation2: np.ndarray | None = None,
     sub: int = 2,
+    g2_per_mm2: float = 0.0,
+    rim_mm: float = np.inf,
 ) -> np.ndarray:
     """Aperture-plane masses (n, G, G) of n LTC windows at one depth.
 
@@ -126,18 +161,25 @@ def resample(
     (mm);
     ratio : scalar or (n,) signed scale; rotation2 : (2, 2) station-to-camera rotation of
     aperture-plane vectors (identity if None).
+    g2_per_mm2, rim_mm : a focus per pupil zone (``zone_map``): the scale from the aperture
+    to the LCD is ``g(rho) = 1 / ratio + g2 min(rho, rim)^2`` at pupil radius rho (mm, from
+    the optical centre) instead of ``1 / ratio`` (ratio then a scalar; ``zone_map`` rules out
+    a fold).
     """
     from station.lens.kernels import resample_kernel
 
     h = np.ascontiguousarray(h, dtype=np.float64)
     n = h.shape[0]
-    pts = grid.points(sub).reshape(-1, 2)  # camera-frame aperture coordinates
     rot = np.eye(2) if rotation2 is None else np.asarray(rotation2, dtype=np.float64)
+    if g2_per_mm2 != 0.0:
+        return _resample_zoned(h, origin, ray_at_depth_mm, ray_at_centre_mm, float(ratio),
+                               float(pitch_mm), grid, rot, sub, float(g2_per_mm2), rim_mm)
+    pts = grid.points(sub).reshape(-1, 2)  # camera-frame aperture coordinates
     if rotation2 is not None:
         pts = pts @ rot  # p_station = R2^T p_cam, row-vector form
-    s = np.broadcast_to(np.asarray(ratio, dtype=np.float64), (n,))
     out = np.zeros((n, grid.cells, grid.cells))
     step = grid.cell_mm / sub
+    s = np.broadcast_to(np.asarray(ratio, dtype=np.float64), (n,))
     resample_kernel(h, np.ascontiguousarray(origin, dtype=np.int64),
                     np.ascontiguousarray(ray_at_depth_mm, dtype=np.float64),
                     np.ascontiguousarray(ray_at_centre_mm, dtype=np.float64),
@@ -145,6 +187,46 @@ def resample(
                     np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
                     float(pitch_mm), grid.cells, sub, grid.cell_mm**2, rot,
                     -grid.half_width_mm + 0.5 * step, step, out)
+    return out
+
+
+ZONED_CENTRING_STEPS = 2  # corrections of the zoned map's centre (``_resample_zoned``)
+
+
+def _resample_zoned(h: np.ndarray, origin: np.ndarray, ray_d: np.ndarray, ray_c: np.ndarray,
+                    ratio: float, pitch_mm: float, grid: ApertureGrid, rot: np.ndarray,
+                    sub: int, g2: float, rim_mm: float) -> np.ndarray:
+    """``resample`` through a focus per pupil zone. The LTC's centroid is where the pupil's
+    ``E[p g(|p|)]`` lands, which the radial map does not know beforehand (``ray_c g(|ray_c|)``
+    is its first guess, off by ``g2 (E[p rho^2] - ray_c |ray_c|^2)``: for a vignetted pupil
+    about 0.1-0.3 mm on the aperture plane, and a map about the wrong centre skews the
+    distribution); each of ``ZONED_CENTRING_STEPS`` moves the map so that the resampled
+    distribution's mean is the principal ray ``ray_c``."""
+    from station.lens.kernels import resample_zoned_kernel
+
+    step = grid.cell_mm / sub
+    org = np.ascontiguousarray(origin, dtype=np.int64)
+    rc = np.ascontiguousarray(ray_c, dtype=np.float64)
+    rd = np.array(ray_d, dtype=np.float64)
+    r2_rim = float(min(rim_mm, 1e150)) ** 2
+    g0 = 1.0 / ratio
+    # the pupil's mean moves by about a shift on the LCD over the pupil's mean scale
+    g_eff = np.sign(g0) * np.sqrt(abs(g0 * (g0 + g2 * r2_rim)))
+    rot_cam = np.asarray(rot, dtype=np.float64)
+    for it in range(ZONED_CENTRING_STEPS + 1):
+        out = np.zeros((len(h), grid.cells, grid.cells))
+        resample_zoned_kernel(h, org, np.ascontiguousarray(rd), rc, g0, g2, r2_rim, pitch_mm,
+                              grid.cells, sub, grid.cell_mm**2, rot_cam,
+                              -grid.half_width_mm + 0.5 * step, step, out)
+        if it == ZONED_CENTRING_STEPS:
+            return out
+        tot = out.sum(axis=(1, 2))
+        has = tot > 0
+        if not has.any():
+            return out
+        mean_cam, _ = grid_moments(out[has] / tot[has, None, None], grid)
+        mean_st = mean_cam @ rot_cam  # camera-frame means to the station frame (R2^T p)
+        rd[has] -= g_eff * (rc[has] - mean_st)
     return out
 
 

@@ -530,3 +530,59 @@ def richardson_lucy_kernel(d, w, rows, norm_rows, iterations, x):
             for y in range(y0, y1):
                 for c in range(x0, x1):
                     x[k, y, c] *= max(acc[y, c], 0.0) / norm[y, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def resample_zoned_kernel(h, origin, ray_d, ray_c, g0, g2, r2_rim, pitch_mm, g, sub,
+                          cell_area, rot, first, step, out):
+    """out[k] (G, G) += masses of window h[k] (P, P) through the radial map of a lens with a
+    focus per pupil zone (``aperture.resample`` with ``zones``): the camera-frame aperture
+    point p (radius rho from the optical centre) lands on the LCD at
+    ``q = ray_d + R2^T p g(rho) - ray_c g(|ray_c|)``, ``g(rho) = g0 + g2 min(rho^2, r2_rim)``
+    (beyond the pupil's rim, where only blur lands, the rim's scale), and carries the LCD
+    density times the map's Jacobian ``|g (g + 2 g2 rho^2)| / pitch^2`` (``g^2`` beyond the
+    rim). With ``g2 = 0`` it is ``resample_kernel``'s affine map (``g0 = 1 / ratio``).
+    ``first`` and ``step``: the camera-frame sub-cell centres along each axis, mm."""
+    n, p = h.shape[0], h.shape[-1]
+    gs = g * sub
+    norm = 1.0 / (sub * sub) / (pitch_mm * pitch_mm)
+    # g is monotonic in rho^2, and the caller rules out a fold (a sign change) in the pupil
+    gmin = max(min(abs(g0), abs(g0 + g2 * r2_rim)), 1e-9)
+    for k in range(n):
+        ox, oy = origin[k, 0], origin[k, 1]
+        cmin, cmax, rmin, rmax = p, -1, p, -1
+        for r in range(p):
+            for c in range(p):
+                if h[k, r, c] != 0.0:
+                    cmin, cmax = min(cmin, c), max(cmax, c)
+                    rmin, rmax = min(rmin, r), max(rmax, r)
+        if cmax < 0:
+            continue
+        rc2 = min(ray_c[k, 0] ** 2 + ray_c[k, 1] ** 2, r2_rim)
+        gc = g0 + g2 * rc2
+        sx = ray_d[k, 0] - ray_c[k, 0] * gc  # LCD point of the aperture's origin, mm
+        sy = ray_d[k, 1] - ray_c[k, 1] * gc
+        # the window's nonzero box bounds |p| g(rho): a disk of radius reach on the grid
+        dx = max(abs((cmin + ox - 0.5) * pitch_mm - sx), abs((cmax + 1 + ox - 0.5) * pitch_mm - sx))
+        dy = max(abs((rmin + oy - 0.5) * pitch_mm - sy), abs((rmax + 1 + oy - 0.5) * pitch_mm - sy))
+        reach = min(np.sqrt(dx * dx + dy * dy) / gmin, 2.0 * gs * step)
+        i0 = max(0, int(np.floor((-reach - first) / step)) - 1)
+        i1 = min(gs, int(np.ceil((reach - first) / step)) + 2)
+        hk = h[k]
+        for a in range(i0, i1):
+            y = first + a * step
+            oa = out[k, a // sub]
+            for b in range(i0, i1):
+                x = first + b * step
+                r2 = min(x * x + y * y, r2_rim)
+                gg = g0 + g2 * r2
+                qx = sx + (rot[0, 0] * x + rot[1, 0] * y) * gg
+                qy = sy + (rot[0, 1] * x + rot[1, 1] * y) * gg
+                col = np.int64(qx / pitch_mm + 0.5 + OFFSET) - OFFSET_I - ox
+                row = np.int64(qy / pitch_mm + 0.5 + OFFSET) - OFFSET_I - oy
+                if 0 <= col < p and 0 <= row < p:
+                    jac = gg * gg if x * x + y * y >= r2_rim else gg * (gg + 2.0 * g2 * r2)
+                    oa[b // sub] += hk[row, col] * abs(jac) * norm
+        for a in range(g):
+            for b in range(g):
+                out[k, a, b] *= cell_area
