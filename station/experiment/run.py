@@ -106,14 +106,16 @@ class ExperimentConfig(BaseModel):
     lens_grid_step: int = Field(4, ge=1, description="measured-lens node spacing, px")
     lens_settings: dict[str, float | int | bool] = Field(
         {"support_floor": 0.1, "deconvolve_iterations": 20, "aim_offset_sigma_px": 8.0,
-         "aperture_cells": 64},
+         "aperture_cells": 64, "focus_zones": True},
         description="further settings of the station's lens step "
         "(station.lens.geometry.LensFitConfig): the samples drawn from the deblurred aperture "
         "distribution, each node's aim offset from the station's principal-ray slopes "
         "(benchmarks/README.md, 'What limits the measured lens'); the aperture on a 64-cell "
         "grid, on which the samples' quadrature has converged (K = 256 and 1024 agree within "
         "0.3 um; on 32 cells they differ by 4.6 um at the near large-defocus sphere, "
-        "benchmarks/README.md)")
+        "benchmarks/README.md); and the focus per pupil zone, through which the LTCs are "
+        "mapped onto the aperture plane and the optical centre refitted (one focus skews a "
+        "vignetted pupil and put the centre 23-31 um behind the pupil at paper size)")
     average_frames: int = Field(4, ge=1, description="camera frames averaged per station "
                                 "pattern ([camera] average_frames): the noise of the principal "
                                 "rays' intercepts / sqrt(N) (benchmarks/README.md)")

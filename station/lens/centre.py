@@ -132,7 +132,8 @@ def intersect_rays(rays: PrincipalRays, use: np.ndarray | None = None,
 
 def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
                    focus_plane_z_mm: float, focus_plane_var_mm2: float, axis: OpticalCentre,
-                   iterations: int = 20) -> tuple[OpticalCentre, np.ndarray]:
+                   iterations: int = 20,
+                   bias_mm: np.ndarray | None = None) -> tuple[OpticalCentre, np.ndarray]:
     """Optical centre consistent with K (see the module docstring).
 
     xn : (n, 2) the usable pixels' normalised directions from K (``pixel_to_normalized``
@@ -145,6 +146,9 @@ def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
     principal-ray intersection ``axis`` (its x, y; a camera tilt would enter ``o`` with a
     lever of z_f, and only 34 mm x tilt into the intersection). Covariance: x, y from the
     intersection, z from the fit's residuals plus the focus-plane variance propagated.
+    bias_mm : (n, 2) station frame, optional: where each principal ray is known to miss its
+    pixel's pinhole point at the focus plane (a lens whose zones focus at different depths:
+    ``derive.centre_bias``); subtracted from the in-focus points.
     Returns the centre and the rotation (3, 3) from station to camera axes (the roll).
     """
     idx = np.flatnonzero(usable)
@@ -161,7 +165,8 @@ def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
 
     def data(b: slice) -> np.ndarray:  # the in-focus points of a block of rays
         j = idx[b]
-        return rays.xy_ref[j] + rays.slope[j] * (focus_plane_z_mm - rays.z_ref[j])[:, None]
+        a = rays.xy_ref[j] + rays.slope[j] * (focus_plane_z_mm - rays.z_ref[j])[:, None]
+        return a if bias_mm is None else a - bias_mm[b]
 
     def normal(weight, slopes: bool = False) -> tuple[np.ndarray, np.ndarray]:
         # rows (1, 0, x0, -x1) for x and (0, 1, x1, x0) for y, both with weight w; np.dot,

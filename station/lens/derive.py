@@ -13,9 +13,10 @@ the experiment's benches), and the fused distribution's own mean adds each depth
 times ``|s_i|`` (~5 at the extreme depths): the samples' centroids were ~300-400 um RMS off
 the true lens's, ~30 um with both changes (``benchmarks/README.md``).
 ``derive_lens`` runs the whole chain from an LTC volume. With a camera matrix and
-``LensFitConfig.focus_zones`` it also fits the focus per pupil zone (spherical aberration)
-from the LTCs at the optical centre (``station.lens.zones``) and stores it as the lens
-file's ``focus_zones_mm``.
+``LensFitConfig.focus_zones`` it first fits the focus per pupil zone (spherical aberration)
+from the LTCs at the optical centre (``station.lens.zones``), maps every LTC onto the
+aperture plane through it (``aperture.zone_map``; depths between the zones' foci are not
+used) and stores it as the lens file's ``focus_zones_mm``, where each sample aims.
 
 Nodes: every ``grid_step``-th pixel in u and v, plus the last column and row. A node without
 a usable principal ray (flagged) or without a fused distribution takes the samples of the
@@ -115,6 +116,22 @@ def tile_shape(volume: LtcVolume) -> tuple[int, int]:
     return (int(chunks[1]), int(chunks[2])) if chunks else (64, 64)
 
 
+def tile_groups(volume: LtcVolume, pixels: np.ndarray) -> list[tuple[np.ndarray, tuple]]:
+    """Flat pixels grouped by the stored ``ltc`` chunk they lie in: (indices into ``pixels``,
+    the chunk's (r0, r1, c0, c1)) per chunk, so each chunk is read once."""
+    w, h = volume.camera_size
+    tr, tc = tile_shape(volume)
+    if not len(pixels):
+        return []
+    key = (pixels // w // tr) * ((w + tc - 1) // tc) + (pixels % w) // tc
+    order = np.argsort(key, kind="stable")
+    out = []
+    for sel in np.split(order, np.flatnonzero(np.diff(key[order])) + 1):
+        r0, c0 = pixels[sel[0]] // w // tr * tr, pixels[sel[0]] % w // tc * tc
+        out.append((sel, (int(r0), int(min(h, r0 + tr)), int(c0), int(min(w, c0 + tc)))))
+    return out
+
+
 @dataclass(frozen=True)
 class ApertureJob:
     """What every aperture block needs besides its own pixels (small; sent to each task).
@@ -122,7 +139,10 @@ class ApertureJob:
     ratio : (D,) scale to the aperture plane; footprint_mm : (D,); rot2 : (2, 2) in-plane
     station-to-camera rotation; samples : draw the K samples of the good nodes;
     keep_fused, keep_depths : also return the fused (m, G, G) / per-depth (m, D, G, G)
-    distributions.
+    distributions. zones : the focus per pupil zone's radial maps (``aperture.zone_map``:
+    ratio at the pupil's centre (D,), g2 (D,), fold (D,); and the rim, mm), which then place
+    each depth's LTC on the aperture plane; ``ratio`` sizes the blur and noise predictions
+    (with zones, ``zone_map``'s ``blur_ratio``).
     """
 
     grid: ap.ApertureGrid
@@ -135,17 +155,26 @@ class ApertureJob:
     samples: bool = False
     keep_fused: bool = False
     keep_depths: bool = False
+    zones: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
 
 
 def aperture_job(geom: LensGeometry, grid: ap.ApertureGrid, cfg: LensFitConfig,
-                 **flags: bool) -> ApertureJob:
+                 zone_fit: dict | None = None, **flags: bool) -> ApertureJob:
+    """The aperture pass's shared inputs; ``zone_fit`` (``fit_focus_zones``'s dict) maps
+    the LTCs through the focus per pupil zone."""
     c = geom.centroids
     zc = float(geom.centre.position[2])
     u, _, vt = np.linalg.svd(geom.rotation[:2, :2])
-    return ApertureJob(grid, cfg, c.depths_mm.copy(), float(c.pitch_mm),
-                       ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, zc),
+    zones = None
+    ratio = ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, zc)
+    if zone_fit is not None:
+        centre, g2, fold, blur = ap.zone_map(c.depths_mm, zc, zone_fit["c0_per_mm"],
+                                             zone_fit["c1_per_mm3"], zone_fit["radius_mm"])
+        zones = (centre, g2, fold, float(zone_fit["radius_mm"]))
+        ratio = np.where(fold, ratio, blur)
+    return ApertureJob(grid, cfg, c.depths_mm.copy(), float(c.pitch_mm), ratio,
                        footprint_mm(c.depths_mm, zc, geom.camera_matrix, cfg.pixel_samples), u @ vt,
-                       **flags)
+                       zones=zones, **flags)
 
 
 def pixel_inputs(geom: LensGeometry, pix: np.ndarray,
@@ -198,7 +227,7 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
         coverage = np.zeros((len(idx), d))
         for i in range(d):
             used = inp["used"][i, idx] & usable
-            if not used.any():
+            if not used.any() or (job.zones is not None and job.zones[2][i]):
                 continue
             h = ltc[i, loc].astype(np.float64)  # a copy: zeroed in place
             h[~used] = 0.0  # (NaN where no signal)
@@ -210,8 +239,13 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
                                                                  - inp["z_ref"][idx])[:, None]
             own = (st.centroid + origin[i, loc]) * c_pitch
             at_depth = np.where(np.isfinite(own), own, at_depth)
-            m = ap.resample(h, origin[i, loc], at_depth, inp["at_centre"][idx], s[i], c_pitch,
-                            grid, job.rot2, cfg.supersample)
+            if job.zones is None:
+                m = ap.resample(h, origin[i, loc], at_depth, inp["at_centre"][idx], s[i],
+                                c_pitch, grid, job.rot2, cfg.supersample)
+            else:
+                m = ap.resample(h, origin[i, loc], at_depth, inp["at_centre"][idx],
+                                job.zones[0][i], c_pitch, grid, job.rot2, cfg.supersample,
+                                g2_per_mm2=float(job.zones[1][i]), rim_mm=job.zones[3])
             cov_i = m.sum(axis=(1, 2))
             coverage[:, i] = np.where(used, cov_i, 0.0)
             m_all[:, i] = m / np.where(cov_i > 0, cov_i, 1.0)[:, None, None]
@@ -246,6 +280,98 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
             out["w"][idx[good]] = ws
     out["ok"] = out["weight"].sum(axis=1) > 0
     return out
+
+
+def shift_zones(zones: np.ndarray, fit: dict, shift_mm: float) -> tuple[np.ndarray, dict]:
+    """The focus per pupil zone seen from an optical centre ``shift_mm`` farther along z:
+    the table's focus distances less the shift, and the model ``1 / z = c0 + c1 rho^2``
+    through its new ends (exact there; between them off by the shift squared over z, well
+    under a nanometre for micrometre shifts)."""
+    table = zones.copy()
+    table[:, 1] -= shift_mm
+    out = dict(fit)
+    rim = float(fit["radius_mm"])
+    out["c0_per_mm"] = 1.0 / float(table[0, 1])
+    out["c1_per_mm3"] = (1.0 / float(table[-1, 1]) - out["c0_per_mm"]) / rim**2
+    out["centre_shift_mm"] = shift_mm
+    return table, out
+
+
+CENTRE_PIXELS = 2000  # about this many node pixels refit the zoned lens's centre
+MISS_TERMS = 10  # a cubic in the pixel coordinates
+
+
+def _cubic_terms(pix: np.ndarray, w: int, h: int) -> np.ndarray:
+    """The 10 monomials up to degree 3 (n, 10) of flat pixels' coordinates, scaled to +-1."""
+    x = (pix % w) / max(w - 1, 1) * 2.0 - 1.0
+    y = (pix // w) / max(h - 1, 1) * 2.0 - 1.0
+    return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y, x**3, x * x * y, x * y * y,
+                     y**3], axis=1)
+
+
+def zoned_centre(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
+                 cfg: LensFitConfig, zones: np.ndarray,
+                 zone_fit: dict) -> tuple[LensGeometry, float]:
+    """The optical centre again, for a lens whose zones focus at different depths: the
+    geometry with the new centre (and roll) and how far the centre moved along z, mm.
+
+    ``pinhole_centre`` takes each principal ray's point on the focus plane as its pixel's
+    in-focus point, seen from the centre in K's direction. With one focus every ray of the
+    pixel passes there; with zones the principal ray (the samples' centroid line, ``a`` on
+    the centre's plane, slope ``x_n - sum_k w_k p_k / z_k`` = ``x_n - m``) misses it by
+    ``a - Z m`` at the focus plane's distance Z. A vignetted pupil has ``a`` growing with the
+    field, so the miss is a scale that the fit took for z_f: on the paper-size benches the
+    centre came out 23-31 um behind the pupil, which moves a scan's points by 2-3 um at
+    large defocus. Here about ``CENTRE_PIXELS`` node pixels are sampled through the zones
+    (the aperture pass's own ``aperture_block``), their misses computed from the samples and
+    fitted by a cubic over the sensor, and the centre refitted from every usable ray with
+    its miss removed (``pinhole_centre(bias_mm=...)``)."""
+    from dataclasses import replace
+
+    from station.lens.centre import pinhole_centre
+
+    w, h = volume.camera_size
+    step = max(cfg.grid_step, int(np.ceil(np.sqrt(w * h / CENTRE_PIXELS))))
+    nu, nv = node_positions(w, step), node_positions(h, step)
+    pix = (nv[:, None] * w + nu[None, :]).ravel()
+    pix = pix[geom.rays.usable[pix]]
+    job = aperture_job(geom, grid, cfg, zone_fit, samples=True)
+    miss = np.zeros((len(pix), 2))
+    good = np.zeros(len(pix), dtype=bool)
+    z_plane = geom.focus_distance_mm
+
+    def focus(x_mm, y_mm):
+        return aim_depths(zones, z_plane, x_mm, y_mm)
+
+    for sel, tile in tile_groups(volume, pix):
+        p = pix[sel]
+        res = aperture_block(volume, job, *tile, p, pixel_inputs(geom, p, cfg))
+        ok = res["ok"] & res["w"].any(axis=1)
+        x, wk = res["x"], np.where(ok[:, None], res["w"], 1.0)
+        wn = wk / wk.sum(axis=1, keepdims=True)
+        a = np.stack([(wn * x[..., 0]).sum(axis=1), (wn * x[..., 1]).sum(axis=1)], axis=1)
+        miss[sel] = a - z_plane * sample_moment(x[..., 0], x[..., 1], wk, focus)
+        good[sel] = ok
+    if good.sum() < 2 * MISS_TERMS:
+        return geom, 0.0
+    # the misses are smooth over the field (the vignetting): a cubic in (u, v) fitted to the
+    # sampled nodes gives every usable ray's, so the refit keeps all of the rays' averaging
+    coef = np.linalg.lstsq(_cubic_terms(pix[good], w, h), miss[good], rcond=None)[0]
+    usable = geom.rays.usable
+    idx = np.flatnonzero(usable)
+    xn = np.empty((len(idx), 2))
+    bias = np.empty((len(idx), 2))
+    for a0 in range(0, len(idx), GRID_PIXELS):
+        blk = idx[a0:a0 + GRID_PIXELS]
+        uv = np.stack([blk % w, blk // w], axis=1).astype(np.float64)
+        xn[a0:a0 + len(blk)] = pixel_to_normalized(uv, geom.camera_matrix, geom.dist_coeffs)
+        bias[a0:a0 + len(blk)] = (_cubic_terms(blk, w, h) @ coef) @ job.rot2  # to station
+    pin, rot = pinhole_centre(geom.rays, usable, xn, geom.focus_plane_z_mm,
+                              float(geom.centre.covariance[2, 2]), geom.centre_rays,
+                              bias_mm=bias)
+    pin = replace(pin, method="pinhole: in-focus points vs K, zones' misses removed")
+    shift = float(pin.position[2] - geom.centre.position[2])
+    return replace(geom, centre_pinhole=pin, centre=pin, rotation=rot), shift
 
 
 def local_plane_fit(values: np.ndarray, var: np.ndarray, ok: np.ndarray,
@@ -360,29 +486,24 @@ def sample_moment(x: np.ndarray, y: np.ndarray, w: np.ndarray, lens_focus) -> np
 def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
                  pixels: np.ndarray, cfg: LensFitConfig | None = None,
                  keep_depths: bool = False, progress: bool = False,
-                 keep_fused: bool = True) -> ApertureSet:
+                 keep_fused: bool = True, zone_fit: dict | None = None) -> ApertureSet:
     """Scale, resample and fuse the LTC of the given flat pixels onto the aperture plane, in
     this process, block by block (``aperture_block``); ``progress``: a bar over the blocks.
-    ``keep_fused=False`` keeps no (n, G, G) array (``fused`` is then None)."""
+    ``keep_fused=False`` keeps no (n, G, G) array (``fused`` is then None); ``zone_fit``: map
+    through the focus per pupil zone (``aperture_job``)."""
     cfg = cfg or LensFitConfig()
     pixels = np.asarray(pixels, dtype=np.int64).ravel()
     n, d, g = len(pixels), len(geom.centroids.depths_mm), grid.cells
-    w_cam, h_cam = volume.camera_size
-    job = aperture_job(geom, grid, cfg, keep_fused=keep_fused, keep_depths=keep_depths)
-    tr, tc = tile_shape(volume)
-    key = (pixels // w_cam // tr) * ((w_cam + tc - 1) // tc) + (pixels % w_cam) // tc
-    order = np.argsort(key, kind="stable")
-    bounds = np.flatnonzero(np.diff(key[order])) + 1
+    job = aperture_job(geom, grid, cfg, zone_fit, keep_fused=keep_fused,
+                       keep_depths=keep_depths)
     out = {"weight": np.zeros((n, d)), "coverage": np.zeros((n, d)), "mean": np.zeros((n, 2)),
            "cov": np.zeros((n, 2, 2))}
     fused = np.zeros((n, g, g)) if keep_fused else None
     per_depth = np.zeros((n, d, g, g)) if keep_depths else None
-    for sel in tqdm(np.split(order, bounds) if n else [], desc="lens: aperture", unit="block",
-                    disable=None if progress else True):
+    for sel, tile in tqdm(tile_groups(volume, pixels), desc="lens: aperture", unit="block",
+                          disable=None if progress else True):
         pix = pixels[sel]
-        r0, c0 = pix[0] // w_cam // tr * tr, pix[0] % w_cam // tc * tc
-        res = aperture_block(volume, job, r0, min(h_cam, r0 + tr), c0, min(w_cam, c0 + tc),
-                             pix, pixel_inputs(geom, pix, cfg))
+        res = aperture_block(volume, job, *tile, pix, pixel_inputs(geom, pix, cfg))
         for name in out:
             out[name][sel] = res[name]
         if fused is not None:
@@ -563,16 +684,23 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
     writer = LensFileWriter(out, nu, nv, k) if out is not None else None
     try:
         good = np.zeros(shape, dtype=bool)
-        zoned = cfg.focus_zones and geom.camera_matrix is not None
-        # the nodes' target covariances: the zone fit's start (only then: 32 B per node)
-        cov = np.zeros(shape + (2, 2)) if zoned else None
+        zones, zone_fit = None, None
+        if cfg.focus_zones and geom.camera_matrix is not None:
+            # fitted first: the zones' radial maps place every LTC on the aperture plane
+            found = fit_focus_zones(volume, float(geom.centre.position[2]), geom.camera_matrix,
+                                    geom.focus_distance_mm, _centre_radius_mm(geom),
+                                    pixel_samples=cfg.pixel_samples)
+            if found is not None:
+                geom, shift = zoned_centre(volume, geom, grid, cfg, *found)
+                zones, zone_fit = shift_zones(*found, shift)
+                grid = aperture_grid(geom, cfg)
         if writer is None:
             x = np.zeros(shape + (k, 2))
             wk = np.zeros(shape + (k,))
             parts = {"weight": np.zeros(shape + (len(volume.depths_mm),)),
                      "coverage": np.zeros(shape + (len(volume.depths_mm),)),
                      "mean": np.zeros(shape + (2,)), "cov": np.zeros(shape + (2, 2))}
-        job = aperture_job(geom, grid, cfg, samples=True)
+        job = aperture_job(geom, grid, cfg, zone_fit=zone_fit, samples=True)
         aim = cfg.aim_offset_sigma_px > 0 and geom.camera_matrix is not None
         slope_term = np.zeros(shape + (2,)) if aim else None  # s - xy_n per node
         tr, tc = tile_shape(volume)
@@ -603,8 +731,6 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
             sub = (len(jv), len(iu))
             g = (res["ok"] & res["w"].any(axis=1)).reshape(sub)
             good[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = g
-            if cov is not None:
-                cov[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = res["cov"].reshape(sub + (2, 2))
             xs, ws = res["x"].reshape(sub + (k, 2)), res["w"].reshape(sub + (k,))
             if writer is None:
                 x[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = xs
@@ -635,16 +761,6 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
                 writer.copy_nodes(fill, flat[fill])
             del flat
         trans = _transmittance(volume, geom.centroids.status, nu, nv)
-        zones, zone_fit = None, None
-        if zoned:
-            pix = (nv[:, None] * w + nu[None, :]).ravel()
-            found = fit_focus_zones(volume, float(geom.centre.position[2]), geom.camera_matrix,
-                                    geom.focus_distance_mm,
-                                    _centre_radius_mm(cov.reshape(-1, 2, 2), good.ravel(), pix,
-                                                      geom),
-                                    pixel_samples=cfg.pixel_samples)
-            if found is not None:
-                zones, zone_fit = found
         offset = None
         if slope_term is not None:
             def focus(x_mm, y_mm):  # where the lens file's samples will aim
@@ -690,15 +806,18 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
             writer.abort()
 
 
-def _centre_radius_mm(cov: np.ndarray, good: np.ndarray, pix: np.ndarray,
-                      geom: LensGeometry) -> float:
+def _centre_radius_mm(geom: LensGeometry) -> float:
     """A start for the pupil radius, mm: the uniform disk's ``sqrt(2 trace(cov))`` of the
-    samples' target covariance (n, 2, 2) at the good node nearest the principal point."""
-    w = geom.camera_size[0]
-    uv = np.stack([pix % w, pix // w], axis=1).astype(np.float64)
-    c = geom.camera_matrix[:2, 2] if geom.camera_matrix is not None else uv.mean(axis=0)
-    j = int(np.argmin(np.where(good, np.hypot(*(uv - c).T), np.inf)))
-    return float(np.sqrt(2.0 * np.trace(cov[j])))
+    LTC's second moments at the principal point's pixel, scaled to the aperture plane (the
+    median over its depths; the blur of the LCD and camera pixels is left in)."""
+    c = geom.centroids
+    d = len(c.depths_mm)
+    w, h = geom.camera_size
+    u, v = np.clip(np.rint(geom.camera_matrix[:2, 2]).astype(np.int64), 0, [w - 1, h - 1])
+    mom = c.moments_px2.reshape(d, -1, 3)[:, v * w + u].astype(np.float64)
+    s = ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, float(geom.centre.position[2]))
+    var = (mom[:, 0] + mom[:, 1]) * (c.pitch_mm * s) ** 2
+    return float(np.sqrt(2.0 * np.nanmedian(var))) if np.isfinite(var).any() else 1.0
 
 
 def _transmittance(volume: LtcVolume, status: np.ndarray, nu: np.ndarray,

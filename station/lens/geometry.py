@@ -80,10 +80,12 @@ class LensFitConfig(BaseModel):
                                  "negative noise cut (off, as deconvolve_iterations; the "
                                  "experiment sets 0.1)")
     focus_zones: bool = Field(False, description="fit a focus distance per pupil zone "
-                              "(spherical aberration) from the LTCs at the optical centre and "
-                              "store it as the lens file's focus_zones_mm (needs K). Off: with "
-                              "the station's samples it does not improve the experiment's "
-                              "scanners yet (benchmarks/README.md)")
+                              "(spherical aberration) from the LTCs at the optical centre, "
+                              "map every LTC onto the aperture plane through it, refit the "
+                              "optical centre with the zones' misses of the pinhole points "
+                              "removed, and store it as the lens file's focus_zones_mm "
+                              "(needs K; the experiment sets it). Off by default: the "
+                              "aperture pass costs about twice as much (benchmarks/README.md)")
     aim_offset_sigma_px: float = Field(0.0, ge=0, description="give each node the aim "
                                        "offset (the lens file's aim_offset) that makes its "
                                        "principal ray's slope the station's measured one "
