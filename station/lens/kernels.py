@@ -178,6 +178,20 @@ OFFSET = float(OFFSET_I)
 
 
 @numba.njit(cache=True, nogil=True)
+def _nonzero_box(hk):
+    """Columns and rows (cmin, cmax, rmin, rmax) spanned by a window's nonzero weights
+    (cmax = -1: none)."""
+    p = hk.shape[0]
+    cmin, cmax, rmin, rmax = p, -1, p, -1
+    for r in range(p):
+        for c in range(hk.shape[1]):
+            if hk[r, c] != 0.0:
+                cmin, cmax = min(cmin, c), max(cmax, c)
+                rmin, rmax = min(rmin, r), max(rmax, r)
+    return cmin, cmax, rmin, rmax
+
+
+@numba.njit(cache=True, nogil=True)
 def resample_kernel(h, origin, ray_d, ray_c, inv, box, ptx, pty, pitch_mm, g, sub, cell_area,
                     rot, first, pts_cam_step, out):
     """out[k] (G, G) += masses of window h[k] (P, P) (see ``aperture.resample``): sub-cell
@@ -195,12 +209,7 @@ def resample_kernel(h, origin, ray_d, ray_c, inv, box, ptx, pty, pitch_mm, g, su
         ox, oy = origin[k, 0], origin[k, 1]
         # the window's nonzero weights: only sub-cells that can land on them are visited
         # (the others add 0); their box, mapped back to the aperture, bounds the loop
-        cmin, cmax, rmin, rmax = p, -1, p, -1
-        for r in range(p):
-            for c in range(p):
-                if h[k, r, c] != 0.0:
-                    cmin, cmax = min(cmin, c), max(cmax, c)
-                    rmin, rmax = min(rmin, r), max(rmax, r)
+        cmin, cmax, rmin, rmax = _nonzero_box(h[k])
         if cmax < 0:
             continue
         s_k = 1.0 / inv[k]
@@ -550,12 +559,7 @@ def resample_zoned_kernel(h, origin, ray_d, ray_c, g0, g2, r2_rim, pitch_mm, g, 
     gmin = max(min(abs(g0), abs(g0 + g2 * r2_rim)), 1e-9)
     for k in range(n):
         ox, oy = origin[k, 0], origin[k, 1]
-        cmin, cmax, rmin, rmax = p, -1, p, -1
-        for r in range(p):
-            for c in range(p):
-                if h[k, r, c] != 0.0:
-                    cmin, cmax = min(cmin, c), max(cmax, c)
-                    rmin, rmax = min(rmin, r), max(rmax, r)
+        cmin, cmax, rmin, rmax = _nonzero_box(h[k])
         if cmax < 0:
             continue
         rc2 = min(ray_c[k, 0] ** 2 + ray_c[k, 1] ** 2, r2_rim)
