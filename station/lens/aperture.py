@@ -60,6 +60,7 @@ measurement's pixels).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -115,18 +116,26 @@ def scale_ratio(depths_mm: np.ndarray, focus_plane_z_mm: float, centre_z_mm: flo
     return (focus_plane_z_mm - centre_z_mm) / dz
 
 
+class ZoneMap(NamedTuple):
+    """A lens's radial maps per depth through its focus per pupil zone (``zone_map``)."""
+
+    centre_ratio: np.ndarray  # (D,) 1 / g0: the scale at the pupil's centre
+    g2_per_mm2: np.ndarray  # (D,) g = g0 + g2 rho^2
+    fold: np.ndarray  # (D,) bool: g changes sign inside the pupil; the depth is not used
+    blur_ratio: np.ndarray  # (D,) sign(g0) / sqrt(g0 g_rim): blur variances scale by its square
+    rim_mm: float  # the pupil's radius; beyond it the rim's scale
+
+
 def zone_map(depths_mm: np.ndarray, centre_z_mm: float, c0_per_mm: float,
-             c1_per_mm3: float, rim_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+             c1_per_mm3: float, rim_mm: float) -> ZoneMap:
     """The radial maps of a lens with a focus per pupil zone, ``1 / z(rho) = c0 + c1 rho^2``
     up to the pupil's rim ``rim_mm`` and the rim's focus beyond (``station.lens.zones``; z
     from the optical centre, mm): a ray through pupil radius rho aimed at its zone's focus
     lands on the LCD at distance ``d_i = z_i - z_O`` at ``p g_i(rho)`` from where the
-    pupil's origin lands, ``g_i = 1 - d_i / z(rho) = g0_i + g2_i rho^2``. Returns ``ratio``
-    (D,) ``1 / g0_i`` (the scale at the pupil's centre), ``g2`` (D,) 1/mm^2, ``fold`` (D,):
-    depths where g changes sign inside the pupil (a zone focuses between the optical centre
-    and the LCD, others beyond it), whose LTC mixes the zones and is not used, and
-    ``blur_ratio`` (D,): the scale whose square is the mean of ``1 / g^2`` over a uniform
-    pupil, ``sign(g0) / sqrt(g0 g_rim)``, so an LCD-plane blur's variance mapped through the
+    pupil's origin lands, ``g_i = 1 - d_i / z(rho) = g0_i + g2_i rho^2``. A depth folds where
+    g changes sign inside the pupil (a zone focuses between the optical centre and the LCD,
+    others beyond it): its LTC mixes the zones. ``blur_ratio`` squared is the mean of
+    ``1 / g^2`` over a uniform pupil, so an LCD-plane blur's variance mapped through the
     zones is that blur's variance times ``blur_ratio^2`` (where one focus would use its
     ``scale_ratio``)."""
     d = np.asarray(depths_mm, dtype=np.float64) - centre_z_mm
@@ -136,7 +145,7 @@ def zone_map(depths_mm: np.ndarray, centre_z_mm: float, c0_per_mm: float,
     fold = (g0 * g_rim <= 0) | (np.abs(g0) < 1e-9)
     safe = np.where(fold, 1.0, g0)
     blur = np.sign(safe) / np.sqrt(np.where(fold, 1.0, g0 * g_rim))
-    return 1.0 / safe, g2, fold, blur
+    return ZoneMap(1.0 / safe, g2, fold, blur, float(rim_mm))
 
 
 def resample(
@@ -212,11 +221,10 @@ def _resample_zoned(h: np.ndarray, origin: np.ndarray, ray_d: np.ndarray, ray_c:
     g0 = 1.0 / ratio
     # the pupil's mean moves by about a shift on the LCD over the pupil's mean scale
     g_eff = np.sign(g0) * np.sqrt(abs(g0 * (g0 + g2 * r2_rim)))
-    rot_cam = np.asarray(rot, dtype=np.float64)
     for it in range(ZONED_CENTRING_STEPS + 1):
         out = np.zeros((len(h), grid.cells, grid.cells))
         resample_zoned_kernel(h, org, np.ascontiguousarray(rd), rc, g0, g2, r2_rim, pitch_mm,
-                              grid.cells, sub, grid.cell_mm**2, rot_cam,
+                              grid.cells, sub, grid.cell_mm**2, rot,
                               -grid.half_width_mm + 0.5 * step, step, out)
         if it == ZONED_CENTRING_STEPS:
             return out
@@ -225,7 +233,7 @@ def _resample_zoned(h: np.ndarray, origin: np.ndarray, ray_d: np.ndarray, ray_c:
         if not has.any():
             return out
         mean_cam, _ = grid_moments(out[has] / tot[has, None, None], grid)
-        mean_st = mean_cam @ rot_cam  # camera-frame means to the station frame (R2^T p)
+        mean_st = mean_cam @ rot  # camera-frame means to the station frame (R2^T p)
         rd[has] -= g_eff * (rc[has] - mean_st)
     return out
 

@@ -148,7 +148,7 @@ def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
     intersection, z from the fit's residuals plus the focus-plane variance propagated.
     bias_mm : (n, 2) station frame, optional: where each principal ray is known to miss its
     pixel's pinhole point at the focus plane (a lens whose zones focus at different depths:
-    ``derive.centre_bias``); subtracted from the in-focus points.
+    ``derive.zoned_centre``); subtracted from the in-focus points.
     Returns the centre and the rotation (3, 3) from station to camera axes (the roll).
     """
     idx = np.flatnonzero(usable)

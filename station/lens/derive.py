@@ -139,10 +139,9 @@ class ApertureJob:
     ratio : (D,) scale to the aperture plane; footprint_mm : (D,); rot2 : (2, 2) in-plane
     station-to-camera rotation; samples : draw the K samples of the good nodes;
     keep_fused, keep_depths : also return the fused (m, G, G) / per-depth (m, D, G, G)
-    distributions. zones : the focus per pupil zone's radial maps (``aperture.zone_map``:
-    ratio at the pupil's centre (D,), g2 (D,), fold (D,); and the rim, mm), which then place
-    each depth's LTC on the aperture plane; ``ratio`` sizes the blur and noise predictions
-    (with zones, ``zone_map``'s ``blur_ratio``).
+    distributions. zones : the focus per pupil zone's radial maps (``aperture.zone_map``),
+    which then place each depth's LTC on the aperture plane; ``ratio`` sizes the blur and
+    noise predictions (with zones, their ``blur_ratio``).
     """
 
     grid: ap.ApertureGrid
@@ -155,7 +154,7 @@ class ApertureJob:
     samples: bool = False
     keep_fused: bool = False
     keep_depths: bool = False
-    zones: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
+    zones: ap.ZoneMap | None = None
 
 
 def aperture_job(geom: LensGeometry, grid: ap.ApertureGrid, cfg: LensFitConfig,
@@ -168,10 +167,9 @@ def aperture_job(geom: LensGeometry, grid: ap.ApertureGrid, cfg: LensFitConfig,
     zones = None
     ratio = ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, zc)
     if zone_fit is not None:
-        centre, g2, fold, blur = ap.zone_map(c.depths_mm, zc, zone_fit["c0_per_mm"],
-                                             zone_fit["c1_per_mm3"], zone_fit["radius_mm"])
-        zones = (centre, g2, fold, float(zone_fit["radius_mm"]))
-        ratio = np.where(fold, ratio, blur)
+        zones = ap.zone_map(c.depths_mm, zc, zone_fit["c0_per_mm"], zone_fit["c1_per_mm3"],
+                            zone_fit["radius_mm"])
+        ratio = np.where(zones.fold, ratio, zones.blur_ratio)
     return ApertureJob(grid, cfg, c.depths_mm.copy(), float(c.pitch_mm), ratio,
                        footprint_mm(c.depths_mm, zc, geom.camera_matrix, cfg.pixel_samples), u @ vt,
                        zones=zones, **flags)
@@ -227,7 +225,7 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
         coverage = np.zeros((len(idx), d))
         for i in range(d):
             used = inp["used"][i, idx] & usable
-            if not used.any() or (job.zones is not None and job.zones[2][i]):
+            if not used.any() or (job.zones is not None and job.zones.fold[i]):
                 continue
             h = ltc[i, loc].astype(np.float64)  # a copy: zeroed in place
             h[~used] = 0.0  # (NaN where no signal)
@@ -239,13 +237,11 @@ def aperture_block(volume: LtcVolume, job: ApertureJob, r0: int, r1: int, c0: in
                                                                  - inp["z_ref"][idx])[:, None]
             own = (st.centroid + origin[i, loc]) * c_pitch
             at_depth = np.where(np.isfinite(own), own, at_depth)
-            if job.zones is None:
-                m = ap.resample(h, origin[i, loc], at_depth, inp["at_centre"][idx], s[i],
-                                c_pitch, grid, job.rot2, cfg.supersample)
-            else:
-                m = ap.resample(h, origin[i, loc], at_depth, inp["at_centre"][idx],
-                                job.zones[0][i], c_pitch, grid, job.rot2, cfg.supersample,
-                                g2_per_mm2=float(job.zones[1][i]), rim_mm=job.zones[3])
+            z = job.zones  # with zones: the pupil centre's scale and the radial term
+            m = ap.resample(h, origin[i, loc], at_depth, inp["at_centre"][idx],
+                            s[i] if z is None else z.centre_ratio[i], c_pitch, grid, job.rot2,
+                            cfg.supersample, g2_per_mm2=0.0 if z is None else z.g2_per_mm2[i],
+                            rim_mm=np.inf if z is None else z.rim_mm)
             cov_i = m.sum(axis=(1, 2))
             coverage[:, i] = np.where(used, cov_i, 0.0)
             m_all[:, i] = m / np.where(cov_i > 0, cov_i, 1.0)[:, None, None]
@@ -310,8 +306,8 @@ def _cubic_terms(pix: np.ndarray, w: int, h: int) -> np.ndarray:
 
 
 def zoned_centre(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
-                 cfg: LensFitConfig, zones: np.ndarray,
-                 zone_fit: dict) -> tuple[LensGeometry, float]:
+                 cfg: LensFitConfig, zones: np.ndarray, zone_fit: dict,
+                 engine: Engine) -> tuple[LensGeometry, float]:
     """The optical centre again, for a lens whose zones focus at different depths: the
     geometry with the new centre (and roll) and how far the centre moved along z, mm.
 
@@ -323,9 +319,9 @@ def zoned_centre(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
     field, so the miss is a scale that the fit took for z_f: on the paper-size benches the
     centre came out 23-31 um behind the pupil, which moves a scan's points by 2-3 um at
     large defocus. Here about ``CENTRE_PIXELS`` node pixels are sampled through the zones
-    (the aperture pass's own ``aperture_block``), their misses computed from the samples and
-    fitted by a cubic over the sensor, and the centre refitted from every usable ray with
-    its miss removed (``pinhole_centre(bias_mm=...)``)."""
+    (the aperture pass's own ``aperture_block``, on ``engine``), their misses computed from
+    the samples and fitted by a cubic over the sensor, and the centre refitted from every
+    usable ray with its miss removed (``pinhole_centre(bias_mm=...)``)."""
     from dataclasses import replace
 
     from station.lens.centre import pinhole_centre
@@ -343,15 +339,19 @@ def zoned_centre(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
     def focus(x_mm, y_mm):
         return aim_depths(zones, z_plane, x_mm, y_mm)
 
-    for sel, tile in tile_groups(volume, pix):
-        p = pix[sel]
-        res = aperture_block(volume, job, *tile, p, pixel_inputs(geom, p, cfg))
+    def tasks():
+        for sel, tile in tile_groups(volume, pix):
+            p = pix[sel]
+            yield sel, aperture_block, (volume, job, *tile, p, pixel_inputs(geom, p, cfg))
+
+    def on_result(sel, res) -> None:
         ok = res["ok"] & res["w"].any(axis=1)
         x, wk = res["x"], np.where(ok[:, None], res["w"], 1.0)
-        wn = wk / wk.sum(axis=1, keepdims=True)
-        a = np.stack([(wn * x[..., 0]).sum(axis=1), (wn * x[..., 1]).sum(axis=1)], axis=1)
-        miss[sel] = a - z_plane * sample_moment(x[..., 0], x[..., 1], wk, focus)
+        # the samples' mean is the node's target mean (match_moments keeps it exactly)
+        miss[sel] = res["mean"] - z_plane * sample_moment(x[..., 0], x[..., 1], wk, focus)
         good[sel] = ok
+
+    run_ordered(engine, tasks(), on_result)
     if good.sum() < 2 * MISS_TERMS:
         return geom, 0.0
     # the misses are smooth over the field (the vignetting): a cubic in (u, v) fitted to the
@@ -366,9 +366,10 @@ def zoned_centre(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
         uv = np.stack([blk % w, blk // w], axis=1).astype(np.float64)
         xn[a0:a0 + len(blk)] = pixel_to_normalized(uv, geom.camera_matrix, geom.dist_coeffs)
         bias[a0:a0 + len(blk)] = (_cubic_terms(blk, w, h) @ coef) @ job.rot2  # to station
-    pin, rot = pinhole_centre(geom.rays, usable, xn, geom.focus_plane_z_mm,
-                              float(geom.centre.covariance[2, 2]), geom.centre_rays,
-                              bias_mm=bias)
+    plane_var = (geom.focus.plane_std_mm**2 if geom.focus is not None
+                 and geom.focus_distance_config_mm is None else 0.0)  # as fit_geometry's
+    pin, rot = pinhole_centre(geom.rays, usable, xn, geom.focus_plane_z_mm, plane_var,
+                              geom.centre_rays, bias_mm=bias)
     pin = replace(pin, method="pinhole: in-focus points vs K, zones' misses removed")
     shift = float(pin.position[2] - geom.centre.position[2])
     return replace(geom, centre_pinhole=pin, centre=pin, rotation=rot), shift
@@ -691,7 +692,7 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
                                     geom.focus_distance_mm, _centre_radius_mm(geom),
                                     pixel_samples=cfg.pixel_samples)
             if found is not None:
-                geom, shift = zoned_centre(volume, geom, grid, cfg, *found)
+                geom, shift = zoned_centre(volume, geom, grid, cfg, *found, engine=engine)
                 zones, zone_fit = shift_zones(*found, shift)
                 grid = aperture_grid(geom, cfg)
         if writer is None:

@@ -545,7 +545,7 @@ def richardson_lucy_kernel(d, w, rows, norm_rows, iterations, x):
 def resample_zoned_kernel(h, origin, ray_d, ray_c, g0, g2, r2_rim, pitch_mm, g, sub,
                           cell_area, rot, first, step, out):
     """out[k] (G, G) += masses of window h[k] (P, P) through the radial map of a lens with a
-    focus per pupil zone (``aperture.resample`` with ``zones``): the camera-frame aperture
+    focus per pupil zone (``aperture.resample`` with ``g2_per_mm2``): the camera-frame aperture
     point p (radius rho from the optical centre) lands on the LCD at
     ``q = ray_d + R2^T p g(rho) - ray_c g(|ray_c|)``, ``g(rho) = g0 + g2 min(rho^2, r2_rim)``
     (beyond the pupil's rim, where only blur lands, the rim's scale), and carries the LCD
@@ -578,14 +578,15 @@ def resample_zoned_kernel(h, origin, ray_d, ray_c, g0, g2, r2_rim, pitch_mm, g, 
             oa = out[k, a // sub]
             for b in range(i0, i1):
                 x = first + b * step
-                r2 = min(x * x + y * y, r2_rim)
+                rr = x * x + y * y
+                r2 = min(rr, r2_rim)
                 gg = g0 + g2 * r2
                 qx = sx + (rot[0, 0] * x + rot[1, 0] * y) * gg
                 qy = sy + (rot[0, 1] * x + rot[1, 1] * y) * gg
                 col = np.int64(qx / pitch_mm + 0.5 + OFFSET) - OFFSET_I - ox
                 row = np.int64(qy / pitch_mm + 0.5 + OFFSET) - OFFSET_I - oy
                 if 0 <= col < p and 0 <= row < p:
-                    jac = gg * gg if x * x + y * y >= r2_rim else gg * (gg + 2.0 * g2 * r2)
+                    jac = gg * gg if rr >= r2_rim else gg * (gg + 2.0 * g2 * r2)
                     oa[b // sub] += hk[row, col] * abs(jac) * norm
         for a in range(g):
             for b in range(g):

@@ -81,7 +81,7 @@ def test_zoned_map_recovers_the_pupil_that_one_focus_distorts(xy_n, d_mm):
     every zone (the RMS-best, 769 mm) skews the vignetted pupil by 0.04-0.08 on the near
     side."""
     h, origin, centroid, (mean_true, rms_true, skew_true) = lens_ltc(xy_n, d_mm)
-    ratio, g2, fold, blur = zone_map(np.array([d_mm]), 0.0, C0, C1, RIM_MM)
+    ratio, g2, fold, blur, _ = zone_map(np.array([d_mm]), 0.0, C0, C1, RIM_MM)
     assert not fold[0]
     zoned = resample(h, origin, centroid, mean_true[None], float(ratio[0]), PITCH_MM, GRID,
                      None, 2, g2_per_mm2=float(g2[0]), rim_mm=RIM_MM)[0]
@@ -103,7 +103,7 @@ def test_zoned_map_recovers_the_pupil_that_one_focus_distorts(xy_n, d_mm):
 def test_zone_map_refuses_a_depth_between_the_zones_foci():
     """An LCD between the centre's focus (760 mm) and the rim's (775 mm) mixes the zones: its
     scale changes sign inside the pupil."""
-    ratio, g2, fold, blur = zone_map(np.array([600.0, 765.0, 920.0]), 0.0, C0, C1, RIM_MM)
+    ratio, g2, fold, blur, _ = zone_map(np.array([600.0, 765.0, 920.0]), 0.0, C0, C1, RIM_MM)
     assert fold.tolist() == [False, True, False]
     g_rim = 1.0 - 600.0 / RIM_FOCUS_MM  # the mean of 1 / g^2 over a uniform pupil
     u = (np.arange(200000) + 0.5) / 200000
