@@ -84,8 +84,9 @@ class LensFitConfig(BaseModel):
                               "map every LTC onto the aperture plane through it, refit the "
                               "optical centre with the zones' misses of the pinhole points "
                               "removed, and store it as the lens file's focus_zones_mm "
-                              "(needs K; the experiment sets it). Off by default: the "
-                              "aperture pass costs about twice as much (benchmarks/README.md)")
+                              "(needs K; the experiment sets it). Off by default: the lens "
+                              "step takes 1.5x as long at the paper's size, 2.3x on the demo "
+                              "(benchmarks/README.md)")
     aim_offset_sigma_px: float = Field(0.0, ge=0, description="give each node the aim "
                                        "offset (the lens file's aim_offset) that makes its "
                                        "principal ray's slope the station's measured one "
