@@ -59,6 +59,7 @@ BENCH_SUBPIXELS = 1  # the fake benches trace each pixel's rays from its centre,
 # the pixel's whole footprint on the LCD: the pixel's area, with all the rays for the pupil
 REFERENCE_PITCH_UM = 3.45  # the reference cameras' pixel pitch (sim.optics.rig)
 SHELL_MM = 2.0  # points this close to a true sphere go to its fit
+MIN_BALL_COVERAGE = 0.25  # a blurring scanner's points on a ball / the pinhole scanner's
 MODELS = ("real", "ltc", "gaussian", "pinhole")
 VIRTUAL = ("ltc", "gaussian", "pinhole")
 Log = Callable[[str], None]
@@ -154,11 +155,10 @@ class ExperimentConfig(BaseModel):
     ballbar_large: tuple[tuple[float, float], ...] = Field(
         ((-120.0, 0.0), (150.0, 0.0)), description="large-defocus ball-bar centres (z, y), mm")
     ballbar_roll_deg: float = Field(20.0, description="ball bar turned about the view axis, deg")
-    ballbar_large_tilt_deg: float = Field(0.0, description="large-defocus ball bars then turned "
-                                          "about the world's vertical (y) axis, deg: one ball "
-                                          "nearer the cameras than the other, as in a "
-                                          "diagonal of the measuring volume; lets the 248 mm "
-                                          "bar fit a narrow crop (--paper-size)")
+    ballbar_large_roll_deg: float | None = Field(
+        None, description="the large-defocus ball bars' own turn about the view axis, deg "
+        "(None: ballbar_roll_deg); farther away the crop is taller in mm, so a steeper bar "
+        "fits where a flatter one overhangs sideways (--paper-size)")
     cad: bool = Field(True, description="scan the CAD part")
     cad_z_mm: float = Field(0.0, description="CAD part's world z, mm")
 
@@ -170,8 +170,16 @@ def paper_size_config(**overrides) -> ExperimentConfig:
                 lens_grid_step=8, periods_px=(1920.0, 240.0, 30.0),
                 # the crop's common view of both cameras is ~160 mm wide at 640 mm: no pose of
                 # the 248 mm bar fits it there (check_views), so the large-defocus bars are on
-                # the far side, receding (balls at 820 / 940 and 840 / 960 mm)
-                ballbar_large=((120.0, 0.0), (140.0, 0.0)), ballbar_large_tilt_deg=-35.0)
+                # the far side, turned 25 degrees: each camera sees one ball at 808 / 817 mm
+                # and the other at 857 / 867 mm. Farther, the 38.1 mm balls leave the
+                # scanner's working range: at 899 mm 11 % of a ball's pixels pass the
+                # projector-consistency check, against 66-77 % here (benchmarks/README.md)
+                ballbar_large=((75.0, 0.0), (85.0, 0.0)), ballbar_large_roll_deg=25.0,
+                # the paper-size station's node noise is small (4 frames averaged, nodes every
+                # 8 px); smoothing over 2 nodes there moved which limb pixels the near-side
+                # spheres kept and their own-point sizes by -16 / -35 um against real's, the
+                # lens as measured by -4 / -3 um (benchmarks/README.md)
+                lens_smoothing_nodes=0.0)
     base.update(overrides)
     return ExperimentConfig(**base)
 
@@ -415,15 +423,14 @@ def scene_of(pos: Position, cfg: ExperimentConfig, cad_path: Path | None):
     if pos.kind == "sphere":
         obj = SphereObject(name=pos.name, pose={"t": list(pos.centre_mm)})
     elif pos.kind == "ballbar":
-        a = np.radians(cfg.ballbar_roll_deg)
-        b = np.radians(cfg.ballbar_large_tilt_deg if pos.defocus == "large" else 0.0)
-        roll = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0],
-                         [0.0, 0.0, 1.0]])
-        tilt = np.array([[np.cos(b), 0.0, np.sin(b)], [0.0, 1.0, 0.0],
-                         [-np.sin(b), 0.0, np.cos(b)]])
+        roll = cfg.ballbar_roll_deg
+        if pos.defocus == "large" and cfg.ballbar_large_roll_deg is not None:
+            roll = cfg.ballbar_large_roll_deg
+        a = np.radians(roll)
+        R = [[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]]
         obj = BallBarObject(name=pos.name, diameter_mm=BALLBAR_BALL_MM,
                             centre_distance_mm=BALLBAR_LENGTH_MM,
-                            pose={"t": list(pos.centre_mm), "R": (tilt @ roll).tolist()})
+                            pose={"t": list(pos.centre_mm), "R": R})
     else:
         obj = MeshObject(name=pos.name, path=cad_path, smooth_angle_deg=30.0,
                          pose={"t": list(pos.centre_mm)})
@@ -517,6 +524,35 @@ def size_fit(cloud, pos: Position, scene) -> SizeFit:
     return SizeFit(tuple(fits), tuple(kept), _size_of(fits, pos))
 
 
+def check_coverage(scans: dict[str, Scan], pos: Position, scene, rig) -> None:
+    """Refuse a size from balls a scanner barely saw: per ball, each blurring scanner's points
+    within ``SHELL_MM`` must reach ``MIN_BALL_COVERAGE`` of the pinhole scanner's (the same
+    decoder, no blur: whatever the pixel scale, it keeps what the silhouettes and shadows
+    leave). Below it the ball lies outside the scanner's working range: its fringes are too
+    blurred to pass the decoder's checks but in patches, and a sphere fitted to the patches is
+    not a size (at +139 mm of defocus a 38.1 mm ball kept 11 % of its pixels, and there the
+    real and virtual scanners' lengths differed by 0.7 mm: benchmarks/README.md)."""
+    def counts(cloud) -> list[int]:
+        p = np.asarray(cloud.points, dtype=np.float64)
+        return [int((np.abs(np.linalg.norm(p - [cx, cy, cz], axis=1) - r) < SHELL_MM).sum())
+                for cx, cy, cz, r in scene.objects[0].spheres()]
+
+    ref = counts(scans["pinhole"].cloud)
+    for name in MODELS:
+        if name == "pinhole":
+            continue
+        for k, (found, full) in enumerate(zip(counts(scans[name].cloud), ref)):
+            if found < MIN_BALL_COVERAGE * full:
+                cx, cy, cz, r = scene.objects[0].spheres()[k]
+                depth = float(rig.cameras[0].to_device(np.array([[cx, cy, cz]]))[0, 2])
+                raise StationError(
+                    f"position {pos.name}, scanner {name}: ball {k + 1} ({2 * r:g} mm, "
+                    f"{depth:.0f} mm from camera 0) gave {found} points against the pinhole "
+                    f"scanner's {full} ({100 * found / max(full, 1):.0f} %, at least "
+                    f"{100 * MIN_BALL_COVERAGE:.0f} % needed): it lies outside the scanner's "
+                    f"working range; move it nearer focus (sphere_*, ballbar_*)")
+
+
 def size_error_mm(own: SizeFit) -> dict:
     """``size_mm`` (own points against nominal) and the fits' largest RMS, mm."""
     return {"size_mm": own.size_mm, "fit_rms_mm": float(max(f.rms for f in own.fits))}
@@ -590,7 +626,7 @@ def scan_position(pos: Position, cfg: ExperimentConfig, rig, lenses: dict[str, t
     return out
 
 
-def compare_position(pos: Position, cfg: ExperimentConfig, scans: dict[str, Scan],
+def compare_position(pos: Position, cfg: ExperimentConfig, rig, scans: dict[str, Scan],
                      cad_path: Path | None, cad_mesh) -> dict:
     """The numbers of one position: per model the size error (sphere, ball bar) or the
     distances to the CAD mesh, and each virtual cloud against the real one, unaligned and
@@ -608,6 +644,8 @@ def compare_position(pos: Position, cfg: ExperimentConfig, scans: dict[str, Scan
            "centre_mm": list(pos.centre_mm), "models": {}}
     maps = {}
     world_mesh = world_cad_mesh(cad_mesh, pos) if pos.kind == "cad" else None
+    if pos.kind != "cad":
+        check_coverage(scans, pos, scene, rig)
     real_size = size_fit(real, pos, scene) if pos.kind != "cad" else None
     for name in MODELS:
         cloud = scans[name].cloud
@@ -788,7 +826,7 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
             done = load_position(folder, pos.name)
             if done is None:
                 scans = scan_position(pos, cfg, rig, models, cad_path)
-                row, mp = compare_position(pos, cfg, scans, cad_path, cad_mesh)
+                row, mp = compare_position(pos, cfg, rig, scans, cad_path, cad_mesh)
                 pics = {n: scans[n].images for n in MODELS} if pos.name == shown else None
                 save_position(folder, pos.name, row, mp, pics)
                 took = f"{time.perf_counter() - t0:.0f} s"

@@ -73,7 +73,7 @@ def test_an_object_outside_a_crop_is_refused_before_anything_is_written(tmp_path
     # the paper-size crop's near large-defocus ball bar as first configured: it stopped a
     # 3-hour run at its stereo match, one camera seeing one ball, the other the other
     bad = tmp_path / "b3.toml"
-    bad.write_text("ballbar_large = [[-120.0, 0.0]]\nballbar_large_tilt_deg = 0.0\n")
+    bad.write_text("ballbar_large = [[-120.0, 0.0]]\nballbar_large_roll_deg = 20.0\n")
     out = tmp_path / "out"
     assert main(["experiment", str(bad), "--paper-size", "--out", str(out)]) == 1
     err = capsys.readouterr().err

@@ -102,3 +102,34 @@ def test_ball_bar_length_on_shared_pixels_ignores_a_rigid_shift():
     out = shared_size_mm(virt, own_v, real, own_r, pos)
     assert out["size_shared_mm"] == pytest.approx(out["size_shared_real_mm"], abs=1e-7)
     assert abs(out["size_shared_real_mm"]) < 1e-7
+
+
+def test_a_ball_a_scanner_saw_only_in_patches_is_refused_naming_it():
+    """Ball bar: the pinhole scanner sees both balls whole; a blurring scanner that kept a
+    fifth of the second ball (a ball beyond its working range) is refused with one message
+    naming the position, the scanner and the ball; with 40 % of it, it passes."""
+    from station.errors import StationError
+    from station.experiment.run import MIN_BALL_COVERAGE, Scan, build_rig, check_coverage
+
+    rig = build_rig(CFG)
+    pos = Position("B3", "ballbar", "large", (0.0, 0.0, 0.0), 760.0)
+    scene = scene_of(pos, CFG, None)
+    clouds = []
+    for k, (cx, cy, cz, r) in enumerate(scene.objects[0].spheres()):
+        p, uv, cam, _ = cap_cloud(np.array([cx, cy, cz]), r, pitch_mm=0.5)
+        clouds.append((p, uv + [400 * k, 0], cam))
+
+    def scans(second: float) -> dict:
+        full = cloud(*(np.concatenate(a) for a in zip(*clouds)))
+        n = int(second * len(clouds[1][0]))
+        part = cloud(*(np.concatenate([a, b[:n]]) for a, b in zip(*clouds)))
+        return {"real": Scan(full, None, 0.0), "ltc": Scan(part, None, 0.0),
+                "gaussian": Scan(full, None, 0.0), "pinhole": Scan(full, None, 0.0)}
+
+    assert MIN_BALL_COVERAGE == 0.25
+    check_coverage(scans(0.4), pos, scene, rig)
+    with pytest.raises(StationError) as err:
+        check_coverage(scans(0.2), pos, scene, rig)
+    msg = str(err.value)
+    assert "position B3, scanner ltc: ball 2" in msg and "(20 %" in msg and "\n" not in msg
+    assert "move it nearer focus" in msg
