@@ -221,13 +221,16 @@ def _resample_zoned(h: np.ndarray, origin: np.ndarray, ray_d: np.ndarray, ray_c:
     g0 = 1.0 / ratio
     # the pupil's mean moves by about a shift on the LCD over the pupil's mean scale
     g_eff = np.sign(g0) * np.sqrt(abs(g0 * (g0 + g2 * r2_rim)))
-    for it in range(ZONED_CENTRING_STEPS + 1):
+
+    def mapped() -> np.ndarray:
         out = np.zeros((len(h), grid.cells, grid.cells))
         resample_zoned_kernel(h, org, np.ascontiguousarray(rd), rc, g0, g2, r2_rim, pitch_mm,
                               grid.cells, sub, grid.cell_mm**2, rot,
                               -grid.half_width_mm + 0.5 * step, step, out)
-        if it == ZONED_CENTRING_STEPS:
-            return out
+        return out
+
+    for _ in range(ZONED_CENTRING_STEPS):
+        out = mapped()
         tot = out.sum(axis=(1, 2))
         has = tot > 0
         if not has.any():
@@ -235,7 +238,7 @@ def _resample_zoned(h: np.ndarray, origin: np.ndarray, ray_d: np.ndarray, ray_c:
         mean_cam, _ = grid_moments(out[has] / tot[has, None, None], grid)
         mean_st = mean_cam @ rot  # camera-frame means to the station frame (R2^T p)
         rd[has] -= g_eff * (rc[has] - mean_st)
-    return out
+    return mapped()
 
 
 def depth_errors(
