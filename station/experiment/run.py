@@ -530,8 +530,9 @@ def check_coverage(scans: dict[str, Scan], pos: Position, scene, rig) -> None:
     decoder, no blur: whatever the pixel scale, it keeps what the silhouettes and shadows
     leave). Below it the ball lies outside the scanner's working range: its fringes are too
     blurred to pass the decoder's checks but in patches, and a sphere fitted to the patches is
-    not a size (at +139 mm of defocus a 38.1 mm ball kept 11 % of its pixels, and there the
-    real and virtual scanners' lengths differed by 0.7 mm: benchmarks/README.md)."""
+    not a size (a 38.1 mm ball kept 11 % of its disc's pixels at +139 mm of defocus; with the
+    far balls at +176 / +196 mm the real and virtual scanners' lengths differed by 0.7 mm:
+    benchmarks/README.md)."""
     def counts(cloud) -> list[int]:
         p = np.asarray(cloud.points, dtype=np.float64)
         return [int((np.abs(np.linalg.norm(p - [cx, cy, cz], axis=1) - r) < SHELL_MM).sum())
@@ -644,9 +645,10 @@ def compare_position(pos: Position, cfg: ExperimentConfig, rig, scans: dict[str,
            "centre_mm": list(pos.centre_mm), "models": {}}
     maps = {}
     world_mesh = world_cad_mesh(cad_mesh, pos) if pos.kind == "cad" else None
+    real_size = None
     if pos.kind != "cad":
         check_coverage(scans, pos, scene, rig)
-    real_size = size_fit(real, pos, scene) if pos.kind != "cad" else None
+        real_size = size_fit(real, pos, scene)
     for name in MODELS:
         cloud = scans[name].cloud
         pts = cloud.points
