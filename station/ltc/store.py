@@ -38,7 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 import zarr
 
-from station.acquisition.run_store import write_new_file
+from station.acquisition.run_store import aligned_empty, write_new_file
 from station.acquisition.store_attrs import LtcStoreAttrs, check_attrs, open_zarr_group
 
 FORMAT = "ltc-store"
@@ -266,7 +266,8 @@ def _write_raw_chunk(group: zarr.Group, arr: zarr.Array, depth: int, row0: int, 
     if (th, tw) == (ch, cw):
         data = np.ascontiguousarray(v, dtype)
     else:
-        data = np.full(chunks[1:], arr.fill_value, dtype)
+        data = aligned_empty(chunks[1:], dtype)
+        data[...] = arr.fill_value
         data[:th, :tw] = v
     key = [depth, row0 // ch, col0 // cw] + [0] * (len(shape) - 3)
     path = Path(group.store.root) / arr.path / "c" / "/".join(str(k) for k in key)

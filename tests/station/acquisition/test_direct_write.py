@@ -1,0 +1,110 @@
+"""Files written straight to the device (issue 13): an aligned array goes through O_DIRECT, and
+whatever path a file takes (direct, buffered, or direct refused at open or mid-write), its bytes
+on disk are the array's, under its final name only."""
+
+import errno
+import os
+
+import numpy as np
+import pytest
+
+from station.acquisition import run_store
+from station.acquisition.run_store import DIRECT_ALIGN, aligned_empty, write_new_file
+
+
+@pytest.fixture
+def opened(monkeypatch):
+    """The flags of every os.open, in order."""
+    flags: list[int] = []
+    real = os.open
+
+    def spy(path, f, *a, **k):
+        flags.append(f)
+        return real(path, f, *a, **k)
+
+    monkeypatch.setattr(run_store.os, "open", spy)
+    return flags
+
+
+def random_array(shape, dtype=np.float32, seed=0):
+    a = aligned_empty(shape, dtype)
+    a[...] = np.random.default_rng(seed).normal(size=shape)
+    return a
+
+
+@pytest.mark.parametrize("shape,dtype", [((64, 64, 24, 24), np.float32), ((3, 5, 7), np.uint16),
+                                         ((1,), np.float64)])
+def test_aligned_empty_starts_on_a_block_boundary(shape, dtype):
+    a = aligned_empty(shape, dtype)
+    assert a.shape == shape and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable
+    assert a.ctypes.data % DIRECT_ALIGN == 0
+
+
+def test_an_aligned_array_is_written_direct_with_its_exact_bytes(tmp_path, opened):
+    a = random_array((16, 16, 4, 4))  # 16 kB: four blocks
+    write_new_file(tmp_path / "c", [a])
+    assert opened and opened[0] & os.O_DIRECT
+    assert (tmp_path / "c").read_bytes() == a.tobytes()
+    assert [p.name for p in tmp_path.iterdir()] == ["c"]
+
+
+@pytest.mark.parametrize("case", ["unaligned address", "partial block", "two parts", "bytes"])
+def test_anything_else_goes_through_the_page_cache_with_its_exact_bytes(tmp_path, opened, case):
+    a = random_array((2 * DIRECT_ALIGN,), np.uint8)
+    parts = {"unaligned address": [a[1 : 1 + DIRECT_ALIGN]],
+             "partial block": [a[: DIRECT_ALIGN - 8]],
+             "two parts": [a[:DIRECT_ALIGN], a[DIRECT_ALIGN:]],
+             "bytes": [a.tobytes()]}[case]
+    write_new_file(tmp_path / "c", parts)
+    assert not opened[0] & os.O_DIRECT
+    assert (tmp_path / "c").read_bytes() == b"".join(bytes(memoryview(p)) for p in parts)
+
+
+def test_direct_refused_at_open_falls_back_to_the_page_cache(tmp_path, monkeypatch):
+    real, tried = os.open, []
+
+    def refuse(path, f, *a, **k):
+        if f & os.O_DIRECT:
+            tried.append(path)
+            fd = real(path, f & ~os.O_DIRECT, *a, **k)  # as kernels that create, then refuse
+            os.close(fd)
+            raise OSError(errno.EINVAL, "Invalid argument")
+        return real(path, f, *a, **k)
+
+    monkeypatch.setattr(run_store.os, "open", refuse)
+    a = random_array((8, 1024))
+    write_new_file(tmp_path / "c", [a])
+    assert tried
+    assert (tmp_path / "c").read_bytes() == a.tobytes()
+    assert [p.name for p in tmp_path.iterdir()] == ["c"]  # no temporary file left behind
+
+
+def test_direct_refused_mid_write_rewrites_the_file_through_the_page_cache(tmp_path,
+                                                                          monkeypatch):
+    real, calls = os.write, []
+
+    def half_then_refuse(fd, data):
+        calls.append(len(data))
+        if len(calls) == 1:  # the first block goes to disk, then the device refuses
+            return real(fd, memoryview(data)[:DIRECT_ALIGN])
+        if len(calls) == 2:
+            raise OSError(errno.EINVAL, "Invalid argument")
+        return real(fd, data)
+
+    monkeypatch.setattr(run_store.os, "write", half_then_refuse)
+    a = random_array((4, 1024))
+    write_new_file(tmp_path / "c", [a])
+    assert (tmp_path / "c").read_bytes() == a.tobytes()
+    assert [p.name for p in tmp_path.iterdir()] == ["c"]
+
+
+def test_a_full_disk_during_a_direct_write_names_the_file_and_leaves_nothing(tmp_path,
+                                                                            monkeypatch):
+    def full(fd, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(run_store.os, "write", full)
+    with pytest.raises(OSError, match="No space left on device") as err:
+        write_new_file(tmp_path / "c", [random_array((1024,))])
+    assert err.value.filename == str(tmp_path / "c")
+    assert list(tmp_path.iterdir()) == []
