@@ -66,7 +66,8 @@ PIXELS_PER_BLOCK = 128  # pixels reconstructed at once: bounds memory whatever t
 class LtcBlock:
     """Reconstruction of n pixels.
 
-    ltc : (n, P, P) float64 (float32, as stored, from :func:`reconstruct_tile`), normalised
+    ltc : (n, P, P) float64 (float32 as stored, through a float32 inverse DFT, from
+        :func:`reconstruct_tile`), normalised
         windows (NaN where invalid); [r, s] is LCD pixel ``(origin_x + s, origin_y + r)``.
     origin : (n, 2) int32 LCD (x, y) of window element [0, 0] (0 where invalid).
     gain : (n,) response to full white, ADU.  noise : (n,) std of one LTC weight.
@@ -570,9 +571,11 @@ def _reconstruct_block(d: np.ndarray, plan: StationPatternPlan,
     """:func:`reconstruct_frames` of pixels ``j0:j1`` of frames d (patterns, N) given the
     level harmonics (None: no level correction) and the decoded localisation ``lcd_xy``
     (n, 2) of those pixels, both per pixel independent of the block, so a tile computes
-    them once; ``ltc`` (n, P, P): where to put the windows (float32 for the store: the
-    float64 values rounded once), default new float64. Each pixel's result depends on its
-    own frames only (never on the block it is computed in)."""
+    them once; ``ltc`` (n, P, P): where to put the windows, default new float64. The
+    inverse DFT runs in the precision of ``ltc``: float32 for the store (half the time of
+    float64; within 3e-7 of the window's peak of the float64 windows, some 10^4 times below
+    the LTC's measurement noise). Each pixel's result depends on its own frames only (never
+    on the block it is computed in)."""
     f = plan.fourier
     p = f.period
     re, im, sigma_d = _demodulate(d, plan, j0, j1)
@@ -587,11 +590,12 @@ def _reconstruct_block(d: np.ndarray, plan: StationPatternPlan,
     _block_scalars(planes, sigma_d, np.ascontiguousarray(lcd_xy, dtype=np.float64), p,
                    f.amplitude, noise_factor, min_snr, min_harmonic, gain, noise,
                    centre, valid, origin)
-    half = np.empty((p, p // 2 + 1, n), dtype=np.complex128)  # frequency-major, no transpose
-    _half_spectrum(planes, p, half)
-    folded = scipy.fft.irfft2(half, s=(p, p), axes=(0, 1), overwrite_x=True)  # (P, P, n)
     if ltc is None:
         ltc = np.empty((n, p, p))
+    half = np.empty((p, p // 2 + 1, n),  # frequency-major, no transpose
+                    dtype=np.complex64 if ltc.dtype == np.float32 else np.complex128)
+    _half_spectrum(planes, p, half)
+    folded = scipy.fft.irfft2(half, s=(p, p), axes=(0, 1), overwrite_x=True)  # (P, P, n)
     ring = _window(folded, origin, gain, valid, ltc)
     return LtcBlock(ltc=ltc, origin=origin, gain=gain, noise=noise, lcd_xy=lcd_xy,
                     valid=valid, edge_mass=ring)
