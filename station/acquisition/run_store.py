@@ -230,7 +230,7 @@ def write_new_file(path: Path, parts: list) -> None:
     One C-contiguous array whose address and size are multiples of ``DIRECT_ALIGN`` (an LTC
     tile from :func:`aligned_empty`) goes straight to the device (``O_DIRECT``): the page
     cache's copy of new pages cost 2-4 us of kernel CPU per LTC pixel (2.3 kB), as much as
-    the pixel's inverse FFT, against 0.07 us direct (``benchmarks/README.md``). A
+    the pixel's inverse FFT, against about 0.1 us direct (``benchmarks/README.md``). A
     filesystem that refuses ``O_DIRECT`` (``EINVAL``) gets the same bytes through the page
     cache. Durability is unchanged: what makes a file durable is the caller's barrier."""
     direct = _direct_buffer(parts)
