@@ -7,7 +7,8 @@ one window or node at a time so nothing grows with the batch.
 radius ``REGION_MARGIN_PX + 0.5``; centroid, moments and their noise); only the order of
 floating-point sums differs from the numpy version (tests compare them within 1e-12).
 ``resample_kernel`` is ``aperture.resample`` (nearest LCD pixel at each sub-cell centre).
-``rings_kernel`` and ``lloyd_kernel`` draw K aperture samples (``aperture.ring_samples``);
+``rings_kernel`` and ``lloyd_kernel`` draw K aperture samples (``aperture.ring_samples``;
+its two sorts by ``stable_argsort``, numpy's stable mergesort's permutation by radix);
 ``moments_kernel`` is ``aperture.grid_moments``.
 """
 
@@ -292,6 +293,47 @@ def moments_kernel(mass, centres, mean, cov):
 
 
 @numba.njit(cache=True, nogil=True)
+def stable_argsort(keys, n, work_f, u, u2, order, order2, count):  # pragma: no cover - compiled
+    """The indices of ``keys[:n]`` (float64, no NaN) in ascending order, equal keys in index
+    order: ``np.argsort(keys[:n], kind="mergesort")``, by a least-significant-digit radix sort
+    of the keys' bits (8 bits a pass; a pass where every key has the same digit is skipped),
+    about 4 times faster for the ~900 cells of an aperture grid. -0.0 counts as +0.0 (as in
+    a comparison). Scratch: work_f float64, u and u2 uint64, order and order2 int64, each at
+    least n long, count int64 (256,); returns a view of ``order`` or ``order2``."""
+    top = np.uint64(1) << np.uint64(63)
+    for i in range(n):
+        work_f[i] = keys[i] + 0.0  # -0.0 -> +0.0
+    bits = work_f.view(np.uint64)
+    for i in range(n):
+        b = bits[i]
+        u[i] = ~b if b & top else b | top  # the float order as unsigned integers
+        order[i] = i
+    mask = np.uint64(255)
+    for shift in range(0, 64, 8):
+        sh = np.uint64(shift)
+        for d in range(256):
+            count[d] = 0
+        for i in range(n):
+            count[(u[i] >> sh) & mask] += 1
+        if n == 0 or count[(u[0] >> sh) & mask] == n:
+            continue
+        total = 0
+        for d in range(256):
+            c = count[d]
+            count[d] = total
+            total += c
+        for i in range(n):
+            d = (u[i] >> sh) & mask
+            j = count[d]
+            count[d] = j + 1
+            u2[j] = u[i]
+            order2[j] = order[i]
+        u, u2 = u2, u
+        order, order2 = order2, order
+    return order[:n]
+
+
+@numba.njit(cache=True, nogil=True)
 def rings_kernel(mass, centres, mean, white, counts, offsets, out_xy, out_w):
     """Equal-mass polar strata of grid masses (n, G, G) (normalised, >= 0) about their mean
     (n, 2) in whitened coordinates (``white`` (n, 2, 2) = cov^-1/2): rings of mass
@@ -311,6 +353,11 @@ def rings_kernel(mass, centres, mean, white, counts, offsets, out_xy, out_w):
     piece_cell = np.empty(ncell + nr, dtype=np.int64)
     piece_mass = np.empty(ncell + nr)
     piece_ring = np.empty(ncell + nr, dtype=np.int64)
+    sort_f = np.empty(ncell + nr)  # the stable sort's scratch
+    sort_u, sort_u2 = np.empty(ncell + nr, np.uint64), np.empty(ncell + nr, np.uint64)
+    sort_o, sort_o2 = np.empty(ncell + nr, np.int64), np.empty(ncell + nr, np.int64)
+    sort_count = np.empty(256, np.int64)
+    ks = np.empty(ncell + nr)
     for m in range(n):
         na = 0
         for a in range(g):
@@ -325,7 +372,7 @@ def rings_kernel(mass, centres, mean, white, counts, offsets, out_xy, out_w):
                     rad[na] = zx * zx + zy * zy
                     ang[na] = np.arctan2(zy, zx)
                     na += 1
-        order = np.argsort(rad[:na], kind="mergesort")
+        order = stable_argsort(rad, na, sort_f, sort_u, sort_u2, sort_o, sort_o2, sort_count)
         # rings: walk the cells outwards, cutting at cumulative masses sum(counts[:i+1]) / K
         np_ = 0
         ring = 0
@@ -357,7 +404,6 @@ def rings_kernel(mass, centres, mean, white, counts, offsets, out_xy, out_w):
                 q1 += 1
             ns = q1 - q0
             tot = 0.0
-            ks = np.empty(ns)
             for t in range(ns):
                 q = q0 + t
                 a2 = ang[piece_cell[q]] - offsets[r]
@@ -372,7 +418,7 @@ def rings_kernel(mass, centres, mean, white, counts, offsets, out_xy, out_w):
                 first += cnt
                 q0 = q1
                 continue
-            so = np.argsort(ks, kind="mergesort")
+            so = stable_argsort(ks, ns, sort_f, sort_u, sort_u2, sort_o, sort_o2, sort_count)
             sec = 0
             sec_target = tot / cnt
             acc = 0.0

@@ -164,6 +164,25 @@ def test_ring_strata_keep_the_mean_and_equal_masses_in_a_fixed_order():
     assert np.median(ang) < 30
 
 
+def test_stable_argsort_is_numpy_mergesort():
+    """The ring sampler's radix sort gives np.argsort(kind="mergesort")'s permutation: random
+    keys, many ties (equal keys stay in index order), +0.0 beside -0.0, subnormals, and
+    every length from none to more cells than an aperture grid has."""
+    from station.lens.kernels import stable_argsort
+
+    rng = np.random.default_rng(7)
+    for trial in range(200):
+        n = int(rng.integers(0, 1200)) if trial else 0
+        keys = [rng.uniform(0, 2 * np.pi, n), rng.integers(0, 4, n).astype(float),
+                np.where(rng.random(n) < 0.5, 0.0, -0.0), rng.normal(size=n),
+                rng.normal(size=n) * 1e-310][trial % 5]
+        m = max(n, 1)
+        got = stable_argsort(keys, n, np.empty(m), np.empty(m, np.uint64),
+                             np.empty(m, np.uint64), np.empty(m, np.int64),
+                             np.empty(m, np.int64), np.empty(256, np.int64))
+        np.testing.assert_array_equal(got, np.argsort(keys, kind="mergesort"))
+
+
 def test_grid_moments_equal_the_numpy_formulas():
     rng = np.random.default_rng(2)
     grid = ApertureGrid(3.0, 32)
