@@ -3,14 +3,19 @@
 
     python benchmarks/full_size.py --out /tmp/full            # full size (hours on 2 cores)
     python benchmarks/full_size.py --out /tmp/crop --rows 32  # full width, 32 rows: minutes
+    python benchmarks/full_size.py --out /tmp/crops --rows 64 256 --cold --skip-lens
 
 Stages, each in its own process so its peak memory (ru_maxrss, workers included) is its own:
 capture without storage (show + capture of every pattern of one depth), ``acquire`` of one
-depth into a run store, one read of that depth's frames (``RunStore.iter_tiles``),
-``reconstruct`` (every core), centroid error against the bench's true moments, and the lens
-derivation with default settings on an LTC store of two depths written from the bench's
-true LTC plus noise. Projections scale the measured per-pixel times to the full sensor and
-six depths; N Dask workers divide the compute, never below one read of the frames.
+depth into a run store, the reference read of the depth's frame files (``raw_read``: every
+byte in 16 MiB reads, the disk's pace), the store's checked read of them
+(``RunStore.iter_tiles``), ``reconstruct`` (every core), centroid error against the bench's
+true moments, and the lens derivation with default settings on an LTC store of two depths
+written from the bench's true LTC plus noise. ``--cold`` drops the page cache before each
+read (root). Projections scale the measured per-pixel times to the full sensor and six
+depths; with two or more crops the full sensor is also projected from their difference, so
+fixed costs (worker start-up, 1,177 files opened) are not scaled; N Dask workers divide the
+compute, never below one read of the frames.
 """
 
 from __future__ import annotations
@@ -81,6 +86,16 @@ def stage(name: str, out: Path, rows: int, workers: int | None, depths: int = 2)
         s = acquire(cfg, out / "run.zarr", progress=False)
         res["acquire_seconds"] = time.perf_counter() - t
         res["capture_fps_with_storage"] = s["frames_written"] / res["acquire_seconds"]
+    elif name == "raw_read":  # the reference: every frame file's bytes, in 16 MiB reads
+        files = sorted((out / "run.zarr" / "frames" / "c" / "0").rglob("*"))
+        nbytes = 0
+        t = time.perf_counter()
+        for f in (q for q in files if q.is_file()):
+            with open(f, "rb", buffering=0) as fh:
+                while chunk := fh.read(16 << 20):
+                    nbytes += len(chunk)
+        res["raw_read_seconds"] = time.perf_counter() - t
+        res["raw_read_mb_s"] = nbytes / 1e6 / res["raw_read_seconds"]
     elif name == "read":
         from station.acquisition.run_store import RunStore
 
@@ -236,10 +251,27 @@ def write_true_store(cfg, path: Path, depths=(60.0, 260.0), p: int = 24,
         mark_depth_complete(g, i, all_tiles=True)
 
 
+COLD_STAGES = ("raw_read", "read", "reconstruct")  # --cold: the page cache dropped first
+
+
+def drop_page_cache() -> None:
+    """Empty the kernel's page cache (root only), so the next read comes from the disk."""
+    os.sync()
+    try:
+        Path("/proc/sys/vm/drop_caches").write_text("3\n")
+    except OSError as exc:
+        sys.exit(f"--cold: cannot drop the page cache ({exc.strerror}); run as root or "
+                 "without --cold")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True, help="work folder (replaced)")
-    ap.add_argument("--rows", type=int, default=FULL_H, help="camera rows (crop, full width)")
+    ap.add_argument("--rows", type=int, nargs="+", default=[FULL_H],
+                    help="camera rows (crop, full width); two or more crops also project "
+                         "the full sensor from their difference (fixed costs apart)")
+    ap.add_argument("--cold", action="store_true",
+                    help="drop the page cache before every read (root only)")
     ap.add_argument("--workers", type=int, default=None, help="reconstruction workers")
     ap.add_argument("--dask-workers", type=int, default=8, help="N for the projection")
     ap.add_argument("--stage", help=argparse.SUPPRESS)
@@ -252,7 +284,7 @@ def main() -> None:
                     help="depths of the lens stage's LTC store")
     a = ap.parse_args()
     if a.stage:
-        print(json.dumps(stage(a.stage, a.out, a.rows, a.workers, a.lens_depths)))
+        print(json.dumps(stage(a.stage, a.out, a.rows[0], a.workers, a.lens_depths)))
         return
     if a.lens_only:
         print(json.dumps(lens_stages(a), indent=2))
@@ -260,38 +292,69 @@ def main() -> None:
     if a.out.exists():
         shutil.rmtree(a.out)
     a.out.mkdir(parents=True)
-    r0 = (FULL_H - a.rows) // 2
-    (a.out / "bench.toml").write_text(CONFIG.format(depths=[140.0], r0=r0, r1=r0 + a.rows))
-    res: dict = {"rows": a.rows, "width": 4096, "cores": os.cpu_count(),
-                 "date": time.strftime("%Y-%m-%d")}
-    stages = ["capture", "acquire", "read", "reconstruct", "truth"]
-    for name in stages:
-        cmd = [sys.executable, __file__, "--out", str(a.out), "--rows", str(a.rows),
+    crops = [crop_stages(a, rows, a.out if len(a.rows) == 1 else a.out / f"rows_{rows}")
+             for rows in a.rows]
+    res = crops[0] if len(crops) == 1 else {"crops": crops, **marginal(crops)}
+    if not a.skip_lens:
+        res.update(lens_stages(a))
+    print(json.dumps(res, indent=2))
+
+
+def crop_stages(a, rows: int, out: Path) -> dict:
+    """Every stage on one crop of ``rows`` full-width rows in ``out``, each in its own
+    process; the crop's figures and its linear projection to the full sensor."""
+    out.mkdir(parents=True, exist_ok=True)
+    r0 = (FULL_H - rows) // 2
+    (out / "bench.toml").write_text(CONFIG.format(depths=[140.0], r0=r0, r1=r0 + rows))
+    res: dict = {"rows": rows, "width": 4096, "cores": os.cpu_count(),
+                 "date": time.strftime("%Y-%m-%d"), "cold": a.cold}
+    for name in ["capture", "acquire", "raw_read", "read", "reconstruct", "truth"]:
+        cmd = [sys.executable, __file__, "--out", str(out), "--rows", str(rows),
                "--stage", name] + (["--workers", str(a.workers)] if a.workers else [])
+        if a.cold and name in COLD_STAGES:
+            drop_page_cache()
         t = time.perf_counter()
-        out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
-        if out.returncode:
-            sys.exit(f"stage {name} failed:\n{out.stderr[-3000:]}")
-        part = json.loads(out.stdout.strip().splitlines()[-1])
+        got = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+        if got.returncode:
+            sys.exit(f"stage {name} failed:\n{got.stderr[-3000:]}")
+        part = json.loads(got.stdout.strip().splitlines()[-1])
         res.update(part)
-        print(f"{name}: {time.perf_counter() - t:.1f} s {json.dumps(part)}", file=sys.stderr,
-              flush=True)
-    scale = FULL_H / a.rows
+        print(f"{name} ({rows} rows): {time.perf_counter() - t:.1f} s {json.dumps(part)}",
+              file=sys.stderr, flush=True)
+    scale = FULL_H / rows
     res["storage_cost_fraction"] = 1 - res["capture_fps_with_storage"] / res[
         "capture_fps_no_storage"]
     res["reconstruct_over_read"] = res["reconstruct_seconds"] / res["read_seconds"]
+    res["reconstruct_over_raw_read"] = res["reconstruct_seconds"] / res["raw_read_seconds"]
     recon_full = res["reconstruct_seconds"] * scale
     read_full = res["read_seconds"] * scale
     acq_full = res["acquire_seconds"] * scale  # frame cost scales with the pixels rendered
     res["projected_six_depths_this_machine_h"] = 6 * (acq_full + recon_full) / 3600
     n = a.dask_workers
-    here = res["engine"]
     res["projected_six_depths_reconstruct_dask_h"] = {
         "workers": n, "hours": 6 * max(read_full, recon_full * (os.cpu_count() or 1) / n)
-        / 3600, "measured_engine": here}
-    if not a.skip_lens:
-        res.update(lens_stages(a))
-    print(json.dumps(res, indent=2))
+        / 3600, "measured_engine": res["engine"]}
+    return res
+
+
+def marginal(crops: list[dict]) -> dict:
+    """The full sensor projected from the smallest and the largest crop: per pixel the
+    difference of their times over the difference of their pixels, plus the fixed cost
+    (worker start-up, opening 1,177 files) the smaller crop leaves over."""
+    lo, hi = min(crops, key=lambda c: c["rows"]), max(crops, key=lambda c: c["rows"])
+    full = 4096 * FULL_H
+    res: dict = {"marginal_between_rows": [lo["rows"], hi["rows"]]}
+    for key in ("raw_read", "read", "reconstruct"):
+        per_px = (hi[f"{key}_seconds"] - lo[f"{key}_seconds"]) / (4096 * (hi["rows"] -
+                                                                           lo["rows"]))
+        fixed = lo[f"{key}_seconds"] - per_px * 4096 * lo["rows"]
+        res[f"{key}_us_per_px"] = per_px * 1e6
+        res[f"{key}_projected_full_s"] = fixed + per_px * full
+    res["reconstruct_over_read_projected"] = (res["reconstruct_projected_full_s"]
+                                              / res["read_projected_full_s"])
+    res["reconstruct_over_raw_read_projected"] = (res["reconstruct_projected_full_s"]
+                                                  / res["raw_read_projected_full_s"])
+    return res
 
 
 def _run_stage(a, name: str, out: Path, rows: int) -> dict:
