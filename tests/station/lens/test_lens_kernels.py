@@ -4,6 +4,7 @@ reference): ``window_stats`` and ``aperture.resample``; and the ring sampler's p
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy import ndimage
 
 from station.lens.aperture import ApertureGrid, grid_moments, resample, ring_samples
@@ -18,8 +19,10 @@ from station.lens.centroids import (
 )
 
 
-def window_stats_reference(h: np.ndarray, sigma: np.ndarray) -> dict:
-    """The numpy formulas of ``window_stats`` (before they were compiled)."""
+def window_stats_reference(h: np.ndarray, sigma: np.ndarray,
+                           margin: int = REGION_MARGIN_PX) -> dict:
+    """The numpy formulas of ``window_stats`` (before they were compiled); ``margin``: the
+    region's growth, LCD px."""
     n, p = h.shape[0], h.shape[1]
     signal = np.isfinite(h).reshape(n, -1).all(axis=1)
     hz = np.where(signal[:, None, None], h, 0.0)
@@ -37,8 +40,7 @@ def window_stats_reference(h: np.ndarray, sigma: np.ndarray) -> dict:
     strong = core & (hz > raw_thr[:, None, None])
     edge = (strong[:, 0].any(1) | strong[:, -1].any(1) | strong[:, :, 0].any(1)
             | strong[:, :, -1].any(1))
-    disk = np.hypot(*np.mgrid[-REGION_MARGIN_PX:REGION_MARGIN_PX + 1,
-                              -REGION_MARGIN_PX:REGION_MARGIN_PX + 1]) <= REGION_MARGIN_PX + 0.5
+    disk = np.hypot(*np.mgrid[-margin:margin + 1, -margin:margin + 1]) <= margin + 0.5
     region = ndimage.binary_dilation(core, structure=disk[None]) if n else core
     hr = np.where(region, hz, 0.0)
     s = hr.sum(axis=(1, 2))
@@ -103,6 +105,24 @@ def _windows(n: int, p: int = 24, seed: int = 0):
     h += rng.normal(size=h.shape) * sigma[:, None, None]
     h[3] = np.nan
     return h, sigma
+
+
+@pytest.mark.parametrize("margin", [0, 1, 3, 5])
+def test_the_region_grown_from_its_edge_pixels_is_the_dilation_for_any_margin(margin):
+    """The kernel paints the disk of a core pixel only where the core has an edge: the region
+    is still exactly the core dilated by the disk (ndimage), at every margin."""
+    from station.lens.kernels import stats_kernel
+
+    h, sigma = _windows(1500, seed=margin + 1)
+    n, p = h.shape[0], h.shape[1]
+    signal = np.isfinite(h).reshape(n, -1).all(axis=1)
+    hz = np.ascontiguousarray(np.where(signal[:, None, None], h, 0.0))
+    out = [np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 3)), np.empty(n),
+           np.empty((n, p, p), bool), np.empty(n, np.int8)]
+    stats_kernel(hz, sigma, signal, NOISE_SIGMAS, PEAK_FRACTION, margin, *out)
+    ref = window_stats_reference(h, sigma, margin)
+    assert ref["region"].sum() > 0
+    np.testing.assert_array_equal(out[4], ref["region"])
 
 
 def test_window_stats_equals_the_numpy_formulas():
