@@ -503,6 +503,13 @@ class SizeFit:
     size_mm: float
 
 
+def on_ball(points: np.ndarray, ball) -> np.ndarray:
+    """Which points (n, 3) mm lie within ``SHELL_MM`` of the true ball (cx, cy, cz, r) mm:
+    the points every size rule and coverage check counts."""
+    cx, cy, cz, r = ball
+    return np.abs(np.linalg.norm(points - [cx, cy, cz], axis=1) - r) < SHELL_MM
+
+
 def size_fit(cloud, pos: Position, scene) -> SizeFit:
     """The size rule, the same for every scanner: each ball fitted (geometric least squares,
     ``fit_sphere``: 3-sigma robust trimming) to the cloud's points within ``SHELL_MM`` of the
@@ -513,11 +520,11 @@ def size_fit(cloud, pos: Position, scene) -> SizeFit:
     points = np.asarray(cloud.points, dtype=np.float64)
     keys = _pixel_keys(cloud)
     fits, kept = [], []
-    for cx, cy, cz, r in scene.objects[0].spheres():
-        near = np.abs(np.linalg.norm(points - [cx, cy, cz], axis=1) - r) < SHELL_MM
+    for ball in scene.objects[0].spheres():
+        near = on_ball(points, ball)
         if near.sum() < 20:
             raise StationError(f"position {pos.name}: only {int(near.sum())} points on a "
-                               f"{2 * r:g} mm ball; move it into both cameras' view")
+                               f"{2 * ball[3]:g} mm ball; move it into both cameras' view")
         fit = fit_sphere(points[near])
         fits.append(fit)
         kept.append(keys[near][fit.inliers])
@@ -533,10 +540,11 @@ def check_coverage(scans: dict[str, Scan], pos: Position, scene, rig) -> None:
     not a size (a 38.1 mm ball kept 11 % of its disc's pixels at +139 mm of defocus; with the
     far balls at +176 / +196 mm the real and virtual scanners' lengths differed by 0.7 mm:
     benchmarks/README.md)."""
+    balls = scene.objects[0].spheres()
+
     def counts(cloud) -> list[int]:
         p = np.asarray(cloud.points, dtype=np.float64)
-        return [int((np.abs(np.linalg.norm(p - [cx, cy, cz], axis=1) - r) < SHELL_MM).sum())
-                for cx, cy, cz, r in scene.objects[0].spheres()]
+        return [int(on_ball(p, ball).sum()) for ball in balls]
 
     ref = counts(scans["pinhole"].cloud)
     for name in MODELS:
@@ -544,7 +552,7 @@ def check_coverage(scans: dict[str, Scan], pos: Position, scene, rig) -> None:
             continue
         for k, (found, full) in enumerate(zip(counts(scans[name].cloud), ref)):
             if found < MIN_BALL_COVERAGE * full:
-                cx, cy, cz, r = scene.objects[0].spheres()[k]
+                cx, cy, cz, r = balls[k]
                 depth = float(rig.cameras[0].to_device(np.array([[cx, cy, cz]]))[0, 2])
                 raise StationError(
                     f"position {pos.name}, scanner {name}: ball {k + 1} ({2 * r:g} mm, "

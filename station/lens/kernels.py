@@ -305,8 +305,8 @@ def moments_kernel(mass, centres, mean, cov):
 def stable_argsort(keys, n, work_f, u, u2, order, order2, count):  # pragma: no cover - compiled
     """The indices of ``keys[:n]`` (float64, no NaN) in ascending order, equal keys in index
     order: ``np.argsort(keys[:n], kind="mergesort")``, by a least-significant-digit radix sort
-    of the keys' bits (8 bits a pass; a pass where every key has the same digit is skipped),
-    about 4 times faster for the ~900 cells of an aperture grid. -0.0 counts as +0.0 (as in
+    of the keys' bits (8 bits a pass; a pass where every key has the same digit is skipped):
+    with it the ring strata of ~900 cells took 48 instead of 98 us. -0.0 counts as +0.0 (as in
     a comparison). Scratch: work_f float64, u and u2 uint64, order and order2 int64, each at
     least n long, count int64 (256,); returns a view of ``order`` or ``order2``."""
     top = np.uint64(1) << np.uint64(63)
