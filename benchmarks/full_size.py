@@ -309,18 +309,9 @@ def crop_stages(a, rows: int, out: Path) -> dict:
     res: dict = {"rows": rows, "width": 4096, "cores": os.cpu_count(),
                  "date": time.strftime("%Y-%m-%d"), "cold": a.cold}
     for name in ["capture", "acquire", "raw_read", "read", "reconstruct", "truth"]:
-        cmd = [sys.executable, __file__, "--out", str(out), "--rows", str(rows),
-               "--stage", name] + (["--workers", str(a.workers)] if a.workers else [])
         if a.cold and name in COLD_STAGES:
             drop_page_cache()
-        t = time.perf_counter()
-        got = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
-        if got.returncode:
-            sys.exit(f"stage {name} failed:\n{got.stderr[-3000:]}")
-        part = json.loads(got.stdout.strip().splitlines()[-1])
-        res.update(part)
-        print(f"{name} ({rows} rows): {time.perf_counter() - t:.1f} s {json.dumps(part)}",
-              file=sys.stderr, flush=True)
+        res.update(_run_stage(a, name, out, rows))
     scale = FULL_H / rows
     res["storage_cost_fraction"] = 1 - res["capture_fps_with_storage"] / res[
         "capture_fps_no_storage"]
