@@ -3,6 +3,11 @@
 
     .venv/bin/ltc demo --out out/demo                      # or: ltc experiment --out out/exp
     .venv/bin/python benchmarks/experiment.py out/demo/results.json
+    .venv/bin/python benchmarks/experiment.py out/paper/results.json --variant paper-size \
+        --command ".venv/bin/ltc experiment --paper-size --out out/paper"
+
+``--variant NAME`` writes ``benchmarks/results/experiment-NAME.md`` instead (the
+``--paper-size`` run keeps its own file).
 """
 
 from __future__ import annotations
@@ -62,10 +67,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("results", type=Path, help="results.json of the run")
     ap.add_argument("--command", default=".venv/bin/ltc demo --out out/demo",
-                    help="the command that made it (shown in the section)")
+                    help="the command that made it (shown in the results file)")
+    ap.add_argument("--variant", help="write benchmarks/results/experiment-VARIANT.md")
     args = ap.parse_args(argv)
     res = json.loads(args.results.read_text())
-    path = write_results(__file__, TITLE, section(res, args.command))
+    path = write_results(__file__, TITLE + (f", {args.variant}" if args.variant else ""),
+                         section(res, args.command), variant=args.variant)
     print(f"{path} written")
     return 0
 

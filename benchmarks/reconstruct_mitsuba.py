@@ -93,7 +93,7 @@ def load_or_render(cfg: BenchConfig, images_dir: Path | None, case: str) -> np.n
 
 
 def report_markdown(rows: dict, cfg: BenchConfig, date: str, host: str) -> str:
-    L = ["`benchmarks/reconstruct_mitsuba.py`: the 12 images of the scene above, rendered "
+    L = ["`benchmarks/reconstruct_mitsuba.py`: the 12 images of the render benchmark's scene (`_bench_scene.py`), rendered "
          "by Mitsuba (and, for reference, by ours), go through our scanner pipeline "
          "(`sim.fpp.decode.scan`: `sim.fpp.phase` wrapped phase and hierarchical unwrapping, "
          "`sim.fpp.stereo.camera_projector_cloud` triangulation of the camera against the projector); "
