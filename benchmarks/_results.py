@@ -13,6 +13,7 @@ import contextlib
 import datetime
 import io
 import os
+import platform
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -84,6 +85,7 @@ def captured() -> Iterator[io.StringIO]:
 
 def text_block(text: str, note: str | None = None) -> str:
     """Plain printed output as a markdown body: the date, an optional note, a code block."""
-    head = f"Run of {datetime.date.today().isoformat()}."
-    lines = [head, ""] + ([note, ""] if note else []) + ["```", text.rstrip("\n"), "```"]
+    head = (f"Run of {datetime.date.today().isoformat()} on {platform.machine()}, "
+            f"{os.cpu_count()} cores, Linux {platform.release()}, Python {platform.python_version()}.")
+    lines = [head, ""] + ([note, ""] if note else []) + ["```", text.strip("\n"), "```"]
     return "\n".join(lines)
