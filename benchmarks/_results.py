@@ -84,8 +84,10 @@ def captured() -> Iterator[io.StringIO]:
 
 
 def text_block(text: str, note: str | None = None) -> str:
-    """Plain printed output as a markdown body: the date, an optional note, a code block."""
+    """Plain printed output as a markdown body: date and machine, an optional note, the
+    output as a code block."""
     head = (f"Run of {datetime.date.today().isoformat()} on {platform.machine()}, "
-            f"{os.cpu_count()} cores, Linux {platform.release()}, Python {platform.python_version()}.")
+            f"{os.cpu_count()} cores, Linux {platform.release()}, "
+            f"Python {platform.python_version()}.")
     lines = [head, ""] + ([note, ""] if note else []) + ["```", text.strip("\n"), "```"]
     return "\n".join(lines)

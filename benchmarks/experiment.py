@@ -50,13 +50,18 @@ def section(res: dict, command: str) -> str:
                 f"{k} {v:.0f} s" for k, v in s["seconds"].items() if v) + f"), optical centre "
             f"error {s['optical_centre_error_mm'] * 1e3:.0f} um" for i, s in enumerate(st)) + ".")
     w = acc["ltc_worst"]
+    ltc_ok = ("met" if acc["ltc_within_limits"]
+              else "NOT met at " + ", ".join(acc["ltc_failing"]))
+    gauss_ok = ("yes" if acc["gaussian_worse_at_large"]
+                else "no at " + ", ".join(acc["gaussian_not_worse"]))
+    own = f" (own points: {w['size_own_um']:.1f} um)." if "size_own_um" in w else "."
     lines += [
         f"- ltc against real at every sphere and ball-bar position (|mean| <= 5 um, RMSE <= 10 "
-        f"um, size within 20 um of real's on the pixels both clouds share): {'met' if acc['ltc_within_limits'] else 'NOT met at ' + ', '.join(acc['ltc_failing'])}; "
-        f"worst |mean| {w['mean_um']:.1f} um, RMSE {w['rmse_um']:.1f} um, size {w['size_um']:.1f} um"
-        + (f" (own points: {w['size_own_um']:.1f} um)." if "size_own_um" in w else "."),
+        f"um, size within 20 um of real's on the pixels both clouds share): {ltc_ok}; "
+        f"worst |mean| {w['mean_um']:.1f} um, RMSE {w['rmse_um']:.1f} um, "
+        f"size {w['size_um']:.1f} um{own}",
         f"- Gaussian worse than ltc at every large-defocus position (|mean| and size): "
-        f"{'yes' if acc['gaussian_worse_at_large'] else 'no at ' + ', '.join(acc['gaussian_not_worse'])}.",
+        f"{gauss_ok}.",
         "- Render time against the pinhole (same positions): " + ", ".join(
             f"{k} {v:.1f} x" for k, v in rt.items()) + ".", ""]
     lines += tables(res["rows"])

@@ -11,8 +11,8 @@ import time
 from pathlib import Path
 
 import cv2
-import pytest
 import numpy as np
+import pytest
 import zarr
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -61,8 +61,9 @@ def test_the_readme_first_scan_measures_the_standard_sphere_to_microns(tmp_path)
     focus, 1229 x 650 cameras with shot noise, measures within a few micrometres."""
     ltc = [sys.executable, "-m", "station.cli"]
     render, ply = tmp_path / "sphere", tmp_path / "sphere.ply"
+    rig = "examples/standard_sphere_rig.yaml"
     for args in (["render", "examples/standard_sphere.toml", "--out", str(render), "--quiet"],
-                 ["scan", str(render), "--rig", "examples/standard_sphere_rig.yaml", "--out", str(ply)]):
+                 ["scan", str(render), "--rig", rig, "--out", str(ply)]):
         subprocess.run(ltc + args, cwd=ROOT, check=True, capture_output=True, timeout=600)
     out = subprocess.run(ltc + ["measure", str(ply), "--sphere", "--diameter", "50.8007", "--json"],
                          cwd=ROOT, check=True, capture_output=True, text=True).stdout
