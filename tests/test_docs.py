@@ -16,6 +16,11 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = sorted([ROOT / "README.md", ROOT / "benchmarks" / "README.md",
                *(ROOT / "docs").rglob("*.md"), *(ROOT / "benchmarks" / "results").glob("*.md")])
 LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
+# the design notes outside the repository, tracker issues and development passes (the pattern
+# is built from parts so that this file does not match it itself)
+STALE = re.compile("|".join([r"\.\./" + "shared", "shared" + "/design",
+                             r"(?:ARCHITECTURE|OPTICS|HARDWARE|BENCHMARKS|STYLE)\.md",
+                             r"[Ii]ssues? \d+", r"\d+(?:st|nd|rd|th) pass"]))
 
 
 def _table_kinds(section: str, heading: str) -> set[str]:
@@ -42,6 +47,5 @@ def test_every_relative_link_resolves_and_nothing_points_outside_the_clone(doc):
         if "://" in target:
             continue
         assert (doc.parent / target).exists(), f"{doc.relative_to(ROOT)}: broken link {target}"
-    stale = re.findall(r"\.\./shared|shared/design|(?:ARCHITECTURE|OPTICS|HARDWARE|BENCHMARKS"
-                       r"|STYLE)\.md|[Ii]ssues? \d+|\d+(?:st|nd|rd|th) pass", text)
+    stale = re.findall(STALE, text)
     assert not stale, f"{doc.relative_to(ROOT)} refers to {stale}"
