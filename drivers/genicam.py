@@ -9,7 +9,7 @@ discards frames queued so far).
 Every frame is checked: an Aravis buffer whose status is not ``SUCCESS`` (missing packets,
 timeout, size mismatch...) raises :class:`CameraFrameError`, a gap in the device's frame ids
 raises :class:`CameraFrameDropped`, no frame by the deadline raises
-:class:`~drivers.camera.CameraTimeout`, and a camera that stopped answering raises
+:class:`~drivers.errors.CameraTimeout`, and a camera that stopped answering raises
 :class:`CameraLost`. A bad frame is never returned. Frames carry the device's frame id and
 timestamp (seconds on the device's clock; the host's ``time.monotonic()`` at arrival is in
 ``meta``). Frame images are read-only views of the copy PyGObject makes of each buffer.
@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import logging
 import socket
 import struct
 import threading
@@ -39,13 +40,25 @@ from typing import Any, Callable, TypeVar
 
 import numpy as np
 
-from drivers.camera import CameraError, CameraTimeout
+from drivers.errors import (
+    AravisUnavailable,
+    CameraError,
+    CameraFrameDropped,
+    CameraFrameError,
+    CameraLost,
+    CameraNotFound,
+    CameraSettingError,
+    CameraTimeout,
+    DeviceSettingError,
+)
 from drivers.interfaces import Camera, Frame
 
 __all__ = [
     "AravisUnavailable", "CameraFrameDropped", "CameraFrameError", "CameraInfo", "CameraLost",
     "CameraNotFound", "CameraSettingError", "GenICamCamera", "PIXEL_FORMATS", "list_cameras",
 ]
+
+log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
@@ -65,39 +78,6 @@ PIXEL_FORMATS: dict[str, tuple[np.dtype, int]] = {
 
 GVCP_PORT = 3956
 PROBE_TIMEOUT_S = 0.2  # a live GigE Vision device answers a register read within this
-
-
-class AravisUnavailable(CameraError):
-    """Aravis 0.8 or PyGObject is not installed; the message names the packages."""
-
-
-class CameraNotFound(CameraError):
-    """No camera with the requested id or serial number answered."""
-
-
-class CameraSettingError(CameraError, ValueError):
-    """The camera refused a setting, or the value is outside what the device allows."""
-
-
-class CameraFrameError(CameraError):
-    """A frame arrived incomplete or damaged (Aravis buffer status other than SUCCESS)."""
-
-    def __init__(self, message: str, status: str = "", frame_id: int | None = None) -> None:
-        super().__init__(message)
-        self.status = status
-        self.frame_id = frame_id
-
-
-class CameraFrameDropped(CameraFrameError):
-    """The device's frame ids skipped: frames were produced and lost."""
-
-    def __init__(self, message: str, expected: int, got: int) -> None:
-        super().__init__(message, "DROPPED", got)
-        self.expected = expected
-
-
-class CameraLost(CameraError):
-    """The camera stopped answering (unplugged, powered off, or its control was lost)."""
 
 
 @dataclass(frozen=True)
@@ -204,7 +184,7 @@ class GenICamCamera(Camera):
                  timeout_s: float = 2.0, control_timeout_s: float = 3.0,
                  n_buffers: int = 8) -> None:
         if (device_id is None) == (serial is None):
-            raise ValueError("GenICamCamera: give exactly one of device_id and serial")
+            raise DeviceSettingError("GenICamCamera: give exactly one of device_id and serial")
         self._arv = _aravis()
         self._gerror = _glib_error()
         self.timeout_s = timeout_s
@@ -496,7 +476,11 @@ class GenICamCamera(Camera):
                 self._raise_no_frame(f"no frame within {timeout:g} s")
             arrived = time.monotonic()
             try:
-                return self._to_frame(buffer, arrived)
+                frame = self._to_frame(buffer, arrived)
+                log.debug("camera %s: frame %d captured (%d x %d %s)", self._name,
+                          frame.frame_id, frame.image.shape[1], frame.image.shape[0],
+                          self._format)
+                return frame
             finally:
                 self._stream.push_buffer(buffer)
 
@@ -553,6 +537,7 @@ class GenICamCamera(Camera):
             raise CameraLost(f"camera {self._name}: {what}: the camera was lost earlier")
         if deadline is None:
             deadline = time.monotonic() + self.control_timeout_s
+        log.debug("camera %s: %s", self._name, what)
         future = self._executor.submit(call)
         try:
             return future.result(timeout=max(0.0, deadline - time.monotonic()))

@@ -16,6 +16,7 @@ complete, ``position_known`` is False until the next completed ``move_to`` or ``
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import re
 import threading
@@ -26,6 +27,7 @@ from typing import Any
 
 import serial
 
+from drivers.errors import DeviceSettingError
 from drivers.interfaces import Stage
 from drivers.serial_lines import LineReader, SerialLike
 from drivers.stage_errors import (
@@ -66,6 +68,8 @@ __all__ = [
     "StageTimeout",
     "ZaberStage",
 ]
+
+log = logging.getLogger(__name__)
 
 READ_SLICE_S = 0.01  # port read timeout; the line reader loops until its own deadline
 NOT_HOMED = ("WR", "WH")
@@ -159,7 +163,7 @@ class ZaberStage(Stage):
         }
         for message, ok in checks.items():
             if not ok:
-                raise ValueError(f"ZaberStage: {message}")
+                raise DeviceSettingError(f"ZaberStage: {message}")
         self.address, self.axis, self.baudrate = address, axis, baudrate
         self.microstep_um, self.tolerance_um = microstep_um, tolerance_um
         self.travel_mm = (float(travel_mm[0]), float(travel_mm[1]))
@@ -237,9 +241,11 @@ class ZaberStage(Stage):
         data = (line + "\n").encode("ascii")
         try:
             self._port.write(data)
+            log.debug("%s: sent %r", self.port_name, line)
             return
         except (serial.SerialException, OSError) as exc:
             first = exc
+            log.debug("%s: sending %r failed (%s); re-opening the port", self.port_name, line, exc)
         try:
             self._reopen()
         except StageConnectionLost as exc:
@@ -248,6 +254,7 @@ class ZaberStage(Stage):
             ) from first
         try:
             self._port.write(data)
+            log.debug("%s: sent %r (after re-opening the port)", self.port_name, line)
         except (serial.SerialException, OSError) as exc:
             raise StageConnectionLost(
                 f"{self.port_name}: sent {line!r}: write failed ({first}), and again after "
@@ -269,11 +276,14 @@ class ZaberStage(Stage):
                 raise _ReplyLost(f"port failed while waiting for the reply ({exc}); re-opened",
                                  port_ok=True) from exc
             if raw is None:
+                log.debug("%s: no reply to %r within %g s", self.port_name, line, self.timeout_s)
                 raise _ReplyLost(f"no reply within {self.timeout_s:g} s", port_ok=True)
             try:
                 text = raw.decode("ascii").strip()
             except UnicodeDecodeError:
+                log.debug("%s: got %r (not ASCII)", self.port_name, raw)
                 raise self._protocol_error(line, raw, "garbled reply (not ASCII)") from None
+            log.debug("%s: got %r", self.port_name, text)
             if not text or text[0] in "#!":
                 continue  # blank, info or alert line: not a reply
             try:

@@ -52,6 +52,7 @@ import cv2
 import numpy as np
 from scipy.stats import chi2
 
+from sim.errors import SimInputError
 from sim.optics.projection import camera_to_world, project_points
 from sim.optics.rig import DeviceCalibration
 from sim.tolerances import MODEL_RESIDUAL_FLOOR_PX, STEREO_STEP
@@ -121,23 +122,23 @@ def stereo_rectification(
     covers the valid pixels ``valid1`` (H1, W1) and ``valid2`` (H2, W2) bool."""
     for cam, valid in ((cam1, valid1), (cam2, valid2)):
         if valid.shape != (cam.height, cam.width):
-            raise ValueError(
+            raise SimInputError(
                 f"camera '{cam.name}': phase map is {valid.shape[1]} x {valid.shape[0]} pixels "
                 f"but its calibration is for {cam.width} x {cam.height}"
             )
         if not valid.any():
-            raise ValueError(f"camera '{cam.name}': no valid pixels to match")
+            raise SimInputError(f"camera '{cam.name}': no valid pixels to match")
     r, t = relative_pose(cam1, cam2)
     r1, r2, p1, p2, *_ = cv2.stereoRectify(
         cam1.K_array, cam1.dist_array, cam2.K_array, cam2.dist_array, cam1.size, r, t.reshape(3, 1),
         flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1,
     )
     if abs(p2[1, 3]) > abs(p2[0, 3]):
-        raise ValueError("the cameras are displaced vertically; only horizontal stereo is supported")
+        raise SimInputError("the cameras are displaced vertically; only horizontal stereo is supported")
     b1, b2 = _bounds(valid1, cam1, r1, p1), _bounds(valid2, cam2, r2, p2)
     rows = (int(max(b1[0, 1], b2[0, 1])), int(min(b1[1, 1], b2[1, 1])))
     if rows[1] < rows[0]:
-        raise ValueError("the two cameras' valid regions share no epipolar lines")
+        raise SimInputError("the two cameras' valid regions share no epipolar lines")
     return Rectification(
         r1, r2, p1, p2, rows, (int(b1[0, 0]), int(b1[1, 0])), (int(b2[0, 0]), int(b2[1, 0]))
     )
@@ -180,7 +181,7 @@ def sample_image(
     or separable cubic Lagrange over 4 x 4 pixels (``order=3``, exact for cubic surfaces).
     NaN where any pixel of the stencil is NaN or outside the image."""
     if order not in (1, 3):
-        raise ValueError(f"interpolation order must be 1 or 3, got {order}")
+        raise SimInputError(f"interpolation order must be 1 or 3, got {order}")
     img = np.asarray(image, dtype=np.float64)
     h, w = img.shape
     u0, v0 = np.floor(map_u), np.floor(map_v)
@@ -486,7 +487,7 @@ def stereo_cloud(
     """
     for cam, c in ((cam1, coord1), (cam2, coord2)):
         if np.shape(c) != (cam.height, cam.width):
-            raise ValueError(
+            raise SimInputError(
                 f"camera '{cam.name}': projector-coordinate map has shape {np.shape(c)}, "
                 f"its calibration expects (height, width) = ({cam.height}, {cam.width})"
             )
@@ -499,7 +500,7 @@ def stereo_cloud(
     usable = []
     for s in sides:
         if not np.isfinite(s.residual).any():
-            raise ValueError(f"camera '{s.cam.name}': no valid pixel with 8 valid neighbours to match")
+            raise SimInputError(f"camera '{s.cam.name}': no valid pixel with 8 valid neighbours to match")
         usable.append(usable_pixels(s.residual, max_model_residual))
     noise = [phase_noise_px(s.residual, q) for s, q in zip(sides, (quality1, quality2))]
     # the search model is used at the matched pixel too: mask its coefficients
@@ -548,7 +549,7 @@ def stereo_cloud(
                          noise[1 - a][node[:, 1], node[:, 0]])
         kept.append((world[ok], ref_pix[ok], sens[ok] * sigma))
     if not any(len(k[0]) for k in kept):
-        raise ValueError("stereo matching found no pixel with the same projector coordinate in both cameras")
+        raise SimInputError("stereo matching found no pixel with the same projector coordinate in both cameras")
     points, normals, quality, camera, pixels, perr, unc = [], [], [], [], [], [], []
     for a, (world, ref_pix, u_mm) in enumerate(kept):
         cam = sides[a].cam
@@ -662,9 +663,9 @@ def camera_projector_cloud(
     start), then refined by Newton steps on the distorted projection of the projector.
     """
     if axis not in ("u", "v"):
-        raise ValueError(f"axis must be 'u' or 'v', got {axis!r}")
+        raise SimInputError(f"axis must be 'u' or 'v', got {axis!r}")
     if np.shape(coord) != (cam.height, cam.width):
-        raise ValueError(
+        raise SimInputError(
             f"camera '{cam.name}': projector-coordinate map has shape {np.shape(coord)}, "
             f"its calibration expects (height, width) = ({cam.height}, {cam.width})"
         )

@@ -32,11 +32,12 @@ import zarr
 from pydantic import BaseModel, ConfigDict, Field
 from tqdm import tqdm
 
+from sim.errors import SimInputError
 from sim.optics.lens import LensModel, hit_plane
-from sim.render.pattern_stack import PatternStack
-from sim.render.image_kernels import BLOCK_RAYS, IDENTITY, digitise, gather_rows
 from sim.optics.rig import Rig
 from sim.optics.sensor import Sensor
+from sim.render.image_kernels import BLOCK_RAYS, IDENTITY, digitise, gather_rows
+from sim.render.pattern_stack import PatternStack
 from sim.render.trace import TraceGeometry, Transport, trace_camera
 
 TILE_RAYS = 1 << 22  # rays traced per tile in render_views (about 50 MB of transport)
@@ -100,7 +101,7 @@ def project_patterns(patterns: np.ndarray | PatternStack,
     stack = as_stack(patterns)
     lo, hi = stack.value_range()
     if not (lo >= 0 and hi <= 1):
-        raise ValueError(f"pattern values must lie in [0, 1], got [{lo:g}, {hi:g}]")
+        raise SimInputError(f"pattern values must lie in [0, 1], got [{lo:g}, {hi:g}]")
     if projector.input_bits is not None:
         q = np.float32((1 << projector.input_bits) - 1)
         stack = stack.map(lambda p: np.round(p * q) / q)
@@ -144,7 +145,7 @@ def _check_patterns(tr: Transport, projected: np.ndarray | PatternStack) -> Patt
     stack = as_stack(projected)
     if stack.size != tuple(tr.projector_size):
         w, h = stack.size
-        raise ValueError(f"projected patterns are {w} x {h} px, expected the transport's "
+        raise SimInputError(f"projected patterns are {w} x {h} px, expected the transport's "
                          f"{tr.projector_size[0]} x {tr.projector_size[1]} projector")
     return stack
 
@@ -155,7 +156,7 @@ def _check_array(what: str, a: np.ndarray, shape: tuple, dtype: type) -> None:
     if not isinstance(a, np.ndarray) or a.shape != tuple(shape) or a.dtype != dtype \
             or not a.flags.c_contiguous:
         got = f"{a.dtype.name} {a.shape}" if isinstance(a, np.ndarray) else type(a).__name__
-        raise ValueError(f"{what}: expected a C-contiguous {want} array, got {got}")
+        raise SimInputError(f"{what}: expected a C-contiguous {want} array, got {got}")
 
 
 def gather_into(tr: Transport, projected: np.ndarray | PatternStack, out: np.ndarray,
@@ -212,7 +213,7 @@ def camera_response(radiance: np.ndarray, camera: CameraResponse,
     sensor = camera.sensor
     noisy = sensor.noisy
     if noisy and rng is None:
-        raise ValueError("camera_response: rng is required when shot_noise or read_noise_e is on")
+        raise SimInputError("camera_response: rng is required when shot_noise or read_noise_e is on")
     x = np.ascontiguousarray(radiance, dtype=np.float32)
     if noisy:
         e = np.maximum(x * np.float32(camera.exposure_e), np.float32(0.0))
@@ -330,7 +331,7 @@ def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
         bar.update(len(tr.pixels))
     bar.close()
     if not np.any(obj >= 0):
-        raise ValueError(f"{where}: camera {index} ('{cam.name}') sees none of the scene objects; "
+        raise SimInputError(f"{where}: camera {index} ('{cam.name}') sees none of the scene objects; "
                          "check the rig's R and T (field 'rig') and the objects' poses")
     t0 = time.perf_counter()
     camera_response(res.radiance, camera, rng, out=res.images)
@@ -450,12 +451,12 @@ def _transport_tiles(transport: Transport | Sequence[Transport] | None, name: st
     for tr in tiles:
         if tuple(tr.camera_size) != tuple(camera_size) or \
                 tuple(tr.projector_size) != tuple(projector_size):
-            raise ValueError(f"render_camera transport: it is of a {tr.camera_size} camera and "
+            raise SimInputError(f"render_camera transport: it is of a {tr.camera_size} camera and "
                              f"{tr.projector_size} projector, camera '{name}' is {camera_size} "
                              f"and the projector {projector_size}")
         np.add.at(seen, tr.pixels, 1)
     if not np.all(seen == 1):
-        raise ValueError(f"render_camera transport: its tiles must cover each pixel of camera "
+        raise SimInputError(f"render_camera transport: its tiles must cover each pixel of camera "
                          f"'{name}' once ({int(np.sum(seen == 0))} missing, "
                          f"{int(np.sum(seen > 1))} repeated)")
     return tiles
@@ -471,7 +472,7 @@ def _camera_outputs(out: CameraImages | None, name: str, n: int, w: int, h: int,
     if out is None:
         return CameraImages(name, **{key: np.empty(*sd) for key, sd in shapes.items()})
     if out.name != name:
-        raise ValueError(f"render_camera out: it holds camera '{out.name}', not '{name}'")
+        raise SimInputError(f"render_camera out: it holds camera '{out.name}', not '{name}'")
     for key, (shape, dt) in shapes.items():
         _check_array(f"render_camera out, field '{key}' of camera '{name}'", getattr(out, key),
                      shape, dt)
@@ -486,10 +487,10 @@ def render_views(geom: TraceGeometry, rig: Rig, lenses: list[LensModel], pattern
     camera ``trace_s``, ``gather_s``, ``response_s``). Errors name ``where``."""
     t0 = time.perf_counter()
     if len(lenses) != len(rig.cameras):
-        raise ValueError(f"{where}: {len(lenses)} lenses for {len(rig.cameras)} cameras")
+        raise SimInputError(f"{where}: {len(lenses)} lenses for {len(rig.cameras)} cameras")
     stack = as_stack(pattern_images)
     if stack.size != tuple(rig.projector.size):
-        raise ValueError(f"{where}: pattern images are {stack.size[0]} x {stack.size[1]} px, "
+        raise SimInputError(f"{where}: pattern images are {stack.size[0]} x {stack.size[1]} px, "
                          f"the projector is {rig.projector.size[0]} x {rig.projector.size[1]}")
     projected = project_patterns(stack, settings.projector)
     t_pat = time.perf_counter() - t0
@@ -504,9 +505,9 @@ def write_png(path: str | Path, image: np.ndarray, bit_depth: int) -> None:
     image = np.asarray(image)
     want = {8: np.uint8, 12: np.uint16, 16: np.uint16}.get(bit_depth)
     if want is None:
-        raise ValueError(f"write_png: bit_depth must be 8, 12 or 16, got {bit_depth}")
+        raise SimInputError(f"write_png: bit_depth must be 8, 12 or 16, got {bit_depth}")
     if image.ndim != 2 or image.dtype != want or (bit_depth == 12 and image.max(initial=0) > 4095):
-        raise ValueError(f"write_png {path}: expected a 2-D {np.dtype(want).name} image with values "
+        raise SimInputError(f"write_png {path}: expected a 2-D {np.dtype(want).name} image with values "
                          f"< 2^{bit_depth}, got {image.dtype} {image.shape}")
     if not cv2.imwrite(str(path), image):
         raise OSError(f"write_png: could not write {path}")
