@@ -12,12 +12,12 @@ optionally ``nx ny nz``, ``quality`` or ``scalar_quality``, and any other ``scal
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from sim.errors import SimInputError
-from sim.fpp.stereo import PointCloud
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -27,6 +27,18 @@ PLY_TYPES = {
 }
 MAX_HEADER_LINES = 10_000  # a header longer than this is not a PLY header
 FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
+
+
+@dataclass(frozen=True)
+class PointCloud:
+    """Points (n, 3) mm in the world frame, with optional unit normals (n, 3), quality (n,) and
+    named per-point fields (n,) (e.g. ``camera``, ``u``, ``v``: the reference camera and its
+    pixel; ``modulation``; ``phase_error``; ``uncertainty_mm``)."""
+
+    points: np.ndarray
+    normals: np.ndarray | None = None
+    quality: np.ndarray | None = None
+    fields: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def write_ply(path: str | Path, cloud: PointCloud) -> None:

@@ -3,7 +3,7 @@
 ``decode_view`` turns one camera's image stack, taken with a ``sim.render.fringe_patterns`` set, into
 per-axis projector-coordinate maps (NaN where invalid) and a modulation map; ``scan``
 matches the two cameras of a rig (``sim.fpp.stereo.stereo_cloud``) or triangulates one camera
-against the projector (``sim.fpp.stereo.camera_projector_cloud``).
+against the projector (``sim.fpp.triangulate.camera_projector_cloud``).
 """
 
 from __future__ import annotations
@@ -16,6 +16,13 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from sim.errors import SimInputError
+from sim.fpp.cloud import PointCloud
+from sim.fpp.match import (
+    local_phase_model,
+    phase_noise_px,
+    pixel_footprint_correction,
+    usable_pixels,
+)
 from sim.fpp.phase import (
     absolute_phase_to_projector,
     gray_bits,
@@ -26,16 +33,8 @@ from sim.fpp.phase import (
     unwrap_hierarchical,
     wrapped_phase,
 )
-from sim.fpp.stereo import (
-    PointCloud,
-    camera_projector_cloud,
-    grid_normals,
-    local_phase_model,
-    phase_noise_px,
-    pixel_footprint_correction,
-    stereo_cloud,
-    usable_pixels,
-)
+from sim.fpp.stereo import stereo_cloud
+from sim.fpp.triangulate import camera_projector_cloud, grid_normals
 from sim.optics.rig import DeviceCalibration, Rig
 from sim.render.fringe_patterns import GrayCodeSet, PatternDescriptor, PhaseShiftSet
 from sim.tolerances import EDGE_MARGIN_PX
