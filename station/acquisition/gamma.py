@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-from drivers.camera import CameraError, CameraTimeout
+from drivers.errors import CameraError, CameraTimeout
 from station.acquisition.backend import Hardware, open_hardware
 from station.acquisition.config import StationConfig
 from station.errors import StationError, StationInputError
