@@ -14,7 +14,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "scan_input": "ScanInputError load_scan_input",
     "rectify": "Rectification stereo_rectification relative_pose",
     "match": "local_phase_model phase_noise_px",
-    "triangulate": "triangulate grid_normals camera_projector_cloud",
+    "triangulation": "triangulate grid_normals camera_projector_cloud",
     "stereo": "stereo_cloud",
     "cloud": "PointCloud read_ply write_ply",
 })

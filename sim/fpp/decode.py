@@ -3,7 +3,7 @@
 ``decode_view`` turns one camera's image stack, taken with a ``sim.render.fringe_patterns`` set, into
 per-axis projector-coordinate maps (NaN where invalid) and a modulation map; ``scan``
 matches the two cameras of a rig (``sim.fpp.stereo.stereo_cloud``) or triangulates one camera
-against the projector (``sim.fpp.triangulate.camera_projector_cloud``).
+against the projector (``sim.fpp.triangulation.camera_projector_cloud``).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from sim.fpp.phase import (
     wrapped_phase,
 )
 from sim.fpp.stereo import stereo_cloud
-from sim.fpp.triangulate import camera_projector_cloud, grid_normals
+from sim.fpp.triangulation import camera_projector_cloud, grid_normals
 from sim.optics.rig import DeviceCalibration, Rig
 from sim.render.fringe_patterns import GrayCodeSet, PatternDescriptor, PhaseShiftSet
 from sim.tolerances import EDGE_MARGIN_PX

@@ -44,7 +44,7 @@ that cannot be made right is dropped, not kept wrong.
 projector's plane of constant coordinate, refined through the projector's distortion).
 
 The steps live in :mod:`sim.fpp.rectify` (1), :mod:`sim.fpp.match` (2-4 and the checks) and
-:mod:`sim.fpp.triangulate` (5); their public names are importable from here too, and
+:mod:`sim.fpp.triangulation` (5); their public names are importable from here too, and
 ``PointCloud`` from :mod:`sim.fpp.cloud`.
 """
 
@@ -75,7 +75,7 @@ from sim.fpp.rectify import (
     sample_image,
     stereo_rectification,
 )
-from sim.fpp.triangulate import (
+from sim.fpp.triangulation import (
     STEREO_SENSITIVITY_PX,
     camera_projector_cloud,
     grid_normals,
