@@ -36,7 +36,8 @@ def test_a_zaber_move_logs_every_command_and_its_reply_at_debug(device, caplog):
     assert any(f"'@01 1 {move_id} OK " in m for m in got), got
     # every command had its reply logged, and the final position the driver returned was read
     assert len(got) >= len(sent) >= 3
-    assert f"{stage.port_name}: move to 12.5 mm: done at 12.5 mm" in [r.getMessage() for r in records]
+    done = f"{stage.port_name}: move to 12.5 mm: done at 12.5 mm"
+    assert done in [r.getMessage() for r in records]
     assert z == pytest.approx(12.5, abs=1e-4)
     assert any(f"{round(z * 1e4)}" in m for m in got)
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 
 import numpy as np
 import pytest
@@ -169,3 +170,34 @@ def test_every_error_we_raise_derives_from_a_package_root():
     assert len(errors) >= 30
     assert [e.__qualname__ for e in errors if not issubclass(e, roots)] == []
     assert issubclass(CameraTimeout, drivers.errors.CameraError)
+
+
+def test_a_run_log_records_every_device_exchange_at_debug(tmp_path, capsys, monkeypatch):
+    from drivers.stage import ZaberStage
+    from fakes.zaber import FakeZaberDevice, FakeZaberPty
+    from station.sequence import Sequence
+
+    def check_on_a_fake_stage(self):
+        device = FakeZaberDevice(limit_max=500_000, position=100_000, maxspeed=327_680,
+                                 accel=16_384)
+        with FakeZaberPty(device) as server, ZaberStage(
+                server.port, microstep_um=0.1, travel_mm=(0.0, 40.0), poll_s=0.005) as stage:
+            stage.home()
+            stage.move_to(3.25)
+        raise StationError("stopped after the stage exchange")
+
+    assert main(["config", "--example", "fake"]) == 0
+    cfg = tmp_path / "fake.toml"
+    cfg.write_text(capsys.readouterr().out)
+    monkeypatch.setattr(Sequence, "_check", check_on_a_fake_stage)
+    seq = tmp_path / "seq"
+    code, _, err = call(["run", str(cfg), "--out", str(seq)], capsys)
+    assert code == 1 and err.startswith("ltc run: error: stopped after the stage exchange")
+    log = (seq / "run.log").read_text().splitlines()
+    sent = [line for line in log if " DEBUG drivers.zaber_link " in line and ": sent " in line]
+    got = [line for line in log if " DEBUG drivers.zaber_link " in line and ": got " in line]
+    assert any(re.search(r"sent '/1 1 \d\d move abs 32500:[0-9A-F]{2}'$", line) for line in sent)
+    assert len(got) >= len(sent) > 3
+    assert any(" DEBUG drivers.stage " in line and "move to 3.25 mm: done at 3.25 mm" in line
+               for line in log)
+    assert any("check: failed: stopped after the stage exchange" in line for line in log)
