@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from drivers.errors import CameraError, CameraTimeout
+from drivers.errors import CameraError, CameraTimeout, DeviceSettingError
 from drivers.frame_code import (
     CodeCalibration,
     FrameCodeError,
@@ -447,7 +447,7 @@ def _check_and_create(config: StationConfig, hw: Hardware, out: Path, store: Run
     if config.frame_check.enabled:
         try:
             frame_code_rect(config.frame_check.layout(lcd_size), lcd_size)
-        except ValueError as exc:
+        except DeviceSettingError as exc:
             raise AcquisitionError(f"frame_check: {exc}") from exc
     lo, hi = hw.stage.limits_mm
     outside = [z for z in config.depths_mm if not lo <= z <= hi]
