@@ -1,12 +1,16 @@
 """Every device exchange is logged at DEBUG on the driver module's logger: the Zaber stage's
-commands and replies, as the fake controller saw and answered them."""
+commands and replies (as the fake controller answered them), each frame shown, each capture."""
 
 from __future__ import annotations
 
 import logging
 
+import cv2
+import numpy as np
 import pytest
 
+from drivers.camera import OpenCVCamera
+from drivers.display import OffscreenDisplay
 from drivers.stage import ZaberStage
 from fakes.zaber import FakeZaberDevice, FakeZaberPty
 
@@ -48,3 +52,23 @@ def test_driver_loggers_are_silent_above_debug(device, caplog):
         stage.home()
         stage.move_to(1.0)
     assert not [r for r in caplog.records if r.name.startswith("drivers.")]
+
+
+def test_each_frame_shown_is_logged_with_its_swap_time(xvfb_display, caplog):
+    with caplog.at_level(logging.DEBUG, logger="drivers"), OffscreenDisplay((64, 48)) as display:
+        shown = [display.show(np.full((48, 64), level, np.uint8)) for level in (0, 128, 255)]
+    lines = [r.getMessage() for r in caplog.records if r.name == "drivers.display"]
+    assert lines == [f"OffscreenDisplay: frame {s.index} shown (swap at {s.swap_time:.6f} s, "
+                     "frame code None)" for s in shown]
+
+
+def test_each_capture_is_logged_with_its_frame_number(tmp_path, caplog):
+    for i in range(3):
+        assert cv2.imwrite(str(tmp_path / f"img_{i:03d}.png"), np.full((12, 16), i, np.uint8))
+    with caplog.at_level(logging.DEBUG, logger="drivers"), OpenCVCamera(
+            str(tmp_path / "img_%03d.png"), backend=cv2.CAP_IMAGES) as camera:
+        frames = [camera.capture() for _ in range(3)]
+    lines = [r.getMessage() for r in caplog.records if r.name == "drivers.camera"]
+    assert [f.frame_id for f in frames] == [0, 1, 2]
+    assert [m.split(": ", 1)[1] for m in lines] == [
+        f"frame {i} captured (16 x 12 uint8)" for i in range(3)]
