@@ -36,6 +36,7 @@ EXIT_FAILED = 1  # the run failed: a device, the data, the disk
 EXIT_USAGE = 2  # the command line is wrong
 EXIT_BUG = 3  # an internal error: a bug to report
 EXIT_INTERRUPTED = 130
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s %(message)s"  # as ``station.sequence``'s run.log
 
 # The error roots that are expected failures (exit 1), by module and class name: looked up in
 # sys.modules, so an error of a package that was never imported cannot match and ``ltc
@@ -166,15 +167,12 @@ def _keep_traceback(log_file: str | os.PathLike | None, command: str,
         return None
     record = logging.LogRecord("station.cli", logging.ERROR, __file__, 0, "ltc %s: bug: %s",
                                (command, _one_line(exc)), (type(exc), exc, exc.__traceback__))
+    text = logging.Formatter(LOG_FORMAT).format(record)
     try:
-        handler = logging.FileHandler(log_file, encoding="utf-8")
-    except OSError:
+        with open(log_file, "a", encoding="utf-8") as f:
+            f.write(text + "\n")
+    except OSError:  # a full disk: the one line on stderr still says what happened
         return None
-    try:
-        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s %(message)s"))
-        handler.emit(record)
-    finally:
-        handler.close()
     return Path(log_file)
 
 
