@@ -97,7 +97,8 @@ class FrameCodeLayout:
 def code_blocks(value: int, bits: int) -> np.ndarray:
     """The strip as ``(bits + 5,)`` bool, True = white: guards, data MSB first, parity."""
     if not 0 <= value < 2**bits:
-        raise DeviceSettingError(f"frame code {value} out of range 0..{2**bits - 1} for {bits} bits")
+        raise DeviceSettingError(f"frame code {value} out of range 0..{2**bits - 1} for {bits} "
+                                 "bits")
     data = [(value >> (bits - 1 - i)) & 1 for i in range(bits)]
     return np.array([1, 0, *data, sum(data) % 2, 0, 1], dtype=bool)
 

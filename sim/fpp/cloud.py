@@ -52,7 +52,8 @@ def write_ply(path: str | Path, cloud: PointCloud) -> None:
     if cloud.normals is not None:
         n = np.asarray(cloud.normals)
         if n.shape != pts.shape:
-            raise SimInputError(f"write_ply {path}: normals have shape {n.shape}, points {pts.shape}")
+            raise SimInputError(f"write_ply {path}: normals have shape {n.shape}, points "
+                                f"{pts.shape}")
         fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
         cols.update(nx=n[:, 0], ny=n[:, 1], nz=n[:, 2])
     extras = dict(cloud.fields)
@@ -63,7 +64,8 @@ def write_ply(path: str | Path, cloud: PointCloud) -> None:
         if len(q) != len(pts):
             raise SimInputError(f"write_ply {path}: {len(q)} {name} values for {len(pts)} points")
         if not name.replace("_", "").isalnum():
-            raise SimInputError(f"write_ply {path}: field name '{name}' must be letters, digits and _")
+            raise SimInputError(f"write_ply {path}: field name '{name}' must be letters, digits "
+                                "and _")
         fields.append((f"scalar_{name}", "<f4"))
         cols[f"scalar_{name}"] = q
     rec = np.empty(len(pts), dtype=fields)
@@ -101,7 +103,8 @@ def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
             if len(words) != 3:
                 raise SimInputError(f"{where}: expected 'element NAME COUNT'")
             if element is None and words[1] != "vertex":
-                raise SimInputError(f"{path}: the first PLY element must be 'vertex', got '{words[1]}'")
+                raise SimInputError(f"{path}: the first PLY element must be 'vertex', got "
+                                    f"'{words[1]}'")
             element = words[1]
             if element == "vertex":
                 if not words[2].isdigit():
@@ -113,7 +116,8 @@ def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
             if len(words) != 3:
                 raise SimInputError(f"{where}: expected 'property TYPE NAME'")
             if words[1] not in PLY_TYPES:
-                raise SimInputError(f"{path}: unknown PLY type '{words[1]}' of property '{words[2]}'")
+                raise SimInputError(f"{path}: unknown PLY type '{words[1]}' of property "
+                                    f"'{words[2]}'")
             if words[2] in [n for n, _ in props]:
                 raise SimInputError(f"{path}: vertex property '{words[2]}' appears twice")
             props.append((words[2], PLY_TYPES[words[1]]))
@@ -156,7 +160,8 @@ def read_ply(path: str | Path) -> PointCloud:
         fmt, count, props = _parse_header(f, path)
         names = [n for n, _ in props]
         if not {"x", "y", "z"} <= set(names):
-            raise SimInputError(f"{path}: the vertex element needs properties x, y and z, has {names}")
+            raise SimInputError(f"{path}: the vertex element needs properties x, y and z, has "
+                                f"{names}")
         if FORMATS[fmt] is None:
             data = _ascii_rows(f, path, count, len(props))
             col = {n: data[:, i] for i, n in enumerate(names)}
@@ -164,7 +169,8 @@ def read_ply(path: str | Path) -> PointCloud:
             dt = np.dtype([(n, FORMATS[fmt] + t) for n, t in props])
             raw = f.read(dt.itemsize * count)
             if len(raw) < dt.itemsize * count:
-                raise SimInputError(f"{path}: file ends after {len(raw) // dt.itemsize} of {count} vertices")
+                raise SimInputError(f"{path}: file ends after {len(raw) // dt.itemsize} of {count} "
+                                    "vertices")
             rec = np.frombuffer(raw, dtype=dt)
             col = {n: rec[n].astype(np.float64) for n in names}
     pts = np.stack([col["x"], col["y"], col["z"]], axis=1)

@@ -306,7 +306,8 @@ def scan(
     _, residual = local_phase_model(coord)
     coord = np.where(usable_pixels(residual, settings.max_model_residual), coord, np.nan)
     if not np.isfinite(coord).any():
-        raise SimInputError(f"camera {camera}: no valid pixel with 8 valid neighbours to triangulate")
+        raise SimInputError(f"camera {camera}: no valid pixel with 8 valid neighbours to "
+                            "triangulate")
     pts, uv = camera_projector_cloud(coord, cam, rig.projector, axis)
     grid = np.full((cam.height, cam.width, 3), np.nan)
     iu, iv = uv[:, 0].astype(int), uv[:, 1].astype(int)

@@ -75,7 +75,8 @@ def stereo_rectification(
         flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1,
     )
     if abs(p2[1, 3]) > abs(p2[0, 3]):
-        raise SimInputError("the cameras are displaced vertically; only horizontal stereo is supported")
+        raise SimInputError("the cameras are displaced vertically; only horizontal stereo is "
+                            "supported")
     b1, b2 = _bounds(valid1, cam1, r1, p1), _bounds(valid2, cam2, r2, p2)
     rows = (int(max(b1[0, 1], b2[0, 1])), int(min(b1[1, 1], b2[1, 1])))
     if rows[1] < rows[0]:

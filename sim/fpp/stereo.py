@@ -139,7 +139,8 @@ def stereo_cloud(
     usable = []
     for s in sides:
         if not np.isfinite(s.residual).any():
-            raise SimInputError(f"camera '{s.cam.name}': no valid pixel with 8 valid neighbours to match")
+            raise SimInputError(f"camera '{s.cam.name}': no valid pixel with 8 valid neighbours to "
+                                "match")
         usable.append(usable_pixels(s.residual, max_model_residual))
     noise = [phase_noise_px(s.residual, q) for s, q in zip(sides, (quality1, quality2))]
     # the search model is used at the matched pixel too: mask its coefficients
@@ -188,7 +189,8 @@ def stereo_cloud(
                          noise[1 - a][node[:, 1], node[:, 0]])
         kept.append((world[ok], ref_pix[ok], sens[ok] * sigma))
     if not any(len(k[0]) for k in kept):
-        raise SimInputError("stereo matching found no pixel with the same projector coordinate in both cameras")
+        raise SimInputError("stereo matching found no pixel with the same projector coordinate in "
+                            "both cameras")
     points, normals, quality, camera, pixels, perr, unc = [], [], [], [], [], [], []
     for a, (world, ref_pix, u_mm) in enumerate(kept):
         cam = sides[a].cam

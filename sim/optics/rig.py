@@ -62,9 +62,11 @@ def _matrix(value, shape: tuple[int, ...], what: str) -> list:
     try:
         a = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
-        raise SimInputError(f"{what} must be {math.prod(shape)} numbers {shape}, got {value!r}") from None
+        raise SimInputError(f"{what} must be {math.prod(shape)} numbers {shape}, got "
+                            f"{value!r}") from None
     if a.size != math.prod(shape):
-        raise SimInputError(f"{what} must have {math.prod(shape)} values {shape}, got shape {a.shape}")
+        raise SimInputError(f"{what} must have {math.prod(shape)} values {shape}, got shape "
+                            f"{a.shape}")
     a = a.reshape(shape)
     if not np.all(np.isfinite(a)):
         raise SimInputError(f"{what} must be finite, got {a.tolist()}")
@@ -115,7 +117,8 @@ class DeviceCalibration(BaseModel):
                              f"got {self.K}")
         R = self.R_array
         if not np.allclose(R @ R.T, np.eye(3), atol=ROTATION_TOL) or np.linalg.det(R) <= 0:
-            raise SimInputError(f"R must be a proper rotation matrix (R R^T = I, det +1), got {self.R}")
+            raise SimInputError("R must be a proper rotation matrix (R R^T = I, det +1), got "
+                                f"{self.R}")
         if self.size[0] < 1 or self.size[1] < 1:
             raise SimInputError(f"size must be (width, height) >= 1 pixel, got {self.size}")
         return self
@@ -260,7 +263,8 @@ def _node_matrix(parent: cv2.FileNode, key: str, path: Path, where: str, n: int)
                              f"{rows} x cols {cols} but "
                              f"{m.size} data values")
     else:
-        raise SimInputError(f"rig file {path}: node '{_path(where, key)}' must be an opencv-matrix or a sequence")
+        raise SimInputError(f"rig file {path}: node '{_path(where, key)}' must be an opencv-matrix "
+                            "or a sequence")
     if m is None or m.size != n:
         shape = None if m is None else m.shape
         raise SimInputError(f"rig file {path}: node '{_path(where, key)}' must have {n} values, "
@@ -355,12 +359,14 @@ def _read_filestorage(path: Path) -> Rig:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:  # the binding wraps parse errors in SystemError
         cause = str(exc.__cause__ or exc).strip().splitlines()[-1]
-        raise SimInputError(f"rig file {path}: not a readable OpenCV FileStorage file: {cause}") from exc
+        raise SimInputError(f"rig file {path}: not a readable OpenCV FileStorage file: "
+                            f"{cause}") from exc
     try:
         return _rig_from_filestorage(fs, path)
     except (cv2.error, UnicodeDecodeError) as exc:  # a string node that is not UTF-8
         cause = " ".join(str(exc).split())
-        raise SimInputError(f"rig file {path}: not a readable OpenCV FileStorage rig: {cause}") from exc
+        raise SimInputError(f"rig file {path}: not a readable OpenCV FileStorage rig: "
+                            f"{cause}") from exc
     finally:
         fs.release()
 
@@ -406,7 +412,8 @@ def look_at(centre_mm: np.ndarray, target_mm: np.ndarray) -> tuple[np.ndarray, n
     z /= np.linalg.norm(z)
     x = np.cross([0.0, 1.0, 0.0], z)
     if np.linalg.norm(x) < LOOK_AT_PARALLEL_TOL:
-        raise SimInputError("look_at: the optical axis is parallel to world y; choose another target")
+        raise SimInputError("look_at: the optical axis is parallel to world y; choose another "
+                            "target")
     x /= np.linalg.norm(x)
     R = np.stack([x, np.cross(z, x), z])
     return R, -R @ c

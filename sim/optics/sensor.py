@@ -44,7 +44,8 @@ class Sensor:
         """Electrons read out (same shape, ``dtype``) for expected ``electrons``: shot noise,
         full-well clipping, read noise. ``rng`` may be None only when not :attr:`noisy`."""
         if self.noisy and rng is None:
-            raise SimInputError("Sensor.expose: rng is required when shot noise or read noise is on")
+            raise SimInputError("Sensor.expose: rng is required when shot noise or read noise is "
+                                "on")
         e = np.asarray(electrons)
         if self.shot_noise:
             e = rng.poisson(np.maximum(e, 0)).astype(dtype)

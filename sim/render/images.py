@@ -215,7 +215,8 @@ def camera_response(radiance: np.ndarray, camera: CameraResponse,
     sensor = camera.sensor
     noisy = sensor.noisy
     if noisy and rng is None:
-        raise SimInputError("camera_response: rng is required when shot_noise or read_noise_e is on")
+        raise SimInputError("camera_response: rng is required when shot_noise or read_noise_e is "
+                            "on")
     x = np.ascontiguousarray(radiance, dtype=np.float32)
     if noisy:
         e = np.maximum(x * np.float32(camera.exposure_e), np.float32(0.0))

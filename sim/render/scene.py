@@ -175,7 +175,8 @@ def load_mesh(path: Path, where: str = "") -> trimesh.Trimesh:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # noqa: BLE001 - the parsers raise anything on a bad file
         detail = " ".join(str(exc).split())[:200] or type(exc).__name__
-        raise SimInputError(f"{what} cannot be read as {path.suffix[1:].upper()}: {detail}") from exc
+        raise SimInputError(f"{what} cannot be read as {path.suffix[1:].upper()}: "
+                            f"{detail}") from exc
     if not isinstance(mesh, trimesh.Trimesh):
         raise SimInputError(f"{what} holds no triangle mesh")
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)

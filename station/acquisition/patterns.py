@@ -265,7 +265,8 @@ def apply_lut(values: np.ndarray, lut: np.ndarray | None = None) -> np.ndarray:
     else:
         table = np.asarray(lut, dtype=np.float64)
         if table.ndim != 1 or len(table) < 2:
-            raise StationInputError(f"lut must be a 1-D table of >= 2 entries, got shape {table.shape}")
+            raise StationInputError("lut must be a 1-D table of >= 2 entries, got shape "
+                                    f"{table.shape}")
         if not np.all(np.isfinite(table)) or table.min() < 0 or table.max() > 255:
             raise StationInputError("lut entries must be finite drive levels in [0, 255]")
         if np.any(np.diff(table) < 0):
