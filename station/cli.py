@@ -34,6 +34,7 @@ COMMAND_MODULES = (
     "lens",
     "run",
     "render",
+    "dataset",
     "scan",
     "measure",
     "experiment",
