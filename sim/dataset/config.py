@@ -94,7 +94,7 @@ class Placement(_Model):
     backdrop_gap_mm: Range = Field((10.0, 80.0), description="object's back to backdrop, mm")
     backdrop_tilt_deg: Range = Field((0.0, 20.0), description="backdrop tilt from facing, deg")
     backdrop_albedo: Range = Field((0.2, 0.9))
-    tries: int = Field(200, ge=1, description="draws before a pose is declared impossible")
+    tries: int = Field(5000, ge=1, description="draws before a pose is declared impossible")
 
     @model_validator(mode="after")
     def _check(self):

@@ -119,14 +119,15 @@ def _frustum(dev: DeviceCalibration) -> np.ndarray:
     return n * np.sign(n @ np.array([0.0, 0.0, 1.0]))[:, None]
 
 
-def _fits(devices: list[DeviceCalibration], normals: list[np.ndarray], centre: np.ndarray,
-          radius: float) -> bool:
-    """Whether the ball (centre world, radius mm) lies inside every device's view."""
+def _fits(devices: list[DeviceCalibration], normals: list[np.ndarray], centres: np.ndarray,
+          radius: float) -> np.ndarray:
+    """(m,) bool: each ball (centres (m, 3) world, radius mm) lies inside every device's
+    view."""
+    ok = np.ones(len(centres), bool)
     for dev, n in zip(devices, normals):
-        x = dev.to_device(centre[None])[0]
-        if x[2] < radius + 1.0 or np.any(n @ x < radius):
-            return False
-    return True
+        x = dev.to_device(centres)
+        ok &= (x[:, 2] >= radius + 1.0) & np.all(x @ n.T >= radius, axis=1)
+    return ok
 
 
 def default_distance_mm(rig: Rig) -> tuple[float, float]:
@@ -145,28 +146,28 @@ def default_distance_mm(rig: Rig) -> tuple[float, float]:
 def place(rig: Rig, placement: Placement, radius_mm: float, rng: np.random.Generator
           ) -> np.ndarray | None:
     """A centre (3,) world mm for a ball of ``radius_mm`` inside the common working volume:
-    through a uniformly random projector pixel at a uniformly random distance; None when
-    ``placement.tries`` draws all failed."""
+    the first of ``placement.tries`` draws (through a uniformly random projector pixel at a
+    uniformly random distance) that fits; None when none does."""
     devices = [*rig.cameras, rig.projector]
     normals = [_frustum(d) for d in devices]
     lo, hi = placement.distance_mm or default_distance_mm(rig)
     p = rig.projector
     w, h = p.size
-    for _ in range(placement.tries):
-        uv = rng.uniform([-0.5, -0.5], [w - 0.5, h - 0.5])[None]
-        xy = p.normalized(uv)[0]
-        z = rng.uniform(lo, hi)
-        centre = (p.R_array.T @ (np.array([xy[0], xy[1], 1.0]) * z - p.T_array))
-        if _fits(devices, normals, centre, radius_mm):
-            return centre
-    return None
+    m = placement.tries
+    uv = rng.uniform([-0.5, -0.5], [w - 0.5, h - 0.5], size=(m, 2))
+    z = rng.uniform(lo, hi, size=m)
+    xy = p.normalized(uv)
+    ray = np.concatenate([xy, np.ones((m, 1))], axis=1) * z[:, None]
+    centres = (ray - p.T_array) @ p.R_array
+    ok = np.flatnonzero(_fits(devices, normals, centres, radius_mm))
+    return centres[ok[0]] if len(ok) else None
 
 
 def check_fits(rig: Rig, cfg: DatasetConfig, where: str = "config") -> None:
     """Refuse (ValueError) a rig whose common working volume cannot hold the largest object."""
     size = cfg.objects.size_mm[1]
     rng = np.random.default_rng([cfg.seed, 2**32 - 1])
-    probe = cfg.placement.model_copy(update={"tries": max(2000, cfg.placement.tries)})
+    probe = cfg.placement.model_copy(update={"tries": max(50000, cfg.placement.tries)})
     if place(rig, probe, size / 2, rng) is None:
         lo, hi = cfg.placement.distance_mm or default_distance_mm(rig)
         raise ValueError(
@@ -184,6 +185,24 @@ def _rotation(rng: np.random.Generator) -> np.ndarray:
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+SHEETS = ("plane", "displaced", "holes", "steps")  # families with a front: turned to the rig
+SHEET_TILT_DEG = 50.0
+
+
+def _facing(rig: Rig, centre: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A rotation whose z axis points at the projector, tilted by up to ``SHEET_TILT_DEG``
+    about a random axis, spun about itself at random."""
+    view = centre - rig.projector.centre_world
+    z = -view / np.linalg.norm(view)
+    spin = _axis_rotation(z, rng.uniform(0, 2 * math.pi))
+    tilt = _axis_rotation(np.cross(z, rng.normal(size=3)),
+                          math.radians(rng.uniform(0, SHEET_TILT_DEG)))
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    base = np.stack([x, np.cross(z, x), z], axis=1)
+    return tilt @ spin @ base
 
 
 def _axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -264,8 +283,12 @@ def draw_scene(cfg: DatasetConfig, rig: Rig, index: int) -> SampleScene:
         raise ValueError(f"sample {index}: no pose in {cfg.placement.tries} draws puts an "
                          f"object of {size:.1f} mm inside the rig's common working volume; "
                          "lower objects.size_mm or raise placement.tries")
+    if obj.get("family") in SHEETS:
+        R = _facing(rig, centre, rp)
+    else:
+        R = _rotation(rp)
     objects = [SampleObject(**obj, size_mm=size, albedo=albedo,
-                            pose=Pose(R=_rotation(rp).tolist(), t=centre.tolist()))]
+                            pose=Pose(R=R.tolist(), t=centre.tolist()))]
     if rp.random() < cfg.placement.backdrop_probability:
         objects.append(_backdrop(rig, cfg.placement, centre, size / 2, rp))
     rl = stream(seed, index, LENS)
