@@ -53,6 +53,7 @@ CAMERA_KEYS = ("images", "numerator", "denominator", "wrapped_phase", "backgroun
                "modulation", "absolute_phase", "fringe_order", "projector_uv", "depth_mm",
                "normals", "mask")
 TWO_PI = 2.0 * np.pi
+POISSON_EXACT_BELOW_E = 64.0  # electrons: shot noise drawn exactly below, as a normal above
 
 
 @dataclass
@@ -163,19 +164,48 @@ def _labels(dn: np.ndarray, groups) -> dict[str, np.ndarray]:
     """Feng/Zuo labels (F, H, W) float32 of noise-free images ``dn`` (n, H, W) float32."""
     out = {k: [] for k in ("numerator", "denominator", "wrapped_phase", "background",
                            "modulation")}
+    two_pi = np.float32(TWO_PI)
     for _, idx, n in groups:
         d = TWO_PI * np.arange(n) / n
-        stack = dn[idx].astype(np.float64)
-        m = np.tensordot(np.sin(d), stack, axes=1)
-        c = np.tensordot(np.cos(d), stack, axes=1)
-        ph = np.mod(np.arctan2(m, c), TWO_PI)
-        ph[ph >= TWO_PI] = 0.0
+        stack = dn[idx]
+        m = np.tensordot(np.sin(d).astype(np.float32), stack, axes=1)
+        c = np.tensordot(np.cos(d).astype(np.float32), stack, axes=1)
+        ph = np.mod(np.arctan2(m, c), two_pi)
+        ph[ph >= two_pi] = 0.0
         out["numerator"].append(m)
         out["denominator"].append(c)
         out["wrapped_phase"].append(ph)
-        out["background"].append(stack.mean(axis=0))
-        out["modulation"].append((2.0 / n) * np.hypot(m, c))
-    return {k: np.stack(v).astype(np.float32) for k, v in out.items()}
+        out["background"].append(stack.mean(axis=0, dtype=np.float32))
+        out["modulation"].append(np.float32(2.0 / n) * np.hypot(m, c))
+    return {k: np.stack(v).astype(np.float32, copy=False) for k, v in out.items()}
+
+
+def _noisy_images(radiance: np.ndarray, camera, rng: np.random.Generator) -> np.ndarray:
+    """The camera's digital images of noise-free radiance (n, H, W) float32 with shot and
+    read noise (``sim.optics.sensor``'s model: Poisson electrons, full-well clip, Gaussian read
+    noise, then gain, black level, clip and rounding). Dark pixels draw no deviate (Poisson(0)
+    is 0); pixels of ``POISSON_EXACT_BELOW_E`` electrons or more draw shot and read noise as
+    one normal deviate of their summed variance, then the full-well clip
+    (``Sensor.expose_gaussian``'s approximation, 7x faster than Poisson), the others an exact
+    Poisson deviate plus the read noise."""
+    f32 = np.float32
+    e = np.maximum(radiance * f32(camera.exposure_e), f32(0.0))
+    z = rng.standard_normal(e.shape, dtype=f32)
+    r2 = f32(camera.read_noise_e**2)
+    if camera.shot_noise:
+        flat, zf = e.reshape(-1), z.reshape(-1)
+        low = np.flatnonzero((flat > 0) & (flat < f32(POISSON_EXACT_BELOW_E)))
+        exact = rng.poisson(flat[low]).astype(f32) + np.sqrt(r2) * zf[low]
+        e += np.sqrt(np.where(e >= f32(POISSON_EXACT_BELOW_E), e, f32(0.0)) + r2) * z
+        flat[low] = exact
+    else:
+        e += np.sqrt(r2) * z
+    np.minimum(e, f32(camera.full_well_e), out=e)
+    dn = e * np.float32(camera.dn_per_e) + np.float32(camera.black_level_dn)
+    np.clip(dn, np.float32(0.0), np.float32(camera.max_dn), out=dn)
+    if not camera.quantize:
+        return dn
+    return np.rint(dn).astype(np.uint8 if camera.bit_depth == 8 else np.uint16)
 
 
 def _normals(points: np.ndarray, obj: np.ndarray) -> np.ndarray:
@@ -227,8 +257,9 @@ def _camera_arrays(res, cam: DeviceCalibration, scene: SampleScene, groups) -> d
     out["projector_uv"] = res.projector_map.astype(np.float32)
     out["depth_mm"] = res.depth.astype(np.float32)
     xy = _pixel_xy(cam)
-    pts = np.concatenate([xy * res.depth[..., None], res.depth[..., None]], axis=-1)
-    out["normals"] = _normals(pts, res.object_id).astype(np.float32)
+    z = res.depth.astype(np.float32)[..., None]
+    pts = np.concatenate([xy.astype(np.float32) * z, z], axis=-1)
+    out["normals"] = _normals(pts, res.object_id)
     hit = res.object_id >= 0
     inside = np.isfinite(res.projector_map[..., 0])
     out["mask"] = np.where(~hit, MASK_NONE, np.where(res.lit, MASK_VALID, np.where(
@@ -258,11 +289,15 @@ def render_sample(scene: SampleScene, geometry: TraceGeometry | None = None) -> 
     if isinstance(scene.patterns, GrayCodeSet):
         groups = groups[:1]
     cams = []
+    noisy = scene.camera.sensor.noisy
+    quiet = scene.camera.model_copy(update={"shot_noise": False, "read_noise_e": 0.0})
     for i, cam in enumerate(rig.cameras):
         lens = build_lens(scene.lenses[i], cam)
-        rng = np.random.default_rng([*scene.noise_seed, i])
-        res = render_camera(geom, rig, i, lens, projected, scene.camera, rng,
+        res = render_camera(geom, rig, i, lens, projected, quiet, None,
                             where=f"sample {scene.index}")
+        if noisy:
+            res.images = _noisy_images(res.radiance, scene.camera,
+                                       np.random.default_rng([*scene.noise_seed, i]))
         cams.append(_camera_arrays(res, cam, scene, groups))
     return Sample(scene, cams)
 
