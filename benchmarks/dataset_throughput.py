@@ -73,7 +73,7 @@ def measured_lens_file(path: Path, size: tuple[int, int]) -> Path:
 
 
 def config(size: int, lens: dict, *, sphere_only: bool = False, distortion: bool = True,
-           storage: tuple[str, int] = ("zstd", 1)):
+           storage: tuple[str, int] = ("blosc_zstd", 3)):
     objects = {"size_mm": [80.0, 140.0]}
     placement = {}
     if sphere_only:
@@ -103,7 +103,7 @@ def time_case(name: str, cfg, indices: list[int], threads: int, tmp: Path) -> di
     for i in indices:
         scene = draw_scene(cfg, rig, i)
         geom = scene_geometry(scene.objects)
-        queries = record_queries(geom, lambda: render_sample(scene, geom))  # warm-up too
+        queries = record_queries(geom, lambda s=scene, g=geom: render_sample(s, g))  # warm-up
         counts = summarise_queries(queries)
         t0 = time.perf_counter()
         sample = render_sample(draw_scene(cfg, rig, i))
@@ -212,7 +212,9 @@ def report(s: dict) -> str:
         f"`benchmarks/dataset_throughput.py`, {s['date']} on {s['machine']}; cameras "
         f"{s['size']} x {s['size']}, 3-frequency 4-step phase shift (12 images per camera, 2 "
         f"cameras), 8-bit with shot and read noise, every label and truth map, codec "
-        f"{s['codec']}; {s['threads']} threads; medians over {s['samples']} samples per case. "
+        f"{s['codec']}; {s['threads']} threads; medians over {s['samples']} samples per case; "
+        f"load average {s['load'][0]:.1f} at the start, {s['load'][1]:.1f} at the end (the "
+        "machine is shared: compare ratios within a row, not absolute times across runs). "
         "Ours = generate + write the sample; raw = the sample's Embree queries replayed.",
         "",
         "| case | camera rays | shadow rays | ours, s/sample | images/s | raw embreex, s | "
@@ -268,6 +270,7 @@ def main(argv: list[str] | None = None) -> dict:
                     help="camera size of the Mitsuba comparison (its scalar variant is slow)")
     ap.add_argument("--no-write", action="store_true", help="do not rewrite the results file")
     args = ap.parse_args(argv)
+    load0 = os.getloadavg()[0]
     tmp = Path(tempfile.mkdtemp(prefix="dataset-bench-"))
     try:
         lens_path = measured_lens_file(tmp / "lens.npz", (args.size, args.size))
@@ -288,8 +291,10 @@ def main(argv: list[str] | None = None) -> dict:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     s = {"date": datetime.date.today().isoformat(), "machine": machine(), "size": args.size,
-         "threads": args.threads, "samples": args.samples, "mitsuba_size": args.mitsuba_size, "codec": "zstd 1",
-         "cases": cases, "codecs": codecs, "scaling": scaling, "mitsuba": mts}
+         "threads": args.threads, "samples": args.samples, "mitsuba_size": args.mitsuba_size,
+         "codec": f"{pin.storage.codec} {pin.storage.level}",
+         "load": (load0, os.getloadavg()[0]), "cases": cases, "codecs": codecs,
+         "scaling": scaling, "mitsuba": mts}
     text = report(s)
     print(text)
     if not args.no_write:

@@ -84,7 +84,7 @@ def figure(errs: dict[str, np.ndarray], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 4, figsize=(17, 4.6))
-    for ax, (name, e) in zip(axes, errs.items()):
+    for ax, (name, e) in zip(axes, errs.items(), strict=False):
         im = ax.imshow(e, cmap="RdBu_r", vmin=-0.05, vmax=0.05)
         med = float(np.nanmedian(np.abs(e)))
         p99 = float(np.nanpercentile(np.abs(e), 99))
@@ -105,7 +105,8 @@ def figure(errs: dict[str, np.ndarray], path: Path) -> None:
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", type=Path, default=Path("docs/figures/dataset_defocus_phase_error.png"))
+    ap.add_argument("--out", type=Path,
+                    default=Path("docs/figures/dataset_defocus_phase_error.png"))
     args = ap.parse_args()
     errs = errors()
     for name, e in errs.items():

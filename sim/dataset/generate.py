@@ -253,7 +253,8 @@ def _camera_arrays(res, cam: DeviceCalibration, scene: SampleScene, groups) -> d
     u_p = res.projector_map[..., 0]
     absph = TWO_PI * u_p / fine
     out["absolute_phase"] = absph.astype(np.float32)
-    out["fringe_order"] = np.where(np.isfinite(absph), np.floor(absph / TWO_PI), -1).astype(np.int32)
+    order = np.where(np.isfinite(absph), np.floor(absph / TWO_PI), -1)
+    out["fringe_order"] = order.astype(np.int32)
     out["projector_uv"] = res.projector_map.astype(np.float32)
     out["depth_mm"] = res.depth.astype(np.float32)
     xy = _pixel_xy(cam)

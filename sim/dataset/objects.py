@@ -68,7 +68,8 @@ def _primitive(rng: np.random.Generator) -> trimesh.Trimesh:
     if kind == 3:
         return trimesh.creation.capsule(height=b, radius=a / 3, count=[48, 48])
     if kind == 4:
-        return trimesh.creation.torus(major_radius=a / 2, minor_radius=a / 2 * rng.uniform(0.2, 0.5),
+        return trimesh.creation.torus(major_radius=a / 2,
+                                      minor_radius=a / 2 * rng.uniform(0.2, 0.5),
                                       major_sections=96, minor_sections=48)
     m = trimesh.creation.icosphere(4, radius=0.5)
     m.apply_scale([a, b, c])

@@ -124,7 +124,7 @@ def _fits(devices: list[DeviceCalibration], normals: list[np.ndarray], centres: 
     """(m,) bool: each ball (centres (m, 3) world, radius mm) lies inside every device's
     view."""
     ok = np.ones(len(centres), bool)
-    for dev, n in zip(devices, normals):
+    for dev, n in zip(devices, normals, strict=True):
         x = dev.to_device(centres)
         ok &= (x[:, 2] >= radius + 1.0) & np.all(x @ n.T >= radius, axis=1)
     return ok

@@ -79,7 +79,7 @@ def _sync_dir(folder: Path) -> None:
 
 def sync_tree(folder: Path) -> None:
     """fsync every file and folder under ``folder`` (and itself)."""
-    for root, dirs, files in os.walk(folder):
+    for root, _dirs, files in os.walk(folder):
         for name in files:
             fd = os.open(os.path.join(root, name), os.O_RDONLY)
             try:

@@ -88,7 +88,7 @@ def test_a_sample_regenerated_alone_equals_the_one_in_the_data_set(reference):
         assert stored.verify()
         assert stored.checksum == alone.checksum()
         assert stored.scene == alone.scene
-        for a, b in zip(alone.cameras, stored.cameras):
+        for a, b in zip(alone.cameras, stored.cameras, strict=True):
             for key in CAMERA_KEYS:
                 np.testing.assert_array_equal(a[key], b[key])
                 assert a[key].dtype == b[key].dtype
