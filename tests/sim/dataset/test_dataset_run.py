@@ -237,6 +237,7 @@ def test_mesh_folder_objects_are_normalised_to_the_size_range(tmp_path):
     assert seen == {"box.stl", "ball.ply"}
 
 
+@pytest.mark.slow
 def test_a_full_disk_keeps_every_finished_sample(reference, tmp_path, capsys, monkeypatch):
     cfg, out = reference
     import sim.dataset.store as store
