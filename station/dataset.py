@@ -121,19 +121,20 @@ def generate_dataset(config, out: str | Path, samples: int, *, workers: int | No
 
     if samples < 1:
         raise UsageError(f"--samples must be >= 1, got {samples}")
+    out = Path(out)
+    if out.exists() and not force and not (out.is_dir() and (
+            read_manifest(out) is not None or not any(out.iterdir()))):
+        raise UsageError(f"--out {out} exists and is not a data set; pass --force to "
+                         "replace it, or choose another path")
     where = "config" if isinstance(config, DatasetConfig) else str(config)
     cfg = config if isinstance(config, DatasetConfig) else load_config(config)
     rig = config_rig(cfg, where)
     preflight(cfg, rig, where)
-    out = Path(out)
     fresh = _manifest(cfg, rig, {})
     if out.exists() and force:
         shutil.rmtree(out) if out.is_dir() else out.unlink()
     if out.exists():
-        existing = read_manifest(out) if out.is_dir() else None
-        if existing is None and not (out.is_dir() and not any(out.iterdir())):
-            raise UsageError(f"--out {out} exists and is not a data set; pass --force to "
-                             "replace it, or choose another path")
+        existing = read_manifest(out)
         if existing is not None and not _same_run(existing, fresh):
             raise UsageError(f"--out {out} is a data set of another config or rig; pass "
                              "--force to replace it, or choose another path")
