@@ -9,7 +9,7 @@ Layout of a data set folder ``DIR``::
     DIR/samples/000042/           one group per sample: attributes ``scene`` (its full
                                   description), ``checksum``, ``split``, ``index``;
                                   subgroups camera_0, camera_1 with the arrays of
-                                  ``sim.dataset.generate.CAMERA_KEYS``, one chunk per image
+                                  ``sim.dataset.generate.CAMERA_KEYS``, one chunk each
     DIR/.lock                     the writer's lock
     DIR/.partial/                 samples being written (moved into samples/ when whole)
 
@@ -127,7 +127,8 @@ def sample_name(index: int) -> str:
 
 
 def write_group(path: Path, sample: Sample, digest: str, storage: Storage) -> None:
-    """Write a sample as a zarr v3 group at ``path`` (a new folder); images one chunk each."""
+    """Write a sample as a zarr v3 group at ``path`` (a new folder); one chunk per array (a
+    sample is read whole, and every file costs an fsync)."""
     scene = sample.scene
     attrs = {"index": scene.index, "split": scene.split, "checksum": digest,
              "scene": json.loads(scene.model_dump_json())}
@@ -137,9 +138,7 @@ def write_group(path: Path, sample: Sample, digest: str, storage: Storage) -> No
         cg = g.create_group(f"camera_{i}", attributes={"name": scene.rig.cameras[i].name})
         for key in CAMERA_KEYS:
             a = cam[key]
-            chunks = (1, *a.shape[1:]) if a.ndim == 3 and key != "projector_uv" \
-                and key != "normals" else a.shape
-            cg.create_array(key, data=a, chunks=chunks, compressors=comp)
+            cg.create_array(key, data=a, chunks=a.shape, compressors=comp)
 
 
 def write_sample(root: Path, sample: Sample, storage: Storage | None = None) -> str:
