@@ -73,7 +73,7 @@ def measured_lens_file(path: Path, size: tuple[int, int]) -> Path:
 
 
 def config(size: int, lens: dict, *, sphere_only: bool = False, distortion: bool = True,
-           storage: tuple[str, int] = ("blosc_zstd", 3)):
+           storage: tuple[str, int] = ("zstd", 3)):
     objects = {"size_mm": [80.0, 140.0]}
     placement = {}
     if sphere_only:

@@ -217,9 +217,9 @@ class Split(_Model):
 
 class Storage(_Model):
     """Lossless compression of every array (zarr v3 codecs; blosc with bit shuffle). The
-    default, blosc zstd level 3, was chosen by measurement (docs/decisions/0048)."""
+    default, zstd level 3, was chosen by measurement (docs/decisions/0048)."""
 
-    codec: Literal["zstd", "blosc_zstd", "blosc_lz4", "gzip", "none"] = "blosc_zstd"
+    codec: Literal["zstd", "blosc_zstd", "blosc_lz4", "gzip", "none"] = "zstd"
     level: int = Field(3, ge=0, le=22)
 
 
