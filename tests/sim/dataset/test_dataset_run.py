@@ -126,7 +126,6 @@ def test_torch_example_numpy_interface(reference):
                                                   "torch_dataset.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    assert "torch" not in sys.modules or True  # the module itself never imports torch
     items = mod.FringeSamples(str(out), "train")
     ds = sim.dataset.open(out)
     assert len(items) == 2 * len(ds.indices("train"))
