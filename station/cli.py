@@ -56,6 +56,7 @@ COMMAND_MODULES = (
     "lens",
     "run",
     "render",
+    "dataset",
     "scan",
     "measure",
     "experiment",
