@@ -323,6 +323,15 @@ class LoadedScene:
     scene: Scene
     geometry: TraceGeometry
 
+    def input_files(self) -> list[Path]:
+        """Every file the scene reads: the scene file, its rig, measured lenses and meshes."""
+        base = self.source.parent
+        files = [self.source, _resolve(base, self.config.rig)]
+        files += [_resolve(base, s.path) for s in self.config.lenses
+                  if isinstance(s, MeasuredLensSpec)]
+        files += [o.path for o in self.scene.objects if isinstance(o, MeshObject)]
+        return files
+
     def render(self, progress: bool = False) -> RenderResult:
         """Render the scene's pattern set on every camera (noise seeded by ``config.seed``)."""
         imgs = self.config.patterns.images(self.rig.projector.size)
@@ -330,10 +339,13 @@ class LoadedScene:
                             np.random.default_rng(self.config.seed), progress=progress,
                             where=str(self.source))
 
-    def save(self, result: RenderResult, out: str | Path, radiance: bool = False) -> dict:
+    def save(self, result: RenderResult, out: str | Path, radiance: bool = False, *,
+             final: str | Path | None = None) -> dict:
         """Write a rendering into the new folder ``out`` (docs/formats.md, "ltc render
         folder"): 8/16-bit PNGs per camera (unless unquantised), ``render.zarr`` with the
-        images and truth maps, ``summary.json``. Returns the summary."""
+        images and truth maps, ``summary.json``. ``final``: the path the folder will have
+        once renamed into place (recorded in the summary; default ``out``). Returns the
+        summary."""
         out = Path(out)
         out.mkdir(parents=True)
         cam = self.config.render.camera
@@ -342,7 +354,9 @@ class LoadedScene:
         for c, d in zip(result.cameras, png_dirs):
             if d is not None:
                 write_pngs(d, c.images, cam.bit_depth)
-        summary = self._summary(result, out, png_dirs)
+        recorded = Path(final) if final is not None else out
+        summary = self._summary(result, recorded,
+                                [d and str(recorded / Path(d).name) for d in png_dirs])
         descriptors = self.config.patterns.descriptors(self.rig.projector.size)
         attrs = {"summary": summary, "scene": self.config.model_dump(mode="json"),
                  "rig": self.rig.model_dump(mode="json"),

@@ -43,8 +43,11 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     from station.api import derive_lens
+    from station.outputs import LENS_FILE
+    from station.outputs import check_output as check_kind
 
-    check_output(args.out, args.force)
+    check_kind(args.out, args.force, kind=LENS_FILE, inputs=[args.store, args.rig or args.store],
+               parent_must_exist=True)
     if args.figures is not None:
         check_output(args.figures, args.force, "--figures")
     result = derive_lens(args.store, samples=args.samples, grid_step=args.grid_step,

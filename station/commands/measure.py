@@ -18,7 +18,8 @@ import argparse
 from pathlib import Path
 
 from station.commands import positive_float
-from station.errors import UsageError, check_output
+from station.errors import UsageError
+from station.outputs import PNG_FILE, check_output
 
 OPTIONS = {"json": None}
 
@@ -51,7 +52,8 @@ def run(args: argparse.Namespace) -> dict:
     if args.ballbar and args.diameter is None:
         raise UsageError("--ballbar needs --diameter (the nominal ball diameter, mm)")
     if args.png is not None:
-        check_output(args.png, args.force, "--png")
+        check_output(args.png, args.force, "--png", kind=PNG_FILE,
+                     inputs=[args.cloud] + [p for p in (args.reference, args.against) if p])
     pts = read_ply(args.cloud).points
     tol = args.tolerance / 100.0
     if args.sphere:
@@ -65,7 +67,11 @@ def run(args: argparse.Namespace) -> dict:
         out["against"] = str(args.against)
     out = {"cloud": str(args.cloud), **out}
     if args.png is not None:
-        out.update(m.distance_png(pts, d, args.png, f"signed distance, {out['kind']}"))
+        from station.outputs import staged
+
+        with staged(args.png, PNG_FILE) as target:
+            out.update(m.distance_png(pts, d, target, f"signed distance, {out['kind']}"))
+        out["png"] = str(args.png)
     return out
 
 

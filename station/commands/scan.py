@@ -12,7 +12,8 @@ import argparse
 from pathlib import Path
 
 from station.commands import positive_float
-from station.errors import UsageError, check_output
+from station.errors import UsageError
+from station.outputs import check_output
 
 
 OPTIONS = {"out": "point cloud to write (PLY)", "force": None, "json": None}
@@ -41,15 +42,20 @@ def arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> dict:
     """Read, decode, match, triangulate, write."""
     from sim.fpp.scan_input import scan_files
+    from station.outputs import PLY_FILE, staged
 
-    check_output(args.out, args.force)
+    inputs = [args.images, args.rig] + ([args.patterns] if args.patterns else [])
+    out = check_output(args.out, args.force, kind=PLY_FILE, inputs=inputs)
     v = args.pixel_variance
     if v is not None and not 0 <= v < float("inf"):
         raise UsageError(f"--pixel-variance must be a finite number >= 0, got {v}")
-    return scan_files(args.images, args.rig, args.out, patterns=args.patterns,
-                      camera=args.camera, pixel_variance_px2=v,
-                      min_modulation=args.min_modulation or 0.0,
-                      min_modulation_fraction=args.min_modulation_fraction, unwrap=args.unwrap)
+    with staged(out, PLY_FILE) as target:
+        summary = scan_files(args.images, args.rig, target, patterns=args.patterns,
+                             camera=args.camera, pixel_variance_px2=v,
+                             min_modulation=args.min_modulation or 0.0,
+                             min_modulation_fraction=args.min_modulation_fraction,
+                             unwrap=args.unwrap)
+    return {**summary, "out": str(out)}
 
 
 def text(s: dict) -> str:

@@ -1,0 +1,261 @@
+"""Where a command writes its output, and what ``--force`` may replace there.
+
+The one rule of every command with ``--out`` (and ``--force``):
+
+- an output that exists is never replaced without ``--force``;
+- ``--force`` replaces only an output of the same kind, recognised by its own marker (a run
+  store's or an LTC store's ``format`` attribute, a render folder's ``summary.json`` beside
+  ``render.zarr``, a lens file's ``format`` entry, a PLY header, a PNG signature);
+- it never replaces one of the command's own inputs, a path inside one, or a folder that holds
+  one; nor a device file, a FIFO, a socket, a symbolic link, the working directory or a
+  folder above it;
+- it replaces by writing the new output beside the old one (in the hidden staging folder
+  ``.NAME.force/``) and exchanging the two at the end, so a failed or killed ``--force`` run
+  leaves the old output as it was (:func:`staged`).
+
+Refusals are :class:`station.errors.UsageError` (exit code 2) naming the option and the path.
+Kept free of heavy imports: command modules call it before loading the libraries.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import errno
+import json
+import os
+import shutil
+import stat
+import zipfile
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from station.errors import UsageError
+
+STAGING_MARKER = "force.json"  # in .NAME.force/: what is staged there, by whom
+
+
+def _zarr_format(path: Path) -> str | None:
+    """The ``format`` attribute in ``path/zarr.json`` (zarr v3 root group), or None."""
+    try:
+        meta = json.loads((path / "zarr.json").read_text(encoding="utf-8"))
+        value = meta.get("attributes", {}).get("format")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return value if isinstance(value, str) else None
+
+
+def _is_run_store(path: Path) -> bool:
+    return path.is_dir() and _zarr_format(path) == "ltc-run-store"
+
+
+def _is_ltc_store(path: Path) -> bool:
+    return path.is_dir() and _zarr_format(path) == "ltc-store"
+
+
+def _is_render_folder(path: Path) -> bool:
+    """``summary.json`` and ``render.zarr`` and nothing but ``camera_<i>`` folders beside them."""
+    if not path.is_dir() or not (path / "render.zarr" / "zarr.json").is_file():
+        return False
+    if not (path / "summary.json").is_file():
+        return False
+    return all(p.name in ("render.zarr", "summary.json")
+               or (p.name.startswith("camera_") and p.name[7:].isdigit() and p.is_dir())
+               for p in path.iterdir())
+
+
+def _is_lens_file(path: Path) -> bool:
+    """A ``.npz`` whose ``format`` entry is the measured-lens format (read without pickle)."""
+    try:
+        with zipfile.ZipFile(path) as z, z.open("format.npy") as f:
+            return b"ltc-fpp-measured-lens" in f.read(4096)
+    except (OSError, KeyError, zipfile.BadZipFile):
+        return False
+
+
+def _starts_with(signature: bytes) -> Callable[[Path], bool]:
+    def check(path: Path) -> bool:
+        try:
+            with open(path, "rb") as f:
+                return f.read(len(signature)) == signature
+        except OSError:
+            return False
+
+    return check
+
+
+def _is_check_folder(path: Path) -> bool:
+    """An ``ltc check`` folder: its contact sheet(s) and reports, nothing else."""
+    return path.is_dir() and all(p.is_file() and p.suffix in (".png", ".json")
+                                 and p.name.startswith("check") for p in path.iterdir())
+
+
+@dataclass(frozen=True)
+class OutputKind:
+    """What a command writes: a name for messages and how to recognise one that exists."""
+
+    name: str
+    recognise: Callable[[Path], bool]
+    folder: bool
+
+
+RUN_STORE = OutputKind("run store", _is_run_store, True)
+LTC_STORE = OutputKind("LTC store", _is_ltc_store, True)
+RENDER_FOLDER = OutputKind("render folder", _is_render_folder, True)
+LENS_FILE = OutputKind("lens file", _is_lens_file, False)
+PLY_FILE = OutputKind("PLY point cloud", _starts_with(b"ply"), False)
+PNG_FILE = OutputKind("PNG image", _starts_with(b"\x89PNG\r\n\x1a\n"), False)
+CHECK_FOLDER = OutputKind("ltc check folder", _is_check_folder, True)
+
+
+def _special(path: Path) -> str | None:
+    """What ``path`` is when it is neither a plain file nor a folder (None otherwise)."""
+    st = path.lstat()
+    if stat.S_ISLNK(st.st_mode):
+        return "a symbolic link"
+    if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode):
+        return "a device file"
+    if stat.S_ISFIFO(st.st_mode):
+        return "a FIFO"
+    if stat.S_ISSOCK(st.st_mode):
+        return "a socket"
+    if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
+        return "not a plain file or folder"
+    return None
+
+
+def _a(name: str) -> str:
+    return ("an " if name[0] in "aeiouAEIOLR" else "a ") + name
+
+
+def _within(inner: Path, outer: Path) -> bool:
+    return inner == outer or outer in inner.parents
+
+
+def check_output(path: str | os.PathLike, force: bool, option: str = "--out", *,
+                 kind: OutputKind | None = None, inputs: Iterable[str | os.PathLike] = (),
+                 parent_must_exist: bool = False) -> Path:
+    """``path`` as a Path once the output rules (module docstring) allow writing there.
+
+    kind : what the command writes; with ``force`` an existing path is replaced only when it
+        is one (None: any plain file, for commands that write one file of no fixed format).
+    inputs : the command's inputs; ``path`` may not be one, lie inside one or hold one.
+    parent_must_exist : refuse a path whose folder does not exist (rather than creating it).
+    Raises :class:`UsageError` naming ``option`` and the path.
+    """
+    path = Path(path)
+    where = f"{option} {path}"
+    target = path.resolve()
+    for item in inputs:
+        src = Path(item).resolve()
+        if _within(target, src) or _within(src, target):
+            rel = ("is" if target == src else "is inside" if _within(target, src) else "holds")
+            raise UsageError(f"{where} {rel} the command's input {item}; write the output "
+                             "somewhere else (nothing was changed)")
+    if parent_must_exist and not path.parent.resolve().is_dir():
+        raise UsageError(f"{where}: the folder {path.parent} does not exist; create it first or "
+                         "choose another path")
+    exists = path.exists() or path.is_symlink()
+    if not exists:
+        return path
+    if not force:
+        raise UsageError(f"{where} exists; pass --force to replace it, or choose another path")
+    special = _special(path)
+    what = kind.name if kind is not None else "plain file"
+    if special is not None:
+        raise UsageError(f"{where} is {special}; --force replaces only {_a(what)}, never this "
+                         "(nothing was changed); choose another path")
+    cwd = Path.cwd().resolve()
+    if _within(cwd, target):
+        raise UsageError(f"{where} is the working directory or a folder above it; --force "
+                         "never replaces it (nothing was changed); choose another path")
+    if kind is None:
+        ok = path.is_file()
+    else:
+        ok = kind.recognise(path)
+    if not ok:
+        has = "a folder" if path.is_dir() else "a file"
+        raise UsageError(f"{where} is {has} but not {_a(what)}; --force replaces only {_a(what)} "
+                         "(nothing was changed); remove it yourself or choose another path")
+    return path
+
+
+def staging_folder(path: Path) -> Path:
+    """The hidden sibling folder where a ``--force`` run writes the new ``path``."""
+    return path.with_name(f".{path.name}.force")
+
+
+def _clear_stale_staging(staging: Path) -> None:
+    """Remove a staging folder a killed ``--force`` run left (recognised by its marker)."""
+    if not (staging.exists() or staging.is_symlink()):
+        return
+    if _special(staging) is not None or not (staging / STAGING_MARKER).is_file():
+        raise UsageError(f"{staging} exists and is not a staging folder of ltc; remove it "
+                         "yourself (nothing was changed)")
+    shutil.rmtree(staging)
+
+
+_RENAME_EXCHANGE = 2
+
+
+def _exchange(a: Path, b: Path) -> None:
+    """Swap the names ``a`` and ``b`` atomically (Linux ``renameat2``); elsewhere two renames."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        renameat2 = None
+    if renameat2 is not None:
+        AT_FDCWD = -100
+        rc = renameat2(AT_FDCWD, os.fsencode(a), AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE)
+        if rc == 0:
+            return
+        err = ctypes.get_errno()
+        if err not in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP):
+            raise OSError(err, os.strerror(err), str(a), None, str(b))
+    tmp = a.with_name(a.name + ".old")
+    os.rename(b, tmp)
+    os.rename(a, b)
+    os.rename(tmp, a)
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def staged(path: str | os.PathLike, kind: OutputKind) -> Iterator[Path]:
+    """Yield where to write the output ``path``: ``path`` itself when nothing is there, else
+    ``.NAME.force/NAME`` beside it, exchanged with the old output when the block ends without
+    an error (the old one is then removed). An error or a kill inside the block leaves the old
+    output untouched; the staging folder of a killed run is removed by the next ``--force``.
+    Call :func:`check_output` first."""
+    path = Path(path)
+    staging = staging_folder(path)
+    if not (path.exists() or path.is_symlink()):
+        yield path
+        return
+    _clear_stale_staging(staging)
+    staging.mkdir()
+    (staging / STAGING_MARKER).write_text(json.dumps(
+        {"replaces": str(path), "kind": kind.name, "pid": os.getpid()}) + "\n")
+    new = staging / path.name
+    try:
+        yield new
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    if not (new.exists() or new.is_symlink()):
+        shutil.rmtree(staging, ignore_errors=True)
+        return
+    if kind.folder or path.is_dir():
+        _exchange(new, path)  # ``new`` now names the old output, inside the staging folder
+    else:
+        os.replace(new, path)
+    _fsync_dir(path.parent.resolve())
+    shutil.rmtree(staging, ignore_errors=True)
