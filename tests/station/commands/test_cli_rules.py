@@ -69,7 +69,6 @@ OUTPUTS = {
     "render": (["render", "{d}/scene.toml", "--out", "{o}"], "--force"),
     "scan": (["scan", "{d}/images", "--rig", "{d}/rig.yaml", "--out", "{o}"], "--force"),
     "measure": (["measure", "{d}/c.ply", "--against", "{d}/c2.ply", "--png", "{o}"], "--force"),
-    "check": (["check", "--fake", "--out", "{od}"], "--force"),
     "run": (["run", "{cfg}", "--out", "{od}"], "--out"),
     "experiment": (["experiment", "--out", "{od}"], "--out"),
     "demo": (["demo", "--out", "{od}"], "--out"),
