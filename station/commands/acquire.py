@@ -25,6 +25,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict:
+    from station.acquisition.backend import preflight
     from station.acquisition.lock import StoreLock
     from station.api import acquire, load_config
     from station.outputs import RUN_STORE, check_output, staged
@@ -33,6 +34,7 @@ def run(args: argparse.Namespace) -> dict:
         logging.basicConfig(level=logging.INFO, format="ltc acquire: %(levelname)s: %(message)s")
     args.resume_hint = (f"; finish with: ltc acquire {args.config} --out {args.out} --resume")
     config = load_config(args.config)
+    preflight(config, str(args.config))
     if args.out.exists() and not args.resume and not args.force:
         raise UsageError(f"--out {args.out} exists; pass --resume to finish that run, "
                          "--force to replace it with a new run, or choose another path")

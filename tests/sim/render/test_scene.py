@@ -121,7 +121,7 @@ def _write(path, text):
     (HEAD + LENSES + PATTERNS + '[[objects]]\nkind = "plane"\nsize_mm = [0.0, 5.0]\n', ValueError,
      r"scene.toml: objects\[0\] \(plane ''\): field 'size_mm' must be > 0"),
     (HEAD + '[[lenses]]\nkind = "fisheye"\n' + LENSES + PATTERNS + SPHERE, ValueError,
-     r"scene.toml: field 'lenses': Value error, lenses\[0\]: unknown lens kind 'fisheye'"),
+     r"scene.toml: field 'lenses': lenses\[0\]: unknown lens kind 'fisheye'"),
     (HEAD + '[[lenses]]\nkind = "thin"\nfocus_distance_mm = 700.0\n' + LENSES + PATTERNS + SPHERE, ValueError,
      r"scene.toml: field 'lenses'.*lenses\[0\]: field 'pupil_diameter_mm': Field required"),
     (HEAD + PINHOLE + '[[lenses]]\nkind = "measured"\npath = "lens.zarr"\n' + PATTERNS
@@ -137,7 +137,7 @@ def _write(path, text):
     (HEAD + LENSES + PATTERNS + '[[objects]]\nkind = "sphere"\ncolour = "red"\n', ValueError,
      r"scene.toml: field 'objects.0.sphere.colour': Extra inputs are not permitted"),
     (HEAD + LENSES + PATTERNS + '[[objects]]\nkind = "sphere"\npose = { R = [[1, 0, 0], [0, 1, 0], [0, 0, 2]] }\n',
-     ValueError, r"scene.toml: field 'objects.0.sphere.pose.R': Value error, R must be a proper rotation"),
+     ValueError, r"scene.toml: field 'objects.0.sphere.pose.R': R must be a proper rotation"),
     (HEAD + LENSES + '[patterns]\nkind = "phase_shift"\nperiods_px = [-4.0]\n' + SPHERE, ValueError,
      r"scene.toml: field 'patterns.phase_shift'.*periods_px must all be > 0"),
     (HEAD + LENSES + PATTERNS + SPHERE + '[render.camera]\nbit_depth = 10\n', ValueError,
