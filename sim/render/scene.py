@@ -269,7 +269,7 @@ class SceneFile(BaseModel):
     objects: list[SceneObject] = Field(min_length=1, description="scene objects")
     patterns: PatternSet = Field(description="the projected pattern set")
     render: RenderSettings = Field(default_factory=RenderSettings, description="projector and camera")
-    seed: int = Field(0, description="seed of the camera noise generator")
+    seed: int = Field(0, ge=0, description="seed of the camera noise generator (>= 0)")
 
     @field_validator("lenses", mode="before")
     @classmethod
@@ -388,6 +388,19 @@ class LoadedScene:
         }
 
 
+def _projector_size(raw: object, base: Path) -> tuple[int, int] | None:
+    """The rig's projector (width, height) when ``[patterns]`` gives ``fringes`` and the rig
+    file reads (a rig that does not is reported by the rig's own check)."""
+    patterns = raw.get("patterns") if isinstance(raw, dict) else None
+    if not (isinstance(patterns, dict) and "fringes" in patterns
+            and isinstance(raw.get("rig"), str)):
+        return None
+    try:
+        return tuple(Rig.load(_resolve(base, Path(raw["rig"]))).projector.size)
+    except (OSError, ValueError):
+        return None
+
+
 def load_scene_file(path: str | Path) -> LoadedScene:
     """Read a scene TOML file and everything it names; errors name the file and the field."""
     path = Path(path)
@@ -397,11 +410,11 @@ def load_scene_file(path: str | Path) -> LoadedScene:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path}: not valid TOML: {exc}") from exc
+    base = path.parent
     try:
-        cfg = SceneFile.model_validate(raw)
+        cfg = SceneFile.model_validate(raw, context={"projector_size": _projector_size(raw, base)})
     except ValidationError as exc:
         raise ValueError(format_validation_error(str(path), exc)) from exc
-    base = path.parent
     rig_path = _resolve(base, cfg.rig)
     try:
         rig = Rig.load(rig_path)
