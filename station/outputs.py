@@ -6,8 +6,8 @@ The one rule of every command with ``--out`` (and ``--force``):
 - ``--force`` replaces only an output of the same kind, recognised by its own marker (a run
   store's or an LTC store's ``format`` attribute, a render folder's ``summary.json`` beside
   ``render.zarr``, a lens file's ``format`` entry, a PLY header, a PNG signature);
-- it never replaces one of the command's own inputs, a path inside one, or a folder that holds
-  one; nor a device file, a FIFO, a socket, a symbolic link, the working directory or a
+- it never replaces one of the command's own inputs or a folder that holds one, and never
+  writes inside an input store (zarr); nor a device file, a FIFO, a socket, a symbolic link, the working directory or a
   folder above it;
 - it replaces by writing the new output beside the old one (in the hidden staging folder
   ``.NAME.force/``) and exchanging the two at the end, so a failed or killed ``--force`` run
@@ -125,6 +125,19 @@ def _special(path: Path) -> str | None:
     return None
 
 
+def _is_store_or_inside(target: Path, src: Path) -> bool:
+    """Whether the input folder ``src`` (or a folder of it above ``target``) is a zarr store,
+    into which no output may go (a new file beside an input in a plain folder may)."""
+    folder = target.parent
+    while _within(folder, src):
+        if (folder / "zarr.json").is_file():
+            return True
+        if folder == src:
+            break
+        folder = folder.parent
+    return False
+
+
 def _a(name: str) -> str:
     return ("an " if name[0] in "aeiouAEIOLR" else "a ") + name
 
@@ -140,7 +153,8 @@ def check_output(path: str | os.PathLike, force: bool, option: str = "--out", *,
 
     kind : what the command writes; with ``force`` an existing path is replaced only when it
         is one (None: any plain file, for commands that write one file of no fixed format).
-    inputs : the command's inputs; ``path`` may not be one, lie inside one or hold one.
+    inputs : the command's inputs; ``path`` may not be one, hold one or lie inside an input
+        store.
     parent_must_exist : refuse a path whose folder does not exist (rather than creating it).
     Raises :class:`UsageError` naming ``option`` and the path.
     """
@@ -149,8 +163,9 @@ def check_output(path: str | os.PathLike, force: bool, option: str = "--out", *,
     target = path.resolve()
     for item in inputs:
         src = Path(item).resolve()
-        if _within(target, src) or _within(src, target):
-            rel = ("is" if target == src else "is inside" if _within(target, src) else "holds")
+        in_store = _within(target, src) and _is_store_or_inside(target, src)
+        if target == src or in_store or _within(src, target):
+            rel = ("is" if target == src else "is inside" if in_store else "holds")
             raise UsageError(f"{where} {rel} the command's input {item}; write the output "
                              "somewhere else (nothing was changed)")
     if parent_must_exist and not path.parent.resolve().is_dir():
@@ -220,6 +235,16 @@ def _exchange(a: Path, b: Path) -> None:
     os.rename(tmp, a)
 
 
+def _name(exc: OSError, written: Path, path: Path) -> None:
+    """Make ``exc`` name the output ``path`` (written as ``written``) when it names no file (a
+    full disk seen by a library) or a file in the staging folder, which is gone."""
+    name = None if exc.filename is None else str(exc.filename)
+    if name is None or name == str(written) or name.startswith(f"{written}{os.sep}"):
+        exc.filename = str(path) + ("" if name is None else name[len(str(written)):])
+        if exc.strerror is None and exc.errno is not None:
+            exc.strerror = os.strerror(exc.errno)
+
+
 def _fsync_dir(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:
@@ -229,16 +254,22 @@ def _fsync_dir(path: Path) -> None:
 
 
 @contextlib.contextmanager
-def staged(path: str | os.PathLike, kind: OutputKind) -> Iterator[Path]:
-    """Yield where to write the output ``path``: ``path`` itself when nothing is there, else
-    ``.NAME.force/NAME`` beside it, exchanged with the old output when the block ends without
-    an error (the old one is then removed). An error or a kill inside the block leaves the old
-    output untouched; the staging folder of a killed run is removed by the next ``--force``.
-    Call :func:`check_output` first."""
+def staged(path: str | os.PathLike, kind: OutputKind, always: bool = False) -> Iterator[Path]:
+    """Yield where to write the output ``path``: ``path`` itself when nothing is there (unless
+    ``always``), else ``.NAME.force/NAME`` beside it, renamed into place (exchanged with the
+    old output, which is then removed) when the block ends without an error. An error or a
+    kill inside the block leaves the old output untouched (and, with ``always``, nothing at
+    ``path``: the command can simply run again); the staging folder of a killed run is
+    removed by the next run. An ``OSError`` naming no file is made to name ``path``. Call
+    :func:`check_output` first."""
     path = Path(path)
     staging = staging_folder(path)
-    if not (path.exists() or path.is_symlink()):
-        yield path
+    if not always and not (path.exists() or path.is_symlink()):
+        try:
+            yield path
+        except OSError as exc:
+            _name(exc, path, path)
+            raise
         return
     _clear_stale_staging(staging)
     staging.mkdir()
@@ -247,13 +278,15 @@ def staged(path: str | os.PathLike, kind: OutputKind) -> Iterator[Path]:
     new = staging / path.name
     try:
         yield new
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(staging, ignore_errors=True)
+        if isinstance(exc, OSError):
+            _name(exc, new, path)
         raise
     if not (new.exists() or new.is_symlink()):
         shutil.rmtree(staging, ignore_errors=True)
         return
-    if kind.folder or path.is_dir():
+    if (path.exists() or path.is_symlink()) and (kind.folder or path.is_dir()):
         _exchange(new, path)  # ``new`` now names the old output, inside the staging folder
     else:
         os.replace(new, path)

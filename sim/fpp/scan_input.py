@@ -51,6 +51,10 @@ def _read_image(f: Path) -> np.ndarray:
     return cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
 
 
+def _depth(im: np.ndarray) -> str:
+    return f"{8 * im.dtype.itemsize}-bit {'floats' if im.dtype.kind == 'f' else 'integers'}"
+
+
 def _read_stack(folder: Path) -> np.ndarray:
     files = sorted(f for f in folder.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
     if not files:
@@ -68,6 +72,11 @@ def _read_stack(folder: Path) -> np.ndarray:
             raise ScanInputError(
                 f"{f}: image is {im.shape[1]} x {im.shape[0]} pixels, {files[0].name} is "
                 f"{images[0].shape[1]} x {images[0].shape[0]}: all images of a camera must match"
+            )
+        if images and im.dtype != images[0].dtype:
+            raise ScanInputError(
+                f"{f}: image holds {_depth(im)}, {files[0].name} {_depth(images[0])}: all images "
+                "of a camera must have one bit depth"
             )
         images.append(im)
     return np.stack(images)

@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> dict:
     loaded = load_scene_file(args.scene)
     check_output(out, args.force, kind=RENDER_FOLDER, inputs=loaded.input_files())
     result = loaded.render(progress=not args.quiet)
-    with staged(out, RENDER_FOLDER) as target:
+    with staged(out, RENDER_FOLDER, always=True) as target:
         return loaded.save(result, target, radiance=args.radiance, final=out)
 
 

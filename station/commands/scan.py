@@ -27,7 +27,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--min-modulation", type=positive_float,
                    help="also drop pixels whose fringe amplitude is below this, image units "
                         "(default: only the relative threshold)")
-    p.add_argument("--min-modulation-fraction", type=positive_float, default=0.05,
+    p.add_argument("--min-modulation-fraction", type=_fraction, default=0.05,
                    help="drop pixels whose fringe amplitude is below this fraction of the "
                         "image's 99th percentile (default 0.05)")
     p.add_argument("--pixel-variance", type=float, metavar="PX2",
@@ -37,6 +37,17 @@ def arguments(p: argparse.ArgumentParser) -> None:
                         "pixel centres)")
     p.add_argument("--unwrap", choices=("auto", "hierarchical", "heterodyne"), default="auto",
                    help="temporal unwrapping of phase-shift sets (default auto)")
+
+
+def _fraction(text: str) -> float:
+    """An argparse type: a number in [0, 1) (argparse reports a bad value, exit 2)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0 <= value < 1:
+        raise argparse.ArgumentTypeError(f"must be a fraction in [0, 1), got {text}")
+    return value
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -49,7 +60,7 @@ def run(args: argparse.Namespace) -> dict:
     v = args.pixel_variance
     if v is not None and not 0 <= v < float("inf"):
         raise UsageError(f"--pixel-variance must be a finite number >= 0, got {v}")
-    with staged(out, PLY_FILE) as target:
+    with staged(out, PLY_FILE, always=True) as target:
         summary = scan_files(args.images, args.rig, target, patterns=args.patterns,
                              camera=args.camera, pixel_variance_px2=v,
                              min_modulation=args.min_modulation or 0.0,

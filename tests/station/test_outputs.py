@@ -192,3 +192,26 @@ def test_a_missing_parent_folder_is_refused_not_created(bench, capsys):
                      capsys)
     assert code == 2 and "the folder /nonexistent/dir does not exist" in err, err
     assert not Path("/nonexistent").exists()
+
+
+def test_a_full_disk_in_render_names_the_folder_and_leaves_nothing_to_refuse(tmp_path, capsys,
+                                                                           monkeypatch):
+    import errno
+
+    from sim.render.scene import LoadedScene
+
+    for name in ("sphere_scene.toml", "sphere_rig.yaml"):
+        shutil.copy(ROOT / "examples" / name, tmp_path / name)
+    out = tmp_path / "render"
+
+    def full_disk(self, result, target, radiance=False, final=None):
+        (target / "camera_0").mkdir(parents=True)
+        raise OSError(errno.ENOSPC, "No space left on device")  # as a library raises it
+
+    monkeypatch.setattr(LoadedScene, "render", lambda self, progress=False: None)
+    monkeypatch.setattr(LoadedScene, "save", full_disk)
+    code, err = call(["render", str(tmp_path / "sphere_scene.toml"), "--out", str(out)], capsys)
+    assert code == 1 and err == (f"ltc render: error: {out}: no space left on device; free some "
+                                 "space, then run the command again (with --resume where it "
+                                 "has one)\n"), err
+    assert not out.exists() and not staging_folder(out).exists()  # so running again works
