@@ -175,7 +175,7 @@ def check_output(path: str | os.PathLike, force: bool, option: str = "--out", *,
     if not exists:
         return path
     if not force:
-        raise UsageError(f"{where} exists; pass --force to replace it, or choose another path")
+        raise UsageError(f"{where} exists; pass --force to overwrite it, or choose another path")
     special = _special(path)
     what = kind.name if kind is not None else "plain file"
     if special is not None:
