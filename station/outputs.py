@@ -238,6 +238,8 @@ def _exchange(a: Path, b: Path) -> None:
 def _name(exc: OSError, written: Path, path: Path) -> None:
     """Make ``exc`` name the output ``path`` (written as ``written``) when it names no file (a
     full disk seen by a library) or a file in the staging folder, which is gone."""
+    if exc.errno is None:  # an error built from a message alone names what it means
+        return
     name = None if exc.filename is None else str(exc.filename)
     if name is None or name == str(written) or name.startswith(f"{written}{os.sep}"):
         exc.filename = str(path) + ("" if name is None else name[len(str(written)):])
