@@ -7,8 +7,8 @@ The one rule of every command with ``--out`` (and ``--force``):
   store's or an LTC store's ``format`` attribute, a render folder's ``summary.json`` beside
   ``render.zarr``, a lens file's ``format`` entry, a PLY header, a PNG signature);
 - it never replaces one of the command's own inputs or a folder that holds one, and never
-  writes inside an input store (zarr); nor a device file, a FIFO, a socket, a symbolic link, the working directory or a
-  folder above it;
+  writes inside an input store (zarr); nor a device file, a FIFO, a socket, a symbolic link,
+  the working directory or a folder above it;
 - it replaces by writing the new output beside the old one (in the hidden staging folder
   ``.NAME.force/``) and exchanging the two at the end, so a failed or killed ``--force`` run
   leaves the old output as it was (:func:`staged`).

@@ -74,7 +74,7 @@ class FakeZaberPty:
             self._thread.join(timeout=2.0)
         self._close_fds()
 
-    def __enter__(self) -> "FakeZaberPty":
+    def __enter__(self) -> FakeZaberPty:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -13,9 +13,9 @@ import logging
 from station.errors import UsageError
 
 OPTIONS = {"config": None, "out": "run store to create (RUN.zarr)",
-           "force": "replace the run store in --out with a new run (the old one stays until the new "
-                    "one is complete; only a run store is replaced); with --resume, take over the "
-                    "writer lock left by a killed run (never a live writer's)",
+           "force": "replace the run store in --out with a new run (the old one stays until the "
+                    "new one is complete; only a run store is replaced); with --resume, take "
+                    "over the writer lock left by a killed run (never a live writer's)",
            "json": None, "quiet": None}
 
 

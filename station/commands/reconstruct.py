@@ -14,7 +14,8 @@ from pathlib import Path
 from station.commands import at_least
 from station.errors import UsageError
 
-OPTIONS = {"out": "LTC store to create (LTC.zarr)", "force": "replace the LTC store in --out (the old one stays until the new one is "
+OPTIONS = {"out": "LTC store to create (LTC.zarr)",
+           "force": "replace the LTC store in --out (the old one stays until the new one is "
                     "complete; only an LTC store is replaced)",
            "json": None, "quiet": None, "workers": None, "dask": None,
            "scheduler": "compute on an existing Dask cluster (e.g. tcp://host:8786); the stores "

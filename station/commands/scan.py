@@ -15,7 +15,6 @@ from station.commands import positive_float
 from station.errors import UsageError
 from station.outputs import check_output
 
-
 OPTIONS = {"out": "point cloud to write (PLY)", "force": None, "json": None}
 
 
