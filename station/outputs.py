@@ -273,6 +273,11 @@ def staged(path: str | os.PathLike, kind: OutputKind, always: bool = False) -> I
             _name(exc, path, path)
             raise
         return
+    if kind.folder and (path / "writer.lock").exists():
+        from station.acquisition.lock import StoreLock  # the store's own writer lock
+
+        with StoreLock(path, force=True):  # refuses an output a live writer holds
+            pass
     _clear_stale_staging(staging)
     staging.mkdir()
     (staging / STAGING_MARKER).write_text(json.dumps(

@@ -26,7 +26,6 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     from station.acquisition.backend import preflight
-    from station.acquisition.lock import StoreLock
     from station.api import acquire, load_config
     from station.outputs import RUN_STORE, check_output, staged
 
@@ -44,9 +43,7 @@ def run(args: argparse.Namespace) -> dict:
         return {**summary, "out": str(args.out)}
     out = check_output(args.out, args.force, kind=RUN_STORE, inputs=[args.config],
                        parent_must_exist=True)
-    if out.exists():
-        with StoreLock(out, force=True):  # refuses a store a live writer holds
-            pass
+    if out.exists():  # staged() refuses a store a live writer holds
         args.resume_hint = (f"; the old run store {out} is unchanged; start again with: "
                             f"ltc acquire {args.config} --out {out} --force")
     with staged(out, RUN_STORE) as target:

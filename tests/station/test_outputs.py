@@ -215,3 +215,16 @@ def test_a_full_disk_in_render_names_the_folder_and_leaves_nothing_to_refuse(tmp
                                  "space, then run the command again (with --resume where it "
                                  "has one)\n"), err
     assert not out.exists() and not staging_folder(out).exists()  # so running again works
+
+
+def test_force_refuses_a_store_a_live_writer_holds(bench, tmp_path, capsys):
+    from station.acquisition.lock import StoreLock
+
+    old = tmp_path / "run.zarr"
+    shutil.copytree(bench / "run.zarr", old)
+    before = arrays(old)
+    with StoreLock(old):  # a live writer: this process
+        code, err = call(["acquire", str(bench / "fake.toml"), "--out", str(old), "--force",
+                          "--quiet"], capsys)
+    assert code == 1 and f"PID {os.getpid()}" in err and err.count("\n") == 1, err
+    assert arrays(old) == before and not staging_folder(old).exists()
