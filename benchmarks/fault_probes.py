@@ -114,15 +114,20 @@ def alive(pid: int) -> bool:
 
 
 def descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (from each process's parent in /proc)."""
+    parent = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                parent[int(d.name)] = int((d / "stat").read_bytes().rsplit(b")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
     out, todo = [], [pid]
     while todo:
         p = todo.pop()
-        try:
-            kids = Path(f"/proc/{p}/task/{p}/children").read_text().split()
-        except OSError:
-            kids = []
-        out += [int(k) for k in kids]
-        todo += [int(k) for k in kids]
+        kids = [c for c, pp in parent.items() if pp == p]
+        out += kids
+        todo += kids
     return out
 
 
@@ -498,8 +503,11 @@ def _(b: Bench) -> Outcome:
 def _(b: Bench) -> Outcome:
     scene = b.scene("textlens")
     (scene.parent / "lens.npz").write_text("focus 250 mm\n")
-    text = scene.read_text().replace('kind = "thin"', 'kind = "measured"\npath = "lens.npz"', 1)
-    scene.write_text(text)
+    text = scene.read_text()
+    first = text.index("[[lenses]]")
+    second = text.index("[[lenses]]", first + 1)
+    scene.write_text(text[:first] + '[[lenses]]\nkind = "measured"\npath = "lens.npz"\n\n'
+                     + text[second:])
     o = Outcome("", "ltc render scene.toml (a measured lens that is a text file)",
                 "exit 1 naming the file, no pickle")
     fill(o, ltc("render", scene, "--out", b.root / "textlens_out", "--quiet"))

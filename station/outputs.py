@@ -107,6 +107,23 @@ LENS_FILE = OutputKind("lens file", _is_lens_file, False)
 PLY_FILE = OutputKind("PLY point cloud", _starts_with(b"ply"), False)
 PNG_FILE = OutputKind("PNG image", _starts_with(b"\x89PNG\r\n\x1a\n"), False)
 CHECK_FOLDER = OutputKind("ltc check folder", _is_check_folder, True)
+def _is_lut(path: Path) -> bool:
+    """A display LUT as ``ltc gamma`` writes it: ``.npy``, or text of one integer per line."""
+    if _starts_with(b"\x93NUMPY")(path):
+        return True
+    try:
+        if path.stat().st_size > 1 << 16:
+            return False
+        lines = path.read_text(encoding="ascii").split()
+    except (OSError, UnicodeDecodeError):
+        return False
+    return bool(lines) and all(v.isdigit() for v in lines)
+
+
+LUT_FILE = OutputKind("display LUT file", _is_lut, False)
+FIGURES_FOLDER = OutputKind("figures folder (PNG files only)",
+                            lambda p: p.is_dir() and all(q.is_file() and q.suffix == ".png"
+                                                         for q in p.iterdir()), True)
 
 
 def _special(path: Path) -> str | None:
@@ -253,6 +270,17 @@ def _fsync_dir(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+@contextlib.contextmanager
+def naming(path: str | os.PathLike) -> Iterator[None]:
+    """An ``OSError`` raised inside that names no file (a full disk seen by a library) is
+    made to name the output ``path``."""
+    try:
+        yield
+    except OSError as exc:
+        _name(exc, Path(path), Path(path))
+        raise
 
 
 @contextlib.contextmanager
