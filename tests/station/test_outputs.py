@@ -22,6 +22,8 @@ from station.outputs import RUN_STORE, check_output, staged, staging_folder
 
 ROOT = Path(__file__).resolve().parents[2]
 
+pytestmark = pytest.mark.slow  # the module's fake run store takes about 10 s to acquire
+
 
 def small_text() -> str:
     """The fake example cut to two depths, P = 4, coarse LTC: a run of a few seconds."""

@@ -3,6 +3,8 @@
 import json
 from pathlib import Path
 
+import pytest
+
 from station.cli import main
 from station.acquisition.config import example_text
 
@@ -46,6 +48,7 @@ def test_check_needs_config_or_fake(capsys, tmp_path):
     assert "cannot read config" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_check_runs_again_in_the_same_folder_and_reports_the_white_level(tmp_path, capsys):
     """The exposure-tuning loop: a second run in the same --out needs no --force and keeps the
     first contact sheet; the white level scales with the light the fake camera gets."""
