@@ -131,9 +131,9 @@ def descendants(pid: int) -> list[int]:
     return out
 
 
-def wait_for_workers(p: subprocess.Popen, count: int = 4, timeout: float = 60) -> list[int]:
+def wait_for_workers(p: subprocess.Popen, count: int = 3, timeout: float = 60) -> list[int]:
     """The process tree below ``p`` once it has ``count`` processes (the resource tracker, the
-    forkserver and the workers), or whatever it has after ``timeout`` seconds."""
+    forkserver and a worker at least), or whatever it has after ``timeout`` seconds."""
     deadline = time.monotonic() + timeout
     kids = descendants(p.pid)
     while len(kids) < count and p.poll() is None and time.monotonic() < deadline:
