@@ -20,9 +20,10 @@ from pydantic import (
 from drivers.frame_code import FrameCodeLayout, frame_code_rect
 from sim.render.fringe_patterns import Modulation
 from sim.validation import field_path
+from station.errors import StationError
 
 
-class ConfigError(ValueError):
+class ConfigError(StationError, ValueError):
     """A config file is missing, unreadable or invalid; the message names file and field."""
 
 
