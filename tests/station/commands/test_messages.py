@@ -54,8 +54,8 @@ def test_a_text_file_given_as_a_lens_is_not_called_pickled(tmp_path, capsys):
     notes.write_text("focus 250 mm, f/2.4\n")
     with pytest.raises(LensFileError) as info:
         load_lens(notes)
-    assert str(info.value) == (f"{notes}: not a measured-lens file (a .npz archive as `ltc "
-                               "lens` writes it)")
+    assert str(info.value) == (f"{notes}: not a readable measured-lens file: not a .npz "
+                               "archive as `ltc lens` writes it")
     assert "pickle" not in str(info.value)
 
 
