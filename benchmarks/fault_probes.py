@@ -131,6 +131,13 @@ def descendants(pid: int) -> list[int]:
     return out
 
 
+def until(condition: Callable[[], bool], p: subprocess.Popen, timeout: float = 60) -> None:
+    """Poll ``condition`` every 5 ms until it holds, ``p`` ends or ``timeout`` s pass."""
+    deadline = time.monotonic() + timeout
+    while not condition() and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+
+
 def wait_for_workers(p: subprocess.Popen, count: int = 3, timeout: float = 60) -> list[int]:
     """The process tree below ``p`` once it has ``count`` processes (the resource tracker, the
     forkserver and a worker at least), or whatever it has after ``timeout`` seconds."""
@@ -264,10 +271,10 @@ def _(b: Bench) -> Outcome:
 def _(b: Bench) -> Outcome:
     old = b.copy(b.ltc, "old_ltc.zarr")
     before = digest(old)
-    o = Outcome("", "ltc reconstruct big.zarr --out old_ltc.zarr --force; SIGKILL after 3 s",
-                "old store intact")
+    o = Outcome("", "ltc reconstruct big.zarr --out old_ltc.zarr --force; SIGKILL once the "
+                "new store exists", "old store intact")
     p = spawn("reconstruct", b.big, "--out", old, "--force", "--quiet", "--workers", "1")
-    time.sleep(3)
+    until(lambda: (b.root / ".old_ltc.zarr.force" / "old_ltc.zarr" / "zarr.json").exists(), p)
     p.send_signal(signal.SIGKILL)
     _, err = p.communicate()
     fill(o, Run(p.returncode, "", err))
@@ -314,7 +321,7 @@ def _(b: Bench) -> Outcome:
     o = Outcome("", "ltc reconstruct big.zarr --out X & ; ltc reconstruct big.zarr --out X "
                 "--force", "one wins, the other refused naming the holder")
     first = spawn("reconstruct", b.big, "--out", out, "--quiet", "--workers", "1")
-    time.sleep(2.5)
+    until(lambda: (out / "zarr.json").exists(), first)
     second = ltc("reconstruct", b.big, "--out", out, "--force", "--quiet", "--workers", "1")
     _, err1 = first.communicate()
     fill(o, second)
