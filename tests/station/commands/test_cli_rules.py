@@ -71,7 +71,6 @@ OUTPUTS = {
     "dataset": (["dataset", "{cfg}", "--out", "{od}", "--samples", "1"], "--force"),
     "scan": (["scan", "{d}/images", "--rig", "{d}/rig.yaml", "--out", "{o}"], "--force"),
     "measure": (["measure", "{d}/c.ply", "--against", "{d}/c2.ply", "--png", "{o}"], "--force"),
-    "check": (["check", "--fake", "--out", "{od}"], "--force"),
     "run": (["run", "{cfg}", "--out", "{od}"], "--out"),
     "experiment": (["experiment", "--out", "{od}"], "--out"),
     "demo": (["demo", "--out", "{od}"], "--out"),
