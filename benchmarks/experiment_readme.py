@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 from station.experiment.report import tables
+from station.experiment.rows import PositionRow
 
 README = Path(__file__).resolve().with_name("README.md")
 
@@ -52,7 +53,7 @@ def section(res: dict, command: str) -> str:
         f"{'yes' if acc['gaussian_worse_at_large'] else 'no at ' + ', '.join(acc['gaussian_not_worse'])}.",
         "- Render time against the pinhole (same positions): " + ", ".join(
             f"{k} {v:.1f} x" for k, v in rt.items()) + ".", ""]
-    lines += tables(res["rows"])
+    lines += tables([PositionRow.from_json(r) for r in res["rows"]])
     return "\n".join(lines) + "\n"
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 from sim._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
-    "scanner": "Scanner",
+    "scanner": "Scanner SphereMeasurement BallBarMeasurement DistanceMeasurement",
     "optics.rig": "Rig DeviceCalibration",
     "optics.lens": "PinholeLens GaussianLens AberratedLens LensModel",
     "optics.measured_lens": "MeasuredLens load_lens save_lens gaussian_equivalent",

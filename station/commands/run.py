@@ -23,7 +23,7 @@ def run(args: argparse.Namespace) -> dict:
 
     args.resume_hint = f"; continue with: ltc run {args.config} --out {args.out}"
     summary = run_sequence(args.config, args.out, progress=not args.quiet, force=args.force)
-    return {**summary, "out": str(args.out)}
+    return {**summary.to_json(), "out": str(args.out)}
 
 
 def text(s: dict) -> str:

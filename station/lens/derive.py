@@ -42,7 +42,8 @@ from station.lens.jobs import (EXTENT_PERCENTILE, GRID_MARGIN, GRID_PIXELS, MIN_
                                tile_shape)
 from station.lens.rayfit import (aim_offsets, local_plane_fit, local_ray_centres,
                                  local_ray_slopes, sample_moment)
-from station.lens.result import RESIDUAL_PIXELS, LensResult, _residual_stats, node_positions
+from station.lens.result import (RESIDUAL_PIXELS, LensResult, LensSummary, _residual_stats,
+                                 node_positions)
 from station.lens.zones import fit_focus_zones
 from station.lens.zoned import CENTRE_PIXELS, MISS_TERMS, shift_zones, zoned_centre
 from station.ltc.parallel import Engine, run_ordered
@@ -50,7 +51,8 @@ from station.ltc.store import LtcVolume
 
 __all__ = [
     "CENTRE_PIXELS", "EXTENT_PERCENTILE", "GRID_MARGIN", "GRID_PIXELS", "MIN_COVERAGE",
-    "MISS_TERMS", "RESIDUAL_PIXELS", "ApertureJob", "ApertureSet", "LensResult", "aim_offsets",
+    "MISS_TERMS", "RESIDUAL_PIXELS", "ApertureJob", "ApertureSet", "LensResult", "LensSummary",
+    "aim_offsets",
     "aperture_block", "aperture_grid", "aperture_job", "aperture_set", "derive_lens",
     "local_plane_fit", "local_ray_centres", "local_ray_slopes", "node_positions",
     "pixel_inputs", "sample_moment", "shift_zones", "tile_groups", "tile_shape",
@@ -201,11 +203,11 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
                               parts["weight"].reshape(len(pix), -1).sum(axis=1) > 0,
                               parts["mean"].reshape(-1, 2), parts["cov"].reshape(-1, 2, 2))
             result = LensResult(cfg, geom, grid, nu, nv, aps, lens, int(bad.sum()))
-            meta["summary_at_fit"] = result.summary()
+            meta["summary_at_fit"] = result.summary().to_json()
             return result
         result = LensResult(cfg, geom, grid, nu, nv, None, None, int(bad.sum()),
                             lens_path=Path(out))
-        meta["summary_at_fit"] = result.summary()
+        meta["summary_at_fit"] = result.summary().to_json()
         writer.close(**fields_)
         writer = None
         return result

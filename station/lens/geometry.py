@@ -21,7 +21,7 @@ point.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -42,14 +42,18 @@ class LensFitError(ValueError):
 
 
 class LensFitConfig(BaseModel):
-    """Options of the lens derivation."""
+    """Options of the lens derivation. The defaults are the recommended settings (K = 256
+    samples on nodes every 4 px, a 64-cell aperture grid, the samples drawn from the deblurred
+    and support-cut aperture distribution, a focus per pupil zone and each node's aim offset:
+    docs/decisions/0025-recommended-lens-settings.md); ``LensFitConfig.basic()`` is the plain
+    derivation without the refinements."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    samples: int = Field(32, ge=1, le=4096, description="aperture samples K per node")
-    grid_step: int = Field(1, ge=1, description="node spacing, camera pixels (1: every pixel)")
+    samples: int = Field(256, ge=1, le=4096, description="aperture samples K per node")
+    grid_step: int = Field(4, ge=1, description="node spacing, camera pixels (1: every pixel)")
     interpolation: Literal["nearest", "bilinear"] = Field(
         "bilinear", description="how the simulator reads samples between nodes")
-    aperture_cells: int = Field(32, ge=8, le=256, description="aperture grid cells per side")
+    aperture_cells: int = Field(64, ge=8, le=256, description="aperture grid cells per side")
     supersample: int = Field(2, ge=1, le=8, description="sub-samples per cell and axis")
     focus_distance_mm: float | None = Field(
         None, gt=0, description="configured focus distance from the optical centre, mm; "
@@ -67,27 +71,22 @@ class LensFitConfig(BaseModel):
                                "own ray)")
     deblur: bool = Field(True, description="remove the known LCD-pixel and camera-pixel box "
                          "variances from the samples' second moments")
-    deconvolve_iterations: int = Field(0, ge=0, le=1000, description="Richardson-Lucy "
+    deconvolve_iterations: int = Field(20, ge=0, le=1000, description="Richardson-Lucy "
                                        "steps removing the known LCD-pixel and camera-pixel "
                                        "blur from the fused aperture distribution before the "
-                                       "samples are drawn (aperture.deblur; 20 measured best, "
-                                       "about 0.5 ms per node); 0: off (the experiment sets "
-                                       "it: benchmarks/README.md)")
-    support_floor: float = Field(0.0, ge=0, lt=1, description="before the samples are "
+                                       "samples are drawn (aperture.deblur; about 0.5 ms per "
+                                       "node); 0: off")
+    support_floor: float = Field(0.1, ge=0, lt=1, description="before the samples are "
                                  "drawn, the fused aperture distribution is cut to its main "
                                  "body: the connected cells above this fraction of its largest "
-                                 "cell (aperture.support_floor; 0.1 measured); 0: only "
-                                 "negative noise cut (off, as deconvolve_iterations; the "
-                                 "experiment sets 0.1)")
-    focus_zones: bool = Field(False, description="fit a focus distance per pupil zone "
+                                 "cell (aperture.support_floor); 0: only negative noise cut")
+    focus_zones: bool = Field(True, description="fit a focus distance per pupil zone "
                               "(spherical aberration) from the LTCs at the optical centre, "
                               "map every LTC onto the aperture plane through it, refit the "
                               "optical centre with the zones' misses of the pinhole points "
                               "removed, and store it as the lens file's focus_zones_mm "
-                              "(needs K; the experiment sets it). Off by default: the lens "
-                              "step takes 1.5x as long at the paper's size, 2.3x on the demo "
-                              "(benchmarks/README.md)")
-    aim_offset_sigma_px: float = Field(0.0, ge=0, description="give each node the aim "
+                              "(needs K; without K: one focus)")
+    aim_offset_sigma_px: float = Field(8.0, ge=0, description="give each node the aim "
                                        "offset (the lens file's aim_offset) that makes its "
                                        "principal ray's slope the station's measured one "
                                        "(local-plane fits over ray_window_px), smoothed over "
@@ -95,12 +94,21 @@ class LensFitConfig(BaseModel):
                                        "mean over the sensor (a uniform offset is the camera "
                                        "matrix's, not the lens's); needs K; 0: off (every "
                                        "principal ray passes its pixel's pinhole point at the "
-                                       "focus plane; benchmarks/README.md)")
+                                       "focus plane)")
     pixel_samples: int = Field(0, ge=0, le=16, description="how a camera pixel integrates "
                                "its footprint on the LCD in the focus-zone fit: 0 a box (a "
                                "real camera), n an n x n grid of points (a simulated camera "
                                "rendered with n x n subpixels)")
     nodes_per_chunk: int = Field(256, ge=1, description="node pixels processed together")
+
+    @classmethod
+    def basic(cls, **fields: Any) -> LensFitConfig:
+        """The plain derivation (K = 32 samples at every pixel, a 32-cell aperture grid, no
+        deconvolution or support cut, one focus, no aim offsets) with ``fields`` on top."""
+        plain: dict[str, Any] = {"samples": 32, "grid_step": 1, "aperture_cells": 32,
+                                 "deconvolve_iterations": 0, "support_floor": 0.0,
+                                 "focus_zones": False, "aim_offset_sigma_px": 0.0}
+        return cls(**{**plain, **fields})
 
 
 @dataclass(frozen=True)

@@ -40,8 +40,9 @@ def test_lens_json_figures_and_file(tmp_path, store, bench, capsys):
                  "--grid-step", "2"]) == 0
     report = json.loads(capsys.readouterr().out)
     lens = load_lens(out)
-    assert report["out"] == str(out) and report["samples"] == 32 == lens.samples
-    assert report["nodes"] == [16, 21] and lens.weights.shape == (16, 21, 32)
+    # the recommended settings by default (LensFitConfig): K = 256
+    assert report["out"] == str(out) and report["samples"] == 256 == lens.samples
+    assert report["nodes"] == [16, 21] and lens.weights.shape == (16, 21, 256)
     np.testing.assert_array_equal(lens.camera_matrix, bench.K)
     np.testing.assert_allclose(report["optical_centre_mm"], lens.optical_centre_mm)
     assert np.linalg.norm(lens.optical_centre_mm - bench.optical_centre_station_mm()) < 0.5
@@ -58,7 +59,7 @@ def test_lens_json_figures_and_file(tmp_path, store, bench, capsys):
 def test_lens_options_and_text_report(tmp_path, store, capsys):
     out = tmp_path / "lens.npz"
     rc = main(["lens", str(store), "--out", str(out), "--samples", "12", "--grid-step", "10",
-               "--interpolation", "nearest", "--focus-mm", "250"])
+               "--interpolation", "nearest", "--focus-mm", "250", "--basic"])
     text = capsys.readouterr().out
     assert rc == 0
     lens = load_lens(out)
@@ -66,7 +67,7 @@ def test_lens_options_and_text_report(tmp_path, store, capsys):
     np.testing.assert_array_equal(lens.node_u, [0, 10, 20, 30, 39])
     np.testing.assert_array_equal(lens.node_v, [0, 10, 20, 29])
     assert lens.focus_distance_mm == pytest.approx(250.0)
-    assert "optical centre" in text and "configured 250.0" in text
+    assert "optical centre" in text and "configured 250.000 mm" in text
     assert "focus distance: configured 250.000 mm (used), fitted" in text
 
 
