@@ -20,8 +20,8 @@ from the LTC store, and nothing before it is redone (``config.toml`` takes the n
 
 from __future__ import annotations
 
-import datetime as _dt
 import contextlib
+import datetime as _dt
 import json
 import logging
 import os

@@ -25,8 +25,8 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from station.experiment.demo import demo_config, run_demo
     from station.experiment.config import load_experiment_config
+    from station.experiment.demo import demo_config, run_demo
 
     config = demo_config() if args.config is None else load_experiment_config(args.config)
     return report(run_demo(args.out, config=config, progress=not args.quiet, log=log(args)),

@@ -54,8 +54,8 @@ def log(args: argparse.Namespace) -> Callable[[str], None]:
 def report(results: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
     """What the command prints: the report's path, every position, the verdicts, timings;
     for the text table also the positions' rows (``PositionRow``, not in the JSON)."""
-    out = {k: results[k] for k in ("report", "positions", "acceptance", "seconds")
-           if k in results}
+    keys = ("report", "positions", "acceptance", "seconds")
+    out: dict[str, Any] = {k: results[k] for k in keys if k in results}
     if not args.json:
         out["rows"] = results["rows"]
     return out

@@ -17,7 +17,6 @@ from pathlib import Path
 from station.commands import at_least
 from station.errors import check_output
 
-
 OPTIONS = {"out": "lens model file to write (.npz)", "force": None, "json": None, "quiet": None,
            "workers": None, "dask": None,
            "scheduler": "compute on an existing Dask cluster (e.g. tcp://host:8786); the LTC "

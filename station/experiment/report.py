@@ -13,8 +13,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from station.experiment.acceptance import size_vs_real_um
-from station.experiment.config import (BALLBAR_LENGTH_MM, MODELS, SPHERE_DIAMETER_MM, VIRTUAL,
-                                       ExperimentConfig)
+from station.experiment.config import (
+    BALLBAR_LENGTH_MM,
+    MODELS,
+    SPHERE_DIAMETER_MM,
+    VIRTUAL,
+    ExperimentConfig,
+)
 from station.experiment.rows import PositionRow
 from station.experiment.scan import Maps
 

@@ -42,21 +42,58 @@ from typing import Any
 from station.acquisition.lock import StoreLock
 from station.errors import StationError
 from station.experiment.acceptance import acceptance, position_line, public_row, size_vs_real_um
-from station.experiment.bench import (RENDER, build_rig, lcd_size, measure_cameras, scanner_lenses,
-                                      station_config, truth_lens)
-from station.experiment.config import (BALLBAR_BALL_MM, BALLBAR_LENGTH_MM, BENCH_SUBPIXELS,
-                                       FOCAL_MM, MIN_BALL_COVERAGE, MODELS,
-                                       REFERENCE_PITCH_UM, SHELL_MM, SPHERE_DIAMETER_MM,
-                                       VIRTUAL, ExperimentConfig, LensSpec, Log,
-                                       load_experiment_config, paper_size_config)
-from station.experiment.objects import (Position, cad_part_mesh, check_views, positions,
-                                        scene_of, view_extents_px)
-from station.experiment.resume import (POSITIONS, check_lenses, image_position, load_position,
-                                       save_position, start_or_resume)
+from station.experiment.bench import (
+    RENDER,
+    build_rig,
+    lcd_size,
+    measure_cameras,
+    scanner_lenses,
+    station_config,
+    truth_lens,
+)
+from station.experiment.config import (
+    BALLBAR_BALL_MM,
+    BALLBAR_LENGTH_MM,
+    BENCH_SUBPIXELS,
+    FOCAL_MM,
+    MIN_BALL_COVERAGE,
+    MODELS,
+    REFERENCE_PITCH_UM,
+    SHELL_MM,
+    SPHERE_DIAMETER_MM,
+    VIRTUAL,
+    ExperimentConfig,
+    LensSpec,
+    Log,
+    load_experiment_config,
+    paper_size_config,
+)
+from station.experiment.objects import (
+    Position,
+    cad_part_mesh,
+    check_views,
+    positions,
+    scene_of,
+    view_extents_px,
+)
+from station.experiment.resume import (
+    POSITIONS,
+    check_lenses,
+    image_position,
+    load_position,
+    save_position,
+    start_or_resume,
+)
 from station.experiment.rows import ModelNumbers, PositionRow
 from station.experiment.scan import Maps, Scan, compare_position, scan_position, world_cad_mesh
-from station.experiment.sizes import (SizeFit, check_coverage, on_ball, shared_size_mm,
-                                      size_error_mm, size_fit)
+from station.experiment.sizes import (
+    SizeFit,
+    check_coverage,
+    on_ball,
+    shared_size_mm,
+    size_error_mm,
+    size_fit,
+)
 from station.sequence import durable_file, write_json
 
 __all__ = [

@@ -10,8 +10,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from station.errors import StationError
-from station.experiment.config import (BALLBAR_LENGTH_MM, MIN_BALL_COVERAGE, MODELS, SHELL_MM,
-                                       SPHERE_DIAMETER_MM)
+from station.experiment.config import (
+    BALLBAR_LENGTH_MM,
+    MIN_BALL_COVERAGE,
+    MODELS,
+    SHELL_MM,
+    SPHERE_DIAMETER_MM,
+)
 from station.experiment.objects import Position
 
 if TYPE_CHECKING:

@@ -21,7 +21,7 @@ point.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -31,6 +31,9 @@ from station.lens.centre import OpticalCentre, intersect_rays, pinhole_centre
 from station.lens.centroids import STATUS_OK, Centroids
 from station.lens.rays import PrincipalRays, RayFitError, fit_principal_rays
 from station.ltc.store import LtcVolume
+
+if TYPE_CHECKING:
+    from station.ltc.parallel import Engine
 
 LCD_BIN_VAR = 1.0 / 12.0  # variance of an LCD pixel box, pitch^2
 TRACE_REL_FLOOR = 0.01  # relative error floor of an LTC second moment in the focus fit
@@ -147,6 +150,8 @@ def fit_focus_plane(c: Centroids, usable: np.ndarray, centre_z_mm: float,
     z0 = float(np.mean(c.depths_mm))
     dz = (c.depths_mm - z0)[:, None]
     span = np.ptp(c.depths_mm)
+    if c.trace_std_px2 is None:
+        raise ValueError("fit_focus_plane: centroids without trace_std_px2")
     mom = c.moments_px2.reshape(d, -1, 3)
     tstd = c.trace_std_px2.reshape(d, -1)
     status = c.status.reshape(d, -1)
@@ -213,6 +218,13 @@ class LensGeometry:
     def focus_distance_mm(self) -> float:
         return float(self.focus_plane_z_mm - self.centre.position[2])
 
+    def known_camera_matrix(self) -> np.ndarray:
+        """The camera matrix K (3, 3) px; a step that needs it refuses a geometry without."""
+        if self.camera_matrix is None:
+            raise LensFitError("this step needs the camera matrix K (store attribute "
+                               "camera_matrix, or --rig)")
+        return self.camera_matrix
+
 
 def _focus_plane(fit: FocusFit | None, z_f_config: float | None, centre_z: float,
                  name: str) -> tuple[float, float]:
@@ -226,7 +238,7 @@ def _focus_plane(fit: FocusFit | None, z_f_config: float | None, centre_z: float
 
 
 def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = False,
-                       engine=None) -> tuple[Centroids, PrincipalRays]:
+                       engine: Engine | None = None) -> tuple[Centroids, PrincipalRays]:
     """The centroid pass (``centroid_rows`` per depth of each stored chunk, on ``engine``)
     with each chunk's principal rays fitted as soon as all its depths have arrived (from
     the float64 centroids and their stds, which are then dropped): the geometry holds
@@ -244,7 +256,7 @@ def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = F
     rows = volume.chunk_rows
     cols = int(chunks[2]) if chunks else w
     f4 = np.float32
-    out = {"mom": np.full((d, h, w, 3), np.nan, f4), "tstd": np.full((d, h, w), np.nan, f4),
+    out: dict[str, np.ndarray] = {"mom": np.full((d, h, w, 3), np.nan, f4), "tstd": np.full((d, h, w), np.nan, f4),
            "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
     rays = PrincipalRays.empty(d, w * h)
     z = volume.depths_mm.reshape(d, 1, 1)
@@ -254,7 +266,7 @@ def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = F
                disable=None if progress else True)
     waiting: dict[tuple[int, int], dict[int, dict]] = {}
 
-    def on_result(key, part) -> None:
+    def on_result(key: tuple[int, int, int, int, int], part: dict[str, np.ndarray]) -> None:
         i, r0, r1, c0, c1 = key
         for name in out:
             out[name][i, r0:r1, c0:c1] = part[name]
@@ -283,7 +295,7 @@ def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = F
 
 def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
                  K: np.ndarray | None = None, dist: np.ndarray | None = None,
-                 progress: bool = False, engine=None) -> LensGeometry:
+                 progress: bool = False, engine: Engine | None = None) -> LensGeometry:
     """Centroids, principal rays, focus plane and optical centre of an LTC volume.
 
     K, dist : camera matrix and distortion; default: the volume's (``camera_matrix``).
@@ -308,8 +320,7 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
     zf_cfg = cfg.focus_distance_mm
     plane, plane_var = _focus_plane(fit, zf_cfg, z_c, volume.name)
     centre, rot, pin = centre_rays, np.eye(3), None
-    use_pinhole = K is not None and cfg.centre_method != "rays"
-    if use_pinhole:
+    if K is not None and cfg.centre_method != "rays":  # the pinhole centre
         w = volume.camera_size[0]
         idx = np.flatnonzero(usable)  # the usable rays' pixels, normalised in blocks
         xn = np.empty((len(idx), 2))

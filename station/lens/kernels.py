@@ -19,9 +19,11 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True)
-def stats_kernel(h, sigma, signal, noise_sigmas, peak_fraction, margin,
-                 centroid, centroid_std, moments, trace_std, region_out, status_out,
-                 zero_outside=False):
+def stats_kernel(h: np.ndarray, sigma: np.ndarray, signal: np.ndarray, noise_sigmas: float,
+                 peak_fraction: float, margin: int, centroid: np.ndarray,
+                 centroid_std: np.ndarray, moments: np.ndarray, trace_std: np.ndarray,
+                 region_out: np.ndarray, status_out: np.ndarray,
+                 zero_outside: bool = False) -> None:
     """Per window n: h (n, P, P) float64 (NaN windows already zeroed), sigma (n,), signal (n,)
     bool; writes centroid (n, 2), centroid_std (n, 2), moments (n, 3), trace_std (n,),
     region_out (n, P, P) bool, status_out (n,) int8 (0 ok, 1 no signal, 2 truncated);
@@ -188,7 +190,7 @@ OFFSET = float(OFFSET_I)
 
 
 @numba.njit(cache=True, nogil=True)
-def _nonzero_box(hk):
+def _nonzero_box(hk: np.ndarray) -> tuple[int, int, int, int]:
     """Columns and rows (cmin, cmax, rmin, rmax) spanned by a window's nonzero weights
     (cmax = -1: none)."""
     p = hk.shape[0]
@@ -202,8 +204,10 @@ def _nonzero_box(hk):
 
 
 @numba.njit(cache=True, nogil=True)
-def resample_kernel(h, origin, ray_d, ray_c, inv, box, ptx, pty, pitch_mm, g, sub, cell_area,
-                    rot, first, pts_cam_step, out):
+def resample_kernel(h: np.ndarray, origin: np.ndarray, ray_d: np.ndarray, ray_c: np.ndarray,
+                    inv: np.ndarray, box: np.ndarray, ptx: np.ndarray, pty: np.ndarray,
+                    pitch_mm: float, g: int, sub: int, cell_area: float, rot: np.ndarray,
+                    first: float, pts_cam_step: float, out: np.ndarray) -> None:
     """out[k] (G, G) += masses of window h[k] (P, P) (see ``aperture.resample``): sub-cell
     centres ptx, pty ((G sub)^2,) station-frame mm, ``p_station = R2^T p_cam`` with
     rot = R2; the camera-frame sub-cell centres are ``first + i pts_cam_step`` along each
@@ -267,7 +271,8 @@ def resample_kernel(h, origin, ray_d, ray_c, inv, box, ptx, pty, pitch_mm, g, su
 
 
 @numba.njit(cache=True, nogil=True)
-def moments_kernel(mass, centres, mean, cov):
+def moments_kernel(mass: np.ndarray, centres: np.ndarray, mean: np.ndarray,
+                   cov: np.ndarray) -> None:
     """Mean (n, 2) and covariance (n, 2, 2) of grid masses (n, G, G) normalised per node,
     cell centres ``centres`` (G,) mm along both axes (see ``aperture.grid_moments``)."""
     n, g = mass.shape[0], mass.shape[1]
@@ -302,7 +307,9 @@ def moments_kernel(mass, centres, mean, cov):
 
 
 @numba.njit(cache=True, nogil=True)
-def stable_argsort(keys, n, work_f, u, u2, order, order2, count):  # pragma: no cover - compiled
+def stable_argsort(keys: np.ndarray, n: int, work_f: np.ndarray, u: np.ndarray, u2: np.ndarray,
+                   order: np.ndarray, order2: np.ndarray,
+                   count: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """The indices of ``keys[:n]`` (float64, no NaN) in ascending order, equal keys in index
     order: ``np.argsort(keys[:n], kind="mergesort")``, by a least-significant-digit radix sort
     of the keys' bits (8 bits a pass; a pass where every key has the same digit is skipped):
@@ -343,7 +350,9 @@ def stable_argsort(keys, n, work_f, u, u2, order, order2, count):  # pragma: no 
 
 
 @numba.njit(cache=True, nogil=True)
-def rings_kernel(mass, centres, mean, white, counts, offsets, out_xy, out_w):
+def rings_kernel(mass: np.ndarray, centres: np.ndarray, mean: np.ndarray, white: np.ndarray,
+                 counts: np.ndarray, offsets: np.ndarray, out_xy: np.ndarray,
+                 out_w: np.ndarray) -> None:
     """Equal-mass polar strata of grid masses (n, G, G) (normalised, >= 0) about their mean
     (n, 2) in whitened coordinates (``white`` (n, 2, 2) = cov^-1/2): rings of mass
     counts[i] / K (cells sorted by whitened radius), each cut into counts[i] sectors of equal
@@ -464,7 +473,8 @@ def rings_kernel(mass, centres, mean, white, counts, offsets, out_xy, out_w):
 
 
 @numba.njit(cache=True, nogil=True)
-def lloyd_kernel(mass, centres, x, w, iterations):
+def lloyd_kernel(mass: np.ndarray, centres: np.ndarray, x: np.ndarray, w: np.ndarray,
+                 iterations: int) -> None:
     """Weighted Lloyd (k-means) iterations from the samples x (n, K, 2) mm over the cells of
     grid masses (n, G, G) (normalised, >= 0; cell centres ``centres`` (G,) mm): each cell
     goes to its nearest sample, each sample moves to its cells' centroid (one without cells
@@ -528,7 +538,8 @@ def lloyd_kernel(mass, centres, x, w, iterations):
 
 
 @numba.njit(cache=True, nogil=True)
-def _mixed_blur(src, w, rows, y0, y1, x0, x1, tmp, out):
+def _mixed_blur(src: np.ndarray, w: np.ndarray, rows: np.ndarray, y0: int, y1: int, x0: int,
+                x1: int, tmp: np.ndarray, out: np.ndarray) -> None:
     """out[y0:y1, x0:x1] = sum_i w[i] (rows[i] (x) rows[i]) * src over that box (src is 0
     outside it); rows (D, 2L+1) symmetric, zero taps and depths skipped."""
     half = rows.shape[1] // 2
@@ -557,7 +568,8 @@ def _mixed_blur(src, w, rows, y0, y1, x0, x1, tmp, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def richardson_lucy_kernel(d, w, rows, norm_rows, iterations, x):
+def richardson_lucy_kernel(d: np.ndarray, w: np.ndarray, rows: np.ndarray,
+                           norm_rows: np.ndarray, iterations: int, x: np.ndarray) -> None:
     """``aperture.deblur``'s Richardson-Lucy steps, node by node: d (n, G, G) normalised
     non-negative data, w (n, D) weights, rows (D, 2L+1) the depths' 1-D blurs, norm_rows
     (D, G) each blur's mass falling on the grid; writes x (n, G, G). Only the bounding box of
@@ -597,8 +609,10 @@ def richardson_lucy_kernel(d, w, rows, norm_rows, iterations, x):
 
 
 @numba.njit(cache=True, nogil=True)
-def resample_zoned_kernel(h, origin, ray_d, ray_c, g0, g2, r2_rim, pitch_mm, g, sub,
-                          cell_area, rot, first, step, out):
+def resample_zoned_kernel(h: np.ndarray, origin: np.ndarray, ray_d: np.ndarray,
+                          ray_c: np.ndarray, g0: float, g2: float, r2_rim: float,
+                          pitch_mm: float, g: int, sub: int, cell_area: float, rot: np.ndarray,
+                          first: float, step: float, out: np.ndarray) -> None:
     """out[k] (G, G) += masses of window h[k] (P, P) through the radial map of a lens with a
     focus per pupil zone (``aperture.resample`` with ``g2_per_mm2``): the camera-frame aperture
     point p (radius rho from the optical centre) lands on the LCD at

@@ -13,7 +13,7 @@ from sim.optics.measured_lens import MeasuredLens, read_lens_nodes
 from station.lens import aperture as ap
 from station.lens.geometry import LensFitConfig, LensGeometry
 from station.lens.jobs import ApertureSet
-from station.lens.rays import FLAG_BAD_FIT, FLAG_FEW_DEPTHS, FLAG_OUTLIER
+from station.lens.rays import FLAG_BAD_FIT, FLAG_FEW_DEPTHS, FLAG_OUTLIER, PrincipalRays
 
 # pixels per block of the summary's residual lengths: their order (depth-major per block)
 # fixes the mean and std reported in the lens file to the last bit
@@ -50,6 +50,8 @@ class LensResult:
         interpolation in memory; from the written file, the nearest node's."""
         if self.lens is not None:
             return self.lens.samples_at(uv)
+        if self.lens_path is None:
+            raise ValueError("LensResult: neither a lens nor a lens file")
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         i = np.abs(uv[:, 0, None] - self.node_u[None]).argmin(axis=1)
         j = np.abs(uv[:, 1, None] - self.node_v[None]).argmin(axis=1)
@@ -138,7 +140,7 @@ class LensSummary:
         return out
 
 
-def _residual_stats(rays) -> tuple[float | None, float | None, int]:
+def _residual_stats(rays: PrincipalRays) -> tuple[float | None, float | None, int]:
     """Mean, std (None without any) and count of the usable rays' residual lengths (float32)
     of the points in their fits, in pixel blocks: the values numpy's float64 ``mean`` and
     ``std`` give of them in this order, with one float64 array of the lengths (no (D, N)
