@@ -152,7 +152,8 @@ def load_experiment_config(path: str | Path | None, **overrides: Any) -> Experim
         try:
             data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
         except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
-            raise StationError(f"{path}: not valid {path.suffix[1:].upper() or 'TOML'}: {exc}")
+            raise StationError(
+                f"{path}: not valid {path.suffix[1:].upper() or 'TOML'}: {exc}") from exc
     data.update(overrides)
     try:
         return ExperimentConfig(**data)

@@ -33,7 +33,8 @@ class Position:
 def positions(cfg: ExperimentConfig, rig: Rig) -> list[Position]:
     """Spheres (slight, then large), ball bars (slight, then large), the CAD part."""
     out = []
-    groups = [("sphere", "S", "slight", cfg.sphere_slight), ("sphere", "S", "large", cfg.sphere_large),
+    groups = [("sphere", "S", "slight", cfg.sphere_slight),
+              ("sphere", "S", "large", cfg.sphere_large),
               ("ballbar", "B", "slight", cfg.ballbar_slight),
               ("ballbar", "B", "large", cfg.ballbar_large)]
     if cfg.cad:

@@ -301,8 +301,9 @@ def write_report(results: dict[str, Any], cfg: ExperimentConfig, rig: Rig,
     if results["station"]:
         setup.append(
             f"Station: fake bench per camera, LCD pitch {cfg.lcd_pitch_mm:g} mm, P = "
-            f"{cfg.period} ({cfg.steps}-step), {len(cfg.depths_mm)} depths (LCD at " + ", ".join(
-                f"{cfg.lcd_distance_at_zero_mm + z:g}" for z in cfg.depths_mm) + " mm). " + " ".join(
+            f"{cfg.period} ({cfg.steps}-step), {len(cfg.depths_mm)} depths (LCD at "
+            + ", ".join(f"{cfg.lcd_distance_at_zero_mm + z:g}" for z in cfg.depths_mm)
+            + " mm). " + " ".join(
                 f"Camera {i}: {s['total_s']:.0f} s, optical centre error "
                 f"{s['optical_centre_error_mm'] * 1e3:.1f} um, focus distance "
                 f"{s['focus_distance_mm']:.1f} mm." for i, s in enumerate(results["station"])))

@@ -17,10 +17,10 @@ a faithful virtual scanner.
 3. **Objects**: the 50.8007 mm sphere at 4 slight and 4 large defocus positions, the
    209.8219 mm ball bar at 2 + 2, and one CAD part (steps, holes, a freeform face).
 4. **Comparison**: each virtual cloud against the real one (mean and RMSE of the signed
-   distances by pixel correspondence, unaligned and after ICP), the sphere diameter or ball-bar length against
-   nominal for every scanner (each on its own points: ``size_fit``), each virtual size
-   against the real one on the pixels both clouds share (``shared_size_mm``), and every
-   scanner's cloud of the CAD part against the CAD mesh.
+   distances by pixel correspondence, unaligned and after ICP), the sphere diameter or
+   ball-bar length against nominal for every scanner (each on its own points:
+   ``size_fit``), each virtual size against the real one on the pixels both clouds share
+   (``shared_size_mm``), and every scanner's cloud of the CAD part against the CAD mesh.
 5. **Report**: ``report.md`` with PNG figures and ``results.json`` with every number.
 
 Everything is written under one folder ``out``: ``experiment.json`` (the config),

@@ -256,8 +256,9 @@ def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = F
     rows = volume.chunk_rows
     cols = int(chunks[2]) if chunks else w
     f4 = np.float32
-    out: dict[str, np.ndarray] = {"mom": np.full((d, h, w, 3), np.nan, f4), "tstd": np.full((d, h, w), np.nan, f4),
-           "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
+    out: dict[str, np.ndarray] = {"mom": np.full((d, h, w, 3), np.nan, f4),
+                                  "tstd": np.full((d, h, w), np.nan, f4),
+                                  "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
     rays = PrincipalRays.empty(d, w * h)
     z = volume.depths_mm.reshape(d, 1, 1)
     tasks = [(i, r0, min(h, r0 + rows), c0, min(w, c0 + cols))
