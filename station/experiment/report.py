@@ -62,7 +62,7 @@ def fringe_figure(images: dict[str, Any], path: Path) -> Path:
     for j, n in enumerate(MODELS):
         img = np.asarray(images[n][-4], dtype=np.float64)
         axes[0, j].imshow(img, cmap="gray")
-        axes[0, j].set_title(f"{LABELS[n]}: finest fringe, camera 0")
+        axes[0, j].set_title(f"{LABELS[n]}: finest fringe, camera 0", fontsize=10)
         if n == "real":
             axes[1, j].axis("off")
             axes[2, j].axis("off")
