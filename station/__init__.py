@@ -30,5 +30,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "acquisition.config": "StationConfig ConfigError",
     "lens.derive": "LensResult",
     "lens.geometry": "LensFitConfig",
-    "errors": "StationError UsageError",
+    "errors": "StationError StationInputError UsageError",
 })

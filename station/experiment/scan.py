@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sim.errors import SimError
 from station.errors import StationError
 from station.experiment.bench import RENDER
 from station.experiment.config import MODELS, ExperimentConfig
@@ -63,7 +64,7 @@ def scan_position(pos: Position, cfg: ExperimentConfig, rig: Rig,
         dt = time.perf_counter() - t0
         try:
             cloud = s.scan(images)
-        except ValueError as exc:  # name where: a long run's one line must say which scan
+        except SimError as exc:  # name where: a long run's one line must say which scan
             raise StationError(f"position {pos.name} ({pos.kind}, {pos.defocus} defocus), "
                                f"scanner {name}: {exc}") from exc
         out[name] = Scan(cloud, images.cameras[0].images, dt)
