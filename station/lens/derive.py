@@ -124,7 +124,10 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K: np.ndarray | None,
             found = fit_focus_zones(volume, float(geom.centre.position[2]), geom.camera_matrix,
                                     geom.focus_distance_mm, _centre_radius_mm(geom),
                                     pixel_samples=cfg.pixel_samples)
-            if found is not None:
+            if found is not None and cfg.centre_method == "rays":
+                # the principal-ray intersection asked for: the zones, not the pinhole refit
+                zones, zone_fit = found[0], {**found[1], "centre_shift_mm": 0.0}
+            elif found is not None:
                 geom, shift = zoned_centre(volume, geom, grid, cfg, *found, engine=engine)
                 zones, zone_fit = shift_zones(*found, shift)
                 grid = aperture_grid(geom, cfg)

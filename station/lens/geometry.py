@@ -88,7 +88,8 @@ class LensFitConfig(BaseModel):
                               "(spherical aberration) from the LTCs at the optical centre, "
                               "map every LTC onto the aperture plane through it, refit the "
                               "optical centre with the zones' misses of the pinhole points "
-                              "removed, and store it as the lens file's focus_zones_mm "
+                              "removed (not with centre_method 'rays'), and store it as the lens "
+                              "file's focus_zones_mm "
                               "(needs K; without K: one focus)")
     aim_offset_sigma_px: float = Field(8.0, ge=0, description="give each node the aim "
                                        "offset (the lens file's aim_offset) that makes its "
