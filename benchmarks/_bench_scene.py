@@ -12,18 +12,15 @@ and 30 px), 12 images, fringes along u.
 
 from __future__ import annotations
 
-import os
-import platform
-
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from sim.render.fringe_patterns import PhaseShiftSet
-from sim.optics.lens import AberratedLens, PinholeLens
 from sim.fpp.phase import wrapped_phase
+from sim.optics.lens import AberratedLens, PinholeLens
 from sim.optics.projection import camera_to_world
 from sim.optics.rig import DeviceCalibration, Rig, look_at
+from sim.render.fringe_patterns import PhaseShiftSet
 from sim.render.scene import PlaneObject, Pose, Scene, SphereObject
 
 CAMERA_SIZE = (2048, 1088)

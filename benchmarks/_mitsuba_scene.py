@@ -157,7 +157,8 @@ def _sensor(mi: ModuleType, camera: DeviceCalibration, lens, spp: int, sampler: 
                              "without vignetting, spherical aberration or coma")
         return {"type": "thinlens", "aperture_radius": lens.pupil_radius_mm,
                 "focus_distance": lens.focus_distance_mm, **sensor}
-    raise ValueError(f"lens: {type(lens).__name__} has no Mitsuba counterpart; use PinholeLens or an ideal thin lens")
+    raise ValueError(f"lens: {type(lens).__name__} has no Mitsuba counterpart; "
+                     "use PinholeLens or an ideal thin lens")
 
 
 class MitsubaFringeRenderer:
@@ -199,7 +200,8 @@ class MitsubaFringeRenderer:
         wp, hp = self.projector.size
         pattern = np.asarray(pattern, dtype=np.float32)
         if pattern.shape != (hp, wp):
-            raise ValueError(f"pattern image is {pattern.shape}, the projector is {wp} x {hp} (expected ({hp}, {wp}))")
+            raise ValueError(f"pattern image is {pattern.shape}, the projector is {wp} x {hp} "
+                             f"(expected ({hp}, {wp}))")
         self.params[IRRADIANCE_KEY] = self.mi.TensorXf(np.ascontiguousarray(pattern[..., None]))
         self.params.update()
         img = self.mi.render(self.scene, spp=self.spp, seed=seed)

@@ -7,10 +7,18 @@ import datetime
 from pathlib import Path
 
 import numpy as np
-
 from _bench_scene import (
-    STEPS, BenchConfig, agreement, bench_lens, bench_rig, bench_scene, blur_radius_px,
-    comparison_mask, machine, phase_rms_rad, surface_points,
+    STEPS,
+    BenchConfig,
+    agreement,
+    bench_lens,
+    bench_rig,
+    bench_scene,
+    blur_radius_px,
+    comparison_mask,
+    machine,
+    phase_rms_rad,
+    surface_points,
 )
 from _mitsuba_scene import to_our_radiance
 
@@ -19,7 +27,8 @@ LABELS = {"ours-pinhole": "ours, pinhole (1 ray/px)", "mitsuba-pinhole": "Mitsub
           "mitsuba-pinhole-1spp": "Mitsuba, pinhole (1 spp)", "ours-thin": "ours, thin lens ({k} rays/px)",
           "mitsuba-thin": "Mitsuba, thin lens ({k} spp)"}
 COMPARED = (("pinhole", ("mitsuba-pinhole", "mitsuba-pinhole-1spp")), ("thin", ("mitsuba-thin",)))
-SPEED = (("ours-pinhole", "mitsuba-pinhole-1spp"), ("ours-pinhole", "mitsuba-pinhole"), ("ours-thin", "mitsuba-thin"))
+SPEED = (("ours-pinhole", "mitsuba-pinhole-1spp"), ("ours-pinhole", "mitsuba-pinhole"), ("ours-thin",
+                                                                                         "mitsuba-thin"))
 
 
 def compare(cfg: BenchConfig, out_dir: Path) -> dict:
@@ -42,7 +51,8 @@ def compare(cfg: BenchConfig, out_dir: Path) -> dict:
             a = agreement(rad, theirs, white, mask)
             a["lit_pixels"] = int(ours["lit"].sum())
             a["phase_rms_rad"] = phase_rms_rad(rad[-STEPS:], theirs[-STEPS:], mask)
-            a["by_object"] = {n: agreement(rad, theirs, white, mask & (obj == i)) for i, n in enumerate(names)}
+            a["by_object"] = {n: agreement(rad, theirs, white, mask & (obj == i)) for i,
+                              n in enumerate(names)}
             out[case] = a
     return out
 
@@ -62,7 +72,8 @@ def summarise(cfg: BenchConfig, res: dict, agree: dict) -> dict:
                            setup_s=r["setup"]["setup_s"], peak_rss_mb=r["memory"]["peak_rss_mb"],
                            rss_imports_mb=r["setup"]["rss_imports_mb"])
         if name.startswith("ours"):
-            cases[name]["breakdown_s"] = {k: _median(r["runs"], k) for k in ("trace_s", "gather_s", "response_s")}
+            cases[name]["breakdown_s"] = {k: _median(r["runs"], k) for k in ("trace_s", "gather_s",
+                                                                             "response_s")}
             cases[name]["rays"] = r["runs"][-1]["rays"]
     s["cases"] = cases
     s["speed_ratios"] = {f"{theirs} / {ours}": cases[theirs]["median_s"] / cases[ours]["median_s"]
@@ -96,16 +107,19 @@ def report_markdown(s: dict) -> str:
          f"Camera {cw} x {ch}, projector {pw} x {ph}, 12 images, median of {cfg.repeats} repeats; "
          f"Mitsuba variant `{cfg.variant}`, `{cfg.sampler}` sampler.", ""]
     if s["cases"]:
-        L += ["| case | 12 images, s (median) | repeats, s | setup, s | peak memory, MB |", "|---|---|---|---|---|"]
+        L += ["| case | 12 images, s (median) | repeats, s | setup, s | peak memory, MB |",
+              "|---|---|---|---|---|"]
         for name, c in s["cases"].items():
             runs = ", ".join(f"{x:.3g}" for x in c["runs_s"])
-            L.append(f"| {lab[name]} | {c['median_s']:.2f} | {runs} | {c['setup_s']:.1f} | {c['peak_rss_mb']:.0f} |")
+            L.append(f"| {lab[name]} | {c['median_s']:.2f} | {runs} | {c['setup_s']:.1f} "
+                     f"| {c['peak_rss_mb']:.0f} |")
         L.append("")
         for name in ("ours-pinhole", "ours-thin"):
             if name in s["cases"]:
                 b = s["cases"][name]["breakdown_s"]
                 L.append(f"- {lab[name]}: trace {b['trace_s']:.2f} s, gather {b['gather_s']:.2f} s, "
-                         f"camera response {b['response_s']:.2f} s; {s['cases'][name]['rays'] / 1e6:.1f} M camera rays.")
+                         f"camera response {b['response_s']:.2f} s; "
+                         f"{s['cases'][name]['rays'] / 1e6:.1f} M camera rays.")
         L.append("")
     if s["speed_ratios"]:
         L += ["Time ratio, Mitsuba / ours (target >= 3 at equal samples):", ""]
@@ -133,6 +147,7 @@ def report_markdown(s: dict) -> str:
                 f"thin lens, {100 * cfg.band_fraction:g} % of the rows"
             L.append(f"| {what} | {e['rays'] / 1e6:.2f} M | {e['ours_rays_per_s'] / 1e6:.2f} | "
                      f"{e['raw_rays_per_s'] / 1e6:.2f} | **{e['throughput_fraction']:.2f}** | "
-                     f"{e['patterns_1_s']:.2f} | {e['patterns_24_s']:.2f} | **{e['patterns_24_over_1']:.2f}** |")
+                     f"{e['patterns_1_s']:.2f} | {e['patterns_24_s']:.2f} | "
+                     f"**{e['patterns_24_over_1']:.2f}** |")
         L.append("")
     return "\n".join(L)

@@ -27,9 +27,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]
 
-from drivers.genicam import CameraFrameError, GenICamCamera, _aravis  # noqa: E402
 from _results import captured, command_line, text_block, write_results  # noqa: E402
 from gv_fake import running_fake_camera  # noqa: E402
+
+from drivers.genicam import CameraFrameError, GenICamCamera, _aravis  # noqa: E402
+
+
+def show(runs: list) -> str:
+    """Each run as 'frames/s (dropped) seconds'."""
+    return ", ".join(f"{v[0]:.0f} ({v[1]}) {v[2]:.2f}" for v in runs)
 
 
 def run_ours(address: str, roi: tuple[int, int, int, int], fmt: str, rate: float, n: int,
@@ -123,7 +129,6 @@ def run(args: argparse.Namespace) -> None:
                                          args.buffers))
                 o = statistics.median(v[0] for v in ours)
                 r = statistics.median(v[0] for v in raw)
-                show = lambda runs: ", ".join(f"{v[0]:.0f} ({v[1]}) {v[2]:.2f}" for v in runs)
                 print(f"{rate_hz:6g} Hz {roi[2]}x{roi[3]} {fmt:6s}: ours {o:6.1f}/s, raw {r:6.1f}/s,"
                       f" ratio {o / r:.3f}   [ours {show(ours)}; raw {show(raw)}]")
 

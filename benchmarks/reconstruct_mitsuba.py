@@ -34,15 +34,24 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _bench_scene import (  # noqa: E402
-    SPHERE_DIAMETER_MM, BenchConfig, bench_lens, bench_patterns, bench_rig, bench_scene, machine,
+    SPHERE_DIAMETER_MM,
+    BenchConfig,
+    bench_lens,
+    bench_patterns,
+    bench_rig,
+    bench_scene,
+    machine,
 )
 from _mitsuba_scene import MitsubaFringeRenderer, irradiance_scale_at, unavailable_reason  # noqa: E402
 from _results import command_line, write_results  # noqa: E402
 
-from sim.metrology.spheres import find_spheres  # noqa: E402
 from sim.fpp.decode import DecodeSettings, scan  # noqa: E402
+from sim.metrology.spheres import find_spheres  # noqa: E402
 from sim.render.images import (  # noqa: E402
-    CameraResponse, ProjectorResponse, project_patterns, render_camera,
+    CameraResponse,
+    ProjectorResponse,
+    project_patterns,
+    render_camera,
 )
 
 TITLE = "Reconstruction of Mitsuba's images (one camera against the projector)"
@@ -93,7 +102,8 @@ def load_or_render(cfg: BenchConfig, images_dir: Path | None, case: str) -> np.n
 
 
 def report_markdown(rows: dict, cfg: BenchConfig, date: str, host: str) -> str:
-    L = ["`benchmarks/reconstruct_mitsuba.py`: the 12 images of the render benchmark's scene (`_bench_scene.py`), rendered "
+    L = ["`benchmarks/reconstruct_mitsuba.py`: the 12 images of the render benchmark's scene "
+         "(`_bench_scene.py`), rendered "
          "by Mitsuba (and, for reference, by ours), go through our scanner pipeline "
          "(`sim.fpp.decode.scan`: `sim.fpp.phase` wrapped phase and hierarchical unwrapping, "
          "`sim.fpp.stereo.camera_projector_cloud` triangulation of the camera against the projector); "
@@ -119,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--images", type=Path, help="folder of render_vs_mitsuba.py --save (else render now)")
     ap.add_argument("--thin", action="store_true", help="also the 64-sample thin lens")
-    ap.add_argument("--scale", type=float, default=1.0, help="image sizes times this (as render_vs_mitsuba.py)")
+    ap.add_argument("--scale", type=float, default=1.0,
+                    help="image sizes times this (as render_vs_mitsuba.py)")
     ap.add_argument("--pinhole-spp", type=int, default=16, help="Mitsuba pinhole samples per pixel")
     ap.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant")
     ap.add_argument("--json", type=Path, help="write the results as JSON")

@@ -38,18 +38,27 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _bench_scene import (  # noqa: E402
-    BenchConfig, band_pixels, bench_lens, bench_patterns, bench_rig, bench_scene,
+    BenchConfig,
+    band_pixels,
+    bench_lens,
+    bench_patterns,
+    bench_rig,
+    bench_scene,
 )
 from _mitsuba_scene import irradiance_scale_at, unavailable_reason  # noqa: E402
 from _render_report import compare, report_markdown, summarise  # noqa: E402
 from _results import command_line, write_results  # noqa: E402
-
-from sim.render.images import (  # noqa: E402
-    CameraResponse, ProjectorResponse, RenderSettings, camera_response, project_patterns, render,
-    render_camera,
-)
 from trace_throughput import record_queries, replay, summarise_queries  # noqa: E402
 
+from sim.render.images import (  # noqa: E402
+    CameraResponse,
+    ProjectorResponse,
+    RenderSettings,
+    camera_response,
+    project_patterns,
+    render,
+    render_camera,
+)
 from sim.render.trace import trace_camera  # noqa: E402
 
 REPLY = "@@bench "
@@ -149,7 +158,7 @@ class ExtrasCase:
                         "thin": (bench_lens("thin", cfg), band_pixels(self.cam, cfg.band_fraction))}
         self.queries = {}
         for kind, (lens, pix) in self.subsets.items():  # exactly the queries trace_camera makes
-            self.queries[kind] = record_queries(self.geom, lambda: trace_camera(
+            self.queries[kind] = record_queries(self.geom, lambda lens=lens, pix=pix: trace_camera(
                 self.geom, self.cam, self.rig.projector, lens, pixels=pix))
         self.one = bench_patterns(self.rig)[1][:1]
         self.many = bench_patterns(self.rig, "both")[1]
@@ -216,7 +225,8 @@ class Worker:
 
     def __init__(self, name: str, cfg: BenchConfig) -> None:
         self.name = name
-        self.proc = subprocess.Popen([sys.executable, __file__, "--worker", name, "--config", cfg.model_dump_json()],
+        self.proc = subprocess.Popen([sys.executable, __file__, "--worker", name, "--config",
+                                      cfg.model_dump_json()],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         self.ready = self._answer()
 
@@ -266,7 +276,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=5, help="timed repeats per case (median reported)")
     ap.add_argument("--pinhole-spp", type=int, default=64,
                     help="Mitsuba pinhole samples per pixel for the agreement (1 spp is timed too)")
-    ap.add_argument("--thin-samples", type=int, default=64, help="thin-lens samples per pixel, both renderers")
+    ap.add_argument("--thin-samples", type=int, default=64,
+                    help="thin-lens samples per pixel, both renderers")
     ap.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (scalar_rgb needs no LLVM)")
     ap.add_argument("--sampler", default="stratified", help="Mitsuba sampler")
     ap.add_argument("--no-mitsuba", action="store_true", help="only our cases")

@@ -13,8 +13,8 @@ camera, same projector), and, for reference, by ours. The images go through
 ``sim.fpp.decode.scan`` in stereo and camera-projector mode (relative modulation threshold
 only: the images are float radiance; Mitsuba's images with the pixel-footprint correction of a
 full square pixel, ``pixel_variance_px2 = 1/12``, as its box pixel filter averages each pixel's
-area like a real camera; ours sample the pixel centres). Judged with no outlier rejection on every point within
-R + 3 mm of the true centre: the least-squares diameter error, the fit RMS, the share of
+area like a real camera; ours sample the pixel centres). Judged with no outlier rejection on every point
+within R + 3 mm of the true centre: the least-squares diameter error, the fit RMS, the share of
 points more than 20 um off the true surface; and the scan time (decode, match, triangulate).
 
 Run::
@@ -46,7 +46,10 @@ from sim.optics.lens import AberratedLens, PinholeLens  # noqa: E402
 from sim.optics.rig import DeviceCalibration, Rig, look_at  # noqa: E402
 from sim.render.fringe_patterns import PhaseShiftSet  # noqa: E402
 from sim.render.images import (  # noqa: E402
-    CameraResponse, ProjectorResponse, RenderSettings, render_views,
+    CameraResponse,
+    ProjectorResponse,
+    RenderSettings,
+    render_views,
 )
 
 TITLE = "Stereo reconstruction of Mitsuba's images (two cameras)"

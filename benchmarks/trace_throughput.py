@@ -41,7 +41,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _bench_scene import (  # noqa: E402
-    BenchConfig, band_pixels, bench_lens, bench_rig, bench_scene, machine,
+    BenchConfig,
+    band_pixels,
+    bench_lens,
+    bench_rig,
+    bench_scene,
+    machine,
 )
 from _results import command_line, write_results  # noqa: E402
 

@@ -70,7 +70,7 @@ class BenchConfig(BenchGeometry):
     subpixels: int = Field(3, ge=1, description="pixel area sampled on an n x n grid")
 
     @model_validator(mode="after")
-    def _check_sizes(self) -> "BenchConfig":
+    def _check_sizes(self) -> BenchConfig:
         for name in ("lcd_size", "camera_size"):
             w, h = getattr(self, name)
             if w < 1 or h < 1:
@@ -78,7 +78,7 @@ class BenchConfig(BenchGeometry):
         return self
 
     @classmethod
-    def small(cls, **overrides) -> "BenchConfig":
+    def small(cls, **overrides) -> BenchConfig:
         """A small, fast bench for tests and the demo: 40 x 30 camera, 96 x 72 LCD, f/2,
         strong vignetting and spherical aberration so the lens is visibly non-Gaussian."""
         base = dict(

@@ -20,7 +20,6 @@ from fakes.zaber import FakeZaberDevice, FakeZaberPty
 from sim.validation import format_validation_error
 
 
-
 class FakeSettings(BaseModel):
     """The ``[fake]`` section of a station config."""
 

@@ -181,7 +181,7 @@ class SyntheticBench:
         coef = np.fft.fft2(tile) / (p * p)  # [l, k]
         out = np.full(f["t"].shape, float(coef[0, 0].real), dtype=np.float32)
         seen = set()
-        for l, k in zip(*np.nonzero(np.abs(coef) > MIN_COEFFICIENT)):
+        for l, k in zip(*np.nonzero(np.abs(coef) > MIN_COEFFICIENT), strict=True):
             kr, lr = (k + p // 2) % p - p // 2, (l + p // 2) % p - p // 2  # to (-P/2, P/2]
             if (kr, lr) == (0, 0) or (-kr, -lr) in seen:
                 continue

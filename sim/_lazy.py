@@ -4,7 +4,8 @@ name is first used, so importing the package itself stays cheap (no numba, no em
 from __future__ import annotations
 
 import importlib
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 
 def lazy_exports(package: str, namespace: dict[str, Any], where: dict[str, str]

@@ -23,7 +23,8 @@ from hypothesis import strategies as st
 # Deterministic (derandomize): the same inputs every run, so the suite never flakes; no
 # per-example deadline (a slow machine must not fail a test), hangs are caught by the
 # pytest timeout.
-FUZZ = settings(max_examples=int(os.environ.get("FUZZ_N", 60)), deadline=None, derandomize=not os.environ.get("FUZZ_N"), database=None,
+FUZZ = settings(max_examples=int(os.environ.get("FUZZ_N", 60)), deadline=None,
+                derandomize=not os.environ.get("FUZZ_N"), database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
                                        HealthCheck.function_scoped_fixture])
 

@@ -39,7 +39,7 @@ def write_pngs(directory: str | Path, images: np.ndarray, bit_depth: int) -> lis
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     paths = [d / f"pattern_{i:03d}.png" for i in range(len(images))]
-    for p, im in zip(paths, images):
+    for p, im in zip(paths, images, strict=True):
         write_png(p, im, bit_depth)
     return paths
 

@@ -85,7 +85,7 @@ class PatternStack:
         """The patterns as full images (n, Hp, Wp) float32."""
         w, h = self.size
         out = np.empty((len(self), h, w), np.float32)
-        for p, (f, s) in enumerate(zip(self.form, self.slot)):
+        for p, (f, s) in enumerate(zip(self.form, self.slot, strict=True)):
             out[p] = (self.full[s] if f == FULL else self.rows[s][None, :] if f == ALONG_U
                       else self.cols[s][:, None])
         return out

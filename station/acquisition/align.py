@@ -30,7 +30,6 @@ rotated about its x axis by ``t_x``, then its y axis by ``t_y``) that direction 
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from drivers.frame_code import frame_code_rect

@@ -115,7 +115,7 @@ class LocalisationPatternSet(BaseModel):
     def covers(self, lcd_size: tuple[int, int]) -> bool:
         """True when the Gray code numbers every stripe of an LCD of (width, height)."""
         half = self.period // 2
-        return all(n <= (2**b) * half for n, b in zip(lcd_size, (self.bits_x, self.bits_y)))
+        return all(n <= (2**b) * half for n, b in zip(lcd_size, (self.bits_x, self.bits_y), strict=True))
 
 
 class StationPatternPlan(BaseModel):

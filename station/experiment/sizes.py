@@ -97,7 +97,7 @@ def check_coverage(scans: dict[str, Scan], pos: Position, scene: Scene, rig: Rig
     for name in MODELS:
         if name == "pinhole":
             continue
-        for k, (found, full) in enumerate(zip(counts(scans[name].cloud), ref)):
+        for k, (found, full) in enumerate(zip(counts(scans[name].cloud), ref, strict=True)):
             if found < MIN_BALL_COVERAGE * full:
                 cx, cy, cz, r = balls[k]
                 depth = float(rig.cameras[0].to_device(np.array([[cx, cy, cz]]))[0, 2])
@@ -126,7 +126,7 @@ def shared_size_mm(cloud: PointCloud, own: SizeFit, real: PointCloud, real_own: 
     fits, real_fits, count = [], [], 0
     pv, kv = np.asarray(cloud.points, np.float64), _pixel_keys(cloud)
     pr, kr = np.asarray(real.points, np.float64), _pixel_keys(real)
-    for a, b in zip(own.kept, real_own.kept):
+    for a, b in zip(own.kept, real_own.kept, strict=True):
         both = np.intersect1d(a, b)
         if both.size < 20:
             raise StationError(f"position {pos.name}: the virtual and real clouds share only "

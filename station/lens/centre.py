@@ -6,19 +6,19 @@ usable rays, iteratively reweighted (Huber weights on the ray-to-centre distance
 robust scale), with the covariance ``s^2 (sum_n w_n (I - d_n d_n^T))^-1`` where ``s^2`` is the
 weighted residual variance.
 
-**Which optical centre** (``pinhole_centre``). A pixel's LTC centroid follows the centroid
-of its *clipped* pupil. With vignetting that shifts with the field (cat's eyes), the
-centroid rays cross the pupil plane at ``p_n ~ field``, so all of them converge on the axis behind the pupil (34 mm
-on the small fake bench), near as well as far from the axis: no weighting fixes it, and rays
-alone cannot fix it either (a field-shifted clipping circle is a second stop in another
-plane, and two stops give the same rays whichever is called the pupil). The simulator casts
-pixel n's rays through ``O + z_f (x_n, y_n, 1)`` with ``x_n`` from the camera matrix K, so
-the centre it needs is the one from which the in-focus points are seen in K's directions.
+**Which optical centre** (``pinhole_centre``). A pixel's LTC centroid follows the centroid of
+its *clipped* pupil. With vignetting that shifts with the field (cat's eyes), the centroid
+rays cross the pupil plane at ``p_n ~ field``, so all of them converge on the axis behind the
+pupil (34 mm on the small fake bench), near as well as far from the axis: no weighting fixes
+it, and rays alone cannot fix it either (a field-shifted clipping circle is a second stop in
+another plane, and two stops give the same rays whichever is called the pupil). The simulator
+casts pixel n's rays through ``O + z_f (x_n, y_n, 1)`` with ``x_n`` from the camera matrix K,
+so the centre it needs is the one from which the in-focus points are seen in K's directions.
 With K known, that is what is estimated (``pinhole_centre``): the principal rays at the focus
-plane give each pixel's in-focus point (every ray of the pixel passes there, clipped or
-not), whose spread over the sensor is ``z_f`` times that of K's directions; the centre lies
-``z_f`` before the focus plane, on the axis through the principal-ray intersection. Without
-K the principal-ray intersection (the paper's definition) is used, and the report says so.
+plane give each pixel's in-focus point (every ray of the pixel passes there, clipped or not),
+whose spread over the sensor is ``z_f`` times that of K's directions; the centre lies ``z_f``
+before the focus plane, on the axis through the principal-ray intersection. Without K the
+principal-ray intersection (the paper's definition) is used, and the report says so.
 """
 
 from __future__ import annotations
@@ -191,7 +191,8 @@ def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
     dist_n = np.empty(n)
     scratch = np.empty(n)
     for _ in range(iterations):
-        ata, atb = normal(lambda b: prior[b] * robust[b])
+        # robust bound as a default: the name is deleted below, once the weights are final
+        ata, atb = normal(lambda b, robust=robust: prior[b] * robust[b])
         theta = np.linalg.solve(ata, atb)
         for b in blocks:  # each ray's miss, and scaled by its a-priori std
             x0, x1, y = xn[b, 0], xn[b, 1], data(b)

@@ -58,14 +58,14 @@ class PrincipalRays:
     residual_mm: np.ndarray
 
     @classmethod
-    def empty(cls, d: int, n: int) -> "PrincipalRays":
+    def empty(cls, d: int, n: int) -> PrincipalRays:
         """Rays of n pixels and d depths, to be filled block by block (``put``); without the
         residual vectors (``residual`` None: their lengths only)."""
         return cls(np.empty(n), np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n),
                    None, np.empty((d, n), bool), np.empty(n, np.int8),
                    np.empty((d, n), np.float32))
 
-    def put(self, sl: slice | np.ndarray, part: "PrincipalRays") -> None:
+    def put(self, sl: slice | np.ndarray, part: PrincipalRays) -> None:
         """Copy the rays of pixels ``sl`` (a slice or flat indices) from ``part`` (pixel
         axis: 0 of the per-pixel arrays, 1 of the (D, N, ...) ones)."""
         for f in fields(self):

@@ -204,7 +204,7 @@ def lloyd_kernel(mass: np.ndarray, centres: np.ndarray, x: np.ndarray, w: np.nda
                     cx[na], cy[na], cm[na] = centres[b], centres[a], v
                     lab[na] = -1
                     na += 1
-        for it in range(iterations):
+        for _ in range(iterations):
             # nearest sample of every cell, sample by sample over all cells (a loop the
             # compiler vectorises); strict < keeps the first nearest, as a per-cell scan does
             for c in range(na):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from itertools import pairwise
 
 import cv2
 import numpy as np
@@ -47,12 +48,12 @@ def test_ffv1_video_frames_match_exactly(ffv1_video, frames):
         message = r"camera '.*frames.avi' \(FFMPEG\) delivered no frame after 5 frames: end of stream"
         with pytest.raises(CameraError, match=message):
             camera.capture()
-    for frame, expected in zip(got, frames):
+    for frame, expected in zip(got, frames, strict=True):
         assert frame.image.dtype == np.uint8 and frame.image.shape == (ROWS, COLS)
         np.testing.assert_array_equal(frame.image, expected)
     assert [f.frame_id for f in got] == list(range(N_FRAMES))
     stamps = [f.timestamp for f in got]
-    assert all(a < b for a, b in zip(stamps, stamps[1:]))
+    assert all(a < b for a, b in pairwise(stamps))
     assert all(math.isnan(f.exposure_ms) for f in got)
 
 
@@ -67,7 +68,7 @@ def test_png_sequence_frames_match_exactly(tmp_path, frames, dtype):
         assert camera.bit_depth == (16 if dtype == np.uint16 else 8)
         with pytest.raises(CameraError, match="delivered no frame after 5 frames"):
             camera.capture()
-    for frame, expected in zip(got, written):
+    for frame, expected in zip(got, written, strict=True):
         assert frame.image.dtype == dtype
         np.testing.assert_array_equal(frame.image, expected)
 

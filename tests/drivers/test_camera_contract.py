@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import pytest
+from gv_fake import running_fake_camera
 
 from drivers.camera import CameraError, CameraTimeout, OpenCVCamera
 from drivers.display import OffscreenDisplay
@@ -24,7 +25,6 @@ from drivers.interfaces import Camera, DeviceError, Frame
 from fakes.bench import BenchConfig, FakeBench
 from fakes.camera import FakeCamera, NoiseModel
 from fakes.lcd import FakeLCD
-from gv_fake import running_fake_camera
 
 VIDEO_SIZE, VIDEO_FRAMES = (64, 48), 6
 _serials = itertools.count(1)
@@ -114,9 +114,9 @@ def test_capture_returns_documented_frames(case):
     for frame in frames:
         _check_frame(frame, camera)
     ids = [f.frame_id for f in frames]
-    assert all(b > a or (a == 0xFFFF and b == 1) for a, b in zip(ids, ids[1:]))
+    assert all(b > a or (a == 0xFFFF and b == 1) for a, b in itertools.pairwise(ids))
     stamps = [f.timestamp for f in frames]
-    assert all(b >= a for a, b in zip(stamps, stamps[1:]))
+    assert all(b >= a for a, b in itertools.pairwise(stamps))
     assert camera.bit_depth in (8, 10, 12, 16)
 
 

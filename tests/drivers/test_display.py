@@ -7,9 +7,9 @@ import time
 import cv2
 import numpy as np
 import pytest
+from conftest import XVFB_SCREEN, start_xvfb
 from PIL import ImageGrab
 
-from conftest import XVFB_SCREEN, start_xvfb
 from drivers.display import DisplayError, GlfwDisplay, OffscreenDisplay
 from drivers.frame_code import (
     FrameCodeError,

@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from conftest import XVFB_SCREEN
 from PIL import ImageGrab
 
-from conftest import XVFB_SCREEN
 from drivers.display import DisplayError, GlfwDisplay, OffscreenDisplay
 from drivers.interfaces import DeviceError, PatternDisplay, ShownFrame
 from fakes.lcd import FakeLCD, PanelResponse

@@ -11,11 +11,10 @@ import time
 
 import numpy as np
 import pytest
+from gv_fake import DEFAULT_SIZE, expected_pattern, running_fake_camera
 
 from drivers.camera import CameraError, CameraTimeout
-from drivers.genicam import (CameraLost, CameraNotFound, CameraSettingError, GenICamCamera,
-                             list_cameras)
-from gv_fake import DEFAULT_SIZE, expected_pattern, running_fake_camera
+from drivers.genicam import CameraLost, CameraNotFound, CameraSettingError, GenICamCamera, list_cameras
 
 _serials = itertools.count(1)
 
@@ -52,9 +51,9 @@ def test_software_trigger_frames_are_the_fakes_ramp_with_consecutive_ids(fake):
     assert ids[1:] == [_next_id(i) for i in ids[:-1]]
     # device timestamps (s) increase, one trigger period or more apart; host times too
     stamps = [f.timestamp for f in frames]
-    assert all(0 < b - a < 1.0 for a, b in zip(stamps, stamps[1:]))
+    assert all(0 < b - a < 1.0 for a, b in itertools.pairwise(stamps))
     hosts = [f.meta["host_time"] for f in frames]
-    assert all(a < b for a, b in zip(hosts, hosts[1:]))
+    assert all(a < b for a, b in itertools.pairwise(hosts))
     assert not np.array_equal(frames[0].image, frames[1].image)
 
 

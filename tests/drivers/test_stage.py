@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import re
 import threading
 import time
@@ -190,7 +191,7 @@ def test_close_is_idempotent_and_final(server: FakeZaberPty) -> None:
     stage.close()
     stage.close()
     with pytest.raises(StageConnectionLost, match=r"stage is closed; not sent: '/1 1 \d\d get pos:..'"):
-        stage.position_mm
+        _ = stage.position_mm
 
 
 # ----- homing and moves ------------------------------------------------------------------------
@@ -328,7 +329,7 @@ def test_stop_from_another_thread_ends_a_move_with_stage_stopped(server: FakeZab
         assert not stage.position_known
         with pytest.raises(StagePositionUnknown, match=rf"{stage.port_name}: rest position unknown: "
                            "move to 30 mm ended with StageStopped"):
-            stage.last_position_mm
+            _ = stage.last_position_mm
         assert stage.move_to(30.0) == pytest.approx(30.0)  # the next move recovers
         assert stage.position_known and stage.last_position_mm == pytest.approx(30.0)
         assert server.device.position == 300_000
@@ -406,14 +407,14 @@ def test_many_threads_polling_while_moving_never_interleave_bytes(server: FakeZa
             assert match and checksum_ok(line), line
             ids.append(int(match.group(1)))
         # ... and they arrived one at a time, in the order their message ids were given out
-        assert all((b - a) % 100 == 1 for a, b in zip(ids, ids[1:]))
+        assert all((b - a) % 100 == 1 for a, b in itertools.pairwise(ids))
 
 
 # ----- fault switches --------------------------------------------------------------------------
 def test_dropped_reply_to_a_query(stage: ZaberStage, device: FakeZaberDevice) -> None:
     device.faults.drop_replies = 1
     with pytest.raises(StageConnectionLost, match=r"sent '/1 1 \d\d get pos:..': no reply within 0.2 s"):
-        stage.position_mm
+        _ = stage.position_mm
     assert stage.position_mm == pytest.approx(10.0)  # the next command works
 
 
@@ -446,10 +447,11 @@ def test_lost_reply_and_failed_state_query() -> None:
     assert device.position == 300_000  # not stopped: the caller decides
 
 
-def test_reply_delayed_past_the_timeout_is_discarded_later(stage: ZaberStage, device: FakeZaberDevice) -> None:
+def test_reply_delayed_past_the_timeout_is_discarded_later(stage: ZaberStage,
+                                                           device: FakeZaberDevice) -> None:
     device.faults.delay_replies, device.faults.delay_s = 1, 0.3
     with pytest.raises(StageConnectionLost, match="limit.home.triggered:..': no reply within 0.2 s"):
-        stage.is_homed
+        _ = stage.is_homed
     time.sleep(0.15)  # the late reply ("0") arrives now, before the next command's reply
     assert stage.position_mm == pytest.approx(10.0)
     assert stage.is_homed is False
@@ -459,7 +461,7 @@ def test_garbled_reply(stage: ZaberStage, device: FakeZaberDevice) -> None:
     device.faults.garble_replies = 1
     with pytest.raises(StageProtocolError, match=r"sent '/1 1 \d\d get pos:..', got b'@01 1 \d\d "
                        r"\\xcf\\xcb IDLE WR 100000\\r\\n': garbled reply \(not ASCII\)"):
-        stage.position_mm
+        _ = stage.position_mm
     assert stage.position_mm == pytest.approx(10.0)
 
 
@@ -467,7 +469,7 @@ def test_bad_reply_checksum(stage: ZaberStage, device: FakeZaberDevice) -> None:
     device.faults.bad_checksum_replies = 1
     with pytest.raises(StageProtocolError, match=r"got '@01 1 \d\d OK IDLE WR 100000:..': reply fails "
                        "its checksum"):
-        stage.position_mm
+        _ = stage.position_mm
     device.reply_checksums = True  # good checksums are verified and accepted
     assert stage.position_mm == pytest.approx(10.0)
 
@@ -480,7 +482,7 @@ def test_stall_mid_move_raises_fault(homed: ZaberStage, device: FakeZaberDevice)
     assert info.value.warning == "FS"
     assert not homed.position_known  # the move did not complete
     with pytest.raises(StagePositionUnknown, match="move to 30 mm ended with StageFault"):
-        homed.last_position_mm
+        _ = homed.last_position_mm
     assert homed.move_to(30.0) == pytest.approx(30.0)  # a new move clears the stall
     assert homed.position_known and homed.last_position_mm == pytest.approx(30.0)
 
@@ -498,13 +500,15 @@ def test_stall_while_homing(stage: ZaberStage, device: FakeZaberDevice) -> None:
         stage.home()
 
 
-def test_idle_for_one_poll_mid_move_is_not_mistaken_for_done(homed: ZaberStage, device: FakeZaberDevice) -> None:
+def test_idle_for_one_poll_mid_move_is_not_mistaken_for_done(homed: ZaberStage,
+                                                             device: FakeZaberDevice) -> None:
     device.faults.idle_glitch = True
     assert homed.move_to(35.0) == pytest.approx(35.0)
     assert device.position == 350_000 and device.faults.idle_glitch is False
 
 
-def test_never_reaching_the_target_times_out_on_no_progress(homed: ZaberStage, device: FakeZaberDevice) -> None:
+def test_never_reaching_the_target_times_out_on_no_progress(homed: ZaberStage,
+                                                            device: FakeZaberDevice) -> None:
     device.faults.stop_short = 500
     with pytest.raises(StageTimeout, match=r"'/1 1 \d\d move abs 200000:..' no progress for 0.15 s: "
                        r"last sent .*, got '@01 1 \d\d OK IDLE -- 199500' \(device IDLE at 19.95 mm, "
@@ -551,7 +555,7 @@ def test_vanished_pty_gives_connection_lost(stage: ZaberStage, server: FakeZaber
         time.sleep(0.002)
     with pytest.raises(StageConnectionLost, match=rf"{stage.port_name}: .*(write failed|port failed).*"
                        "re-open failed"):
-        stage.position_mm
+        _ = stage.position_mm
 
 
 def test_pty_vanishing_after_a_move_command(homed: ZaberStage, device: FakeZaberDevice) -> None:
@@ -562,7 +566,8 @@ def test_pty_vanishing_after_a_move_command(homed: ZaberStage, device: FakeZaber
     assert info.value.position_mm is None and info.value.busy is None
 
 
-def test_silent_device_every_call_returns_within_its_deadline(stage: ZaberStage, device: FakeZaberDevice) -> None:
+def test_silent_device_every_call_returns_within_its_deadline(stage: ZaberStage,
+                                                              device: FakeZaberDevice) -> None:
     device.faults.silent = True
     one, two = TIMEOUT_S, 2 * TIMEOUT_S  # a lost motion reply is followed by one state query
     calls = [
@@ -626,8 +631,9 @@ def test_lost_reply_after_move_is_queried_after_reopening(url: str) -> None:
         stage.home()
         device.faults.vanish_on = "move"
         with pytest.raises(StageConnectionLost, match=r"move abs 300000:..': port failed while waiting "
-                           r"for the reply \(fakezaber://stage-test: device vanished\); re-opened; the motion "
-                           r"command was not re-sent .*got '@01 1 \d\d OK BUSY -- \d+': device BUSY") as info:
+                           r"for the reply \(fakezaber://stage-test: device vanished\); re-opened; the "
+                           r"motion command was not re-sent .*"
+                           r"got '@01 1 \d\d OK BUSY -- \d+': device BUSY") as info:
             stage.move_to(30.0)
         assert info.value.busy is True and 0.0 <= info.value.position_mm <= 30.0
         assert count(device, "move abs") == 1
@@ -642,7 +648,7 @@ def test_port_object_cannot_be_reopened(url: str) -> None:
         with pytest.raises(StageConnectionLost, match=r"sent '/1 1 \d\d get pos:..': write failed "
                            r"\(fakezaber://stage-test: device vanished\); re-open failed: .*a port object "
                            "passed in cannot be re-opened"):
-            stage.position_mm
+            _ = stage.position_mm
 
 
 def test_write_failing_again_after_reopening(url: str, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -664,7 +670,7 @@ def test_write_failing_again_after_reopening(url: str, monkeypatch: pytest.Monke
         device.faults.vanish = True
         with pytest.raises(StageConnectionLost, match=r"get pos:..': write failed \(.*vanished\), and "
                            r"again after re-opening \(still broken\)"):
-            stage.position_mm
+            _ = stage.position_mm
 
 
 # ----- replies that are wrong in other ways (a port object that rewrites the fake's bytes) -----
@@ -703,8 +709,10 @@ class TamperPort:
         (lambda b: b.replace(b" OK ", b" OX "), r"got '@01 0 \d\d OX IDLE WR 50081': garbled reply"),
         (lambda b: re.sub(rb"^(@\d\d \d) \d\d ", rb"\1 ", b), r"got '@01 0 OK IDLE WR 50081': reply "
          "carries no message id"),
-        (lambda b: b.replace(b"50081", b"50_081"), r"got '@01 0 \d\d OK IDLE WR 50_081': expected an integer"),
-        (lambda b: b.replace(b"50081", b"+50081"), r"got '@01 0 \d\d OK IDLE WR \+50081': expected an integer"),
+        (lambda b: b.replace(b"50081", b"50_081"),
+         r"got '@01 0 \d\d OK IDLE WR 50_081': expected an integer"),
+        (lambda b: b.replace(b"50081", b"+50081"),
+         r"got '@01 0 \d\d OK IDLE WR \+50081': expected an integer"),
         (lambda b: b.replace(b"@01", b"@02"), r"got '@02 0 \d\d OK IDLE WR 50081': reply from device 2 "
          "axis 0, expected device 1 axis 0"),
     ],

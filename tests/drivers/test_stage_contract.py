@@ -22,11 +22,9 @@ import pytest
 
 from drivers.interfaces import DeviceError, Stage
 from drivers.stage import ZaberStage
-from drivers.stage_errors import (StageError, StageLimitError, StageNotHomed, StageStopped,
-                                  StageTimeout)
+from drivers.stage_errors import StageError, StageLimitError, StageNotHomed, StageStopped, StageTimeout
 from drivers.zaber_protocol import ACCEL_UNIT, SPEED_UNIT
-from fakes.zaber import (FakeZaberDevice, FakeZaberPty, register_url_handler, remove_url_device,
-                         url_device)
+from fakes.zaber import FakeZaberDevice, FakeZaberPty, register_url_handler, remove_url_device, url_device
 
 UM = 0.1  # microstep, um
 TRAVEL_MM = (0.0, 40.0)
@@ -195,7 +193,7 @@ def test_close_is_idempotent_and_final(case: Case):
     case.stage.close()
     case.stage.close()
     with pytest.raises(StageError):
-        case.stage.position_mm
+        _ = case.stage.position_mm
     with pytest.raises(StageError):
         case.stage.move_to(5.0)
 

@@ -131,7 +131,7 @@ def test_soak_thousands_of_moves_with_random_faults(soak_url: str) -> None:
                 faults_injected[kind] += 1
                 arm(kind, helpers)
             target = target_mm()
-            outcome = timed(lambda: stage.move_to(target), target, f"move {i} ({kind})")
+            outcome = timed(lambda target=target: stage.move_to(target), target, f"move {i} ({kind})")
             for thread in helpers:
                 thread.join()
             device.faults = Faults()  # whatever was armed and unused is disarmed
@@ -141,7 +141,7 @@ def test_soak_thousands_of_moves_with_random_faults(soak_url: str) -> None:
             if outcome != "ok":  # the next operation recovers
                 time.sleep(1.5 * T)  # let a delayed reply, if any, fall due (it is then discarded)
                 again = target_mm()
-                assert timed(lambda: stage.move_to(again), again, f"recovery {i}") == "ok", kind
+                assert timed(lambda again=again: stage.move_to(again), again, f"recovery {i}") == "ok", kind
                 assert stage.position_known and device.position == round(again * 1000 / UM)
         wall = time.monotonic() - wall_start
 

@@ -213,7 +213,7 @@ def test_fake_camera_ltc_equals_the_virtual_scanners_for_the_same_pixel_and_dept
     truth = bench.true_ltc(z_mm)[pixels].toarray()
     steps = np.arange(-2, 3)
     for row, uv, wt, depth, want in zip(range(len(pixels)), tr.proj_uv, tr.weight, tr.depth,
-                                        truth):
+                                        truth, strict=True):
         half = 0.5 * depth / (bench.K[0, 0] * pitch)  # the footprint's half-width, LCD px
         assert half < 2.5
         uv = uv.astype(np.float64)

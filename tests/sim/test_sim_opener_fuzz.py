@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from fuzz_inputs import FUZZ, awkward_array, file_inputs, mutated_tree, opens_or_names_file
 from hypothesis import given
 from hypothesis import strategies as st
 
-from fuzz_inputs import FUZZ, awkward_array, file_inputs, mutated_tree, opens_or_names_file
 from sim.fpp.cloud import read_ply, write_ply
 from sim.fpp.scan_input import load_pattern_set
 from sim.fpp.stereo import PointCloud

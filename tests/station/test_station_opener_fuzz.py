@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fuzz_inputs import FUZZ, file_inputs, mutated_tree, opens_or_names_file
 from hypothesis import given
 
-from fuzz_inputs import FUZZ, file_inputs, mutated_tree, opens_or_names_file
 from station.acquisition.config import example_text, load_config
 from station.acquisition.patterns import StationPatternPlan
 from station.acquisition.run_store import FrameMeta, RunStore

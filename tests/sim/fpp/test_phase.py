@@ -7,8 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sim.render.fringe_patterns import GrayCodeSet, PhaseShiftSet
-from sim.optics.lens import PinholeLens
+from sim.fpp.decode import DecodeSettings, decode_view
 from sim.fpp.phase import (
     TWO_PI,
     WrappedPhase,
@@ -24,9 +23,10 @@ from sim.fpp.phase import (
     unwrap_with_reference,
     wrapped_phase,
 )
-from sim.fpp.decode import DecodeSettings, decode_view
-from sim.render.images import CameraResponse, RenderSettings, render_views
+from sim.optics.lens import PinholeLens
 from sim.optics.rig import DeviceCalibration, Rig, small_rig
+from sim.render.fringe_patterns import GrayCodeSet, PhaseShiftSet
+from sim.render.images import CameraResponse, RenderSettings, render_views
 from sim.render.scene import PlaneObject, Pose, Scene, SphereObject
 
 
@@ -158,7 +158,8 @@ def test_gray_code_index_and_robust_unwrapping():
     rng = np.random.default_rng(3)
     shift = rng.uniform(-1.5, 1.5, u.shape)
     index = np.floor((u + shift + 0.5) / w).astype(int)
-    absph, oerr = unwrap_gray_code(np.mod(TWO_PI * u / period, TWO_PI), period, index, w, return_order_error=True)
+    absph, oerr = unwrap_gray_code(np.mod(TWO_PI * u / period, TWO_PI), period, index, w,
+                                   return_order_error=True)
     np.testing.assert_allclose(absolute_phase_to_projector(absph, period), u, atol=1e-9)
     assert oerr.max() <= 0.25 + 1.5 / period + 1e-9
     with pytest.raises(ValueError, match="must be narrower than the phase period"):

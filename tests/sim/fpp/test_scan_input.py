@@ -57,7 +57,7 @@ def test_stereo_calibrate_rig_loads_as_the_same_geometry(scanner_data):
     d, rig, _, _ = scanner_data
     own = Rig.load(d / "stereo.yml")
     np.testing.assert_allclose(own.cameras[0].R_array, np.eye(3))
-    for a, b in zip([*own.cameras, own.projector], [*rig.cameras, rig.projector]):
+    for a, b in zip([*own.cameras, own.projector], [*rig.cameras, rig.projector], strict=True):
         np.testing.assert_allclose(a.K_array, b.K_array)
         np.testing.assert_allclose(a.dist_array, b.dist_array)
         assert a.size == b.size

@@ -9,13 +9,7 @@ import numpy as np
 import pytest
 
 from sim.fpp.cloud import read_ply, write_ply
-from sim.render.fringe_patterns import PhaseShiftSet
-from sim.optics.lens import PinholeLens
-from sim.metrology.spheres import fit_sphere
 from sim.fpp.decode import scan
-from sim.render.images import CameraResponse, RenderSettings, render_views
-from sim.optics.rig import DeviceCalibration, Rig, default_rig, look_at
-from sim.render.scene import Scene, SphereObject
 from sim.fpp.stereo import (
     PointCloud,
     camera_projector_cloud,
@@ -26,6 +20,12 @@ from sim.fpp.stereo import (
     stereo_rectification,
     triangulate,
 )
+from sim.metrology.spheres import fit_sphere
+from sim.optics.lens import PinholeLens
+from sim.optics.rig import DeviceCalibration, Rig, default_rig, look_at
+from sim.render.fringe_patterns import PhaseShiftSet
+from sim.render.images import CameraResponse, RenderSettings, render_views
+from sim.render.scene import Scene, SphereObject
 
 R_SPHERE = 50.8007 / 2
 
@@ -115,7 +115,7 @@ def test_match_row_finds_every_crossing():
     right = np.array([np.nan, 0.0, 1.0, 2.0, 3.0, np.nan, 9.0, 7.0, 5.0, 3.0, 1.0])
     left = np.array([0.5, 2.25, 6.0, np.nan, 3.0])
     runs = match_row(left, right, order=1)
-    found = {(int(j), float(x)) for jl, xr in runs for j, x in zip(jl, xr)}
+    found = {(int(j), float(x)) for jl, xr in runs for j, x in zip(jl, xr, strict=True)}
     # rising run 1..4: 0.5 -> 1.5, 2.25 -> 3.25, 3 -> 4; falling 6..10: 2.25 -> 9.375, 6 -> 7.5, 3 -> 9
     assert found == {(0, 1.5), (1, 3.25), (4, 4.0), (1, 9.375), (2, 7.5), (4, 9.0)}
     assert match_row(np.full(3, np.nan), right) == []
@@ -310,7 +310,8 @@ def test_scanned_ply_carries_scalar_fields_and_normals(tmp_path):
         (b"hello\n", "not a PLY file"),
         (b"ply\nformat weird 1.0\n", "unknown PLY format 'weird'"),
         (b"ply\nformat ascii 1.0\nelement face 1\nend_header\n", "first PLY element must be 'vertex'"),
-        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n", "needs properties x, y and z"),
+        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n",
+         "needs properties x, y and z"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty list uchar int x\n", "list property 'x'"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty quad x\n", "unknown PLY type 'quad'"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\n", "no end_header"),

@@ -199,7 +199,8 @@ def test_icp_errors():
         icp(a + 100.0, a, an, max_distance_mm=0.1)
     with pytest.raises(ValueError, match="source cloud has 2 finite points"):
         icp(a[:2], a, an)
-    with pytest.raises(ValueError, match=r"target cloud must be an \(n, 3\) array of points, got shape \(500, 2\)"):
+    with pytest.raises(ValueError,
+                       match=r"target cloud must be an \(n, 3\) array of points, got shape \(500, 2\)"):
         icp(a, a[:, :2], an)
     with pytest.raises(ValueError, match=r"reference normals have shape \(3, 3\)"):
         signed_distance_to_cloud(a, a, an[:3])

@@ -140,7 +140,8 @@ def _yaml(tmp_path, edit):
      r"node 'camera_0/T' must have 3 values"),
     (lambda t: t.replace("      rows: 1\n      cols: 5", "      rows: 1\n      cols: 6", 1),
      r"node 'camera_0/distortion_coefficients' is not a valid opencv-matrix"),
-    (lambda t: t.replace("   name: right", "   name: left"), r"rig file .*rig.yaml: field '\(root\)'.*device names must be unique"),
+    (lambda t: t.replace("   name: right", "   name: left"),
+     r"rig file .*rig.yaml: field '\(root\)'.*device names must be unique"),
 ])
 def test_filestorage_errors_name_file_and_node(tmp_path, edit, match):
     path = _yaml(tmp_path, edit)

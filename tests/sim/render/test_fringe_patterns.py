@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from sim.render.fringe_patterns import GrayCodeSet, PhaseShiftSet
 from sim.fpp.phase import gray_bits, gray_to_index, wrapped_phase
+from sim.render.fringe_patterns import GrayCodeSet, PhaseShiftSet
 
 SIZE = (40, 24)  # projector (width, height)
 

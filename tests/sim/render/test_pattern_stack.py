@@ -18,7 +18,7 @@ def test_fringe_and_gray_code_sets_become_profiles_and_come_back_bit_for_bit():
         want = [ALONG_U if d.direction == "u" else ALONG_V for d in ps.descriptors(SIZE)]
         # white and black references are constant: kept as rows whatever their direction
         want = [ALONG_U if d.kind in ("white", "black") else f
-                for d, f in zip(ps.descriptors(SIZE), want)]
+                for d, f in zip(ps.descriptors(SIZE), want, strict=True)]
         assert list(stack.form) == want
         assert stack.full.shape == (0, 21, 37)
         assert stack.rows.shape[1:] == (37,) and stack.cols.shape[1:] == (21,)

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import zarr
 
-from sim.render.fringe_patterns import PhaseShiftSet
-from sim.optics.lens import AberratedLens, PinholeLens
-from sim.render.pattern_stack import ALONG_U, ALONG_V, FULL, PatternStack
 from sim.fpp.phase import wrapped_phase
+from sim.optics.lens import AberratedLens, PinholeLens
+from sim.optics.rig import DeviceCalibration, small_rig
+from sim.render.fringe_patterns import PhaseShiftSet
 from sim.render.images import (
     CameraResponse,
     ProjectorResponse,
@@ -27,7 +27,7 @@ from sim.render.images import (
     write_png,
     write_zarr,
 )
-from sim.optics.rig import DeviceCalibration, small_rig
+from sim.render.pattern_stack import ALONG_U, ALONG_V, FULL, PatternStack
 from sim.render.scene import PlaneObject, Pose, Scene, SphereObject
 from sim.render.trace import trace_camera
 from station.cli import main
@@ -268,7 +268,8 @@ def test_camera_noise_statistics():
         camera_response(np.zeros(3), cam)
 
 
-@pytest.mark.parametrize("bits, dtype, top", [(8, np.uint8, 255), (12, np.uint16, 4095), (16, np.uint16, 65535)])
+@pytest.mark.parametrize("bits, dtype, top", [(8, np.uint8, 255), (12, np.uint16, 4095), (16, np.uint16,
+                                                                                          65535)])
 def test_png_round_trip(tmp_path, bits, dtype, top):
     img = (np.arange(12 * 7).reshape(7, 12) * (top // 83)).astype(dtype)
     img[0, 0] = top
@@ -301,7 +302,7 @@ def _small_views(**kw):
 def test_render_views_and_zarr_round_trip(tmp_path):
     rig, geom, pats, res = _small_views()
     assert [c.name for c in res.cameras] == ["left", "right"]
-    for c, cam in zip(res.cameras, rig.cameras):
+    for c, cam in zip(res.cameras, rig.cameras, strict=True):
         tr = trace_camera(geom, cam, rig.projector, PinholeLens())
         np.testing.assert_array_equal(c.images, render(tr, pats, RenderSettings()))
         np.testing.assert_array_equal(c.depth, tr.depth_map())

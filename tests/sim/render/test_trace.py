@@ -4,10 +4,10 @@ import cv2
 import numpy as np
 import pytest
 
-from sim.render import trace
 from sim.optics.lens import AberratedLens, PinholeLens, hit_plane
 from sim.optics.projection import pixel_to_normalized, project_points
 from sim.optics.rig import DeviceCalibration, small_rig
+from sim.render import trace
 from sim.render.scene import PlaneObject, Pose, Scene, SphereObject
 from sim.render.trace import TraceGeometry, normalized_grid, trace_camera
 
@@ -38,8 +38,10 @@ def _check_plane(rig, tr, projected):
     assert err.max() < 1e-3, err.max()
     # every pixel whose analytic projector coordinate is well inside the image is lit
     pw, ph = proj.size
-    inside = (uv_p[:, 0] > -0.499) & (uv_p[:, 0] < pw - 0.501) & (uv_p[:, 1] > -0.499) & (uv_p[:, 1] < ph - 0.501)
-    border = (uv_p[:, 0] > -0.501) & (uv_p[:, 0] < pw - 0.499) & (uv_p[:, 1] > -0.501) & (uv_p[:, 1] < ph - 0.499)
+    inside = ((uv_p[:, 0] > -0.499) & (uv_p[:, 0] < pw - 0.501)
+              & (uv_p[:, 1] > -0.499) & (uv_p[:, 1] < ph - 0.501))
+    border = ((uv_p[:, 0] > -0.501) & (uv_p[:, 0] < pw - 0.499)
+              & (uv_p[:, 1] > -0.501) & (uv_p[:, 1] < ph - 0.499))
     assert np.all(lit[inside]) and not np.any(lit & ~border)
     # depth and N.L weight
     np.testing.assert_allclose(tr.depth, cam.to_device(x)[:, 2], rtol=1e-12)

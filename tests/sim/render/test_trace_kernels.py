@@ -4,7 +4,6 @@ pixel coordinates, lens-ray geometry, chunking, and lenses whose samples differ 
 import numpy as np
 import pytest
 
-from sim.render import trace
 from sim.optics.lens import (
     AberratedLens,
     GaussianLens,
@@ -15,6 +14,7 @@ from sim.optics.lens import (
 )
 from sim.optics.projection import pixel_to_normalized, project_points
 from sim.optics.rig import DeviceCalibration, small_rig
+from sim.render import trace
 from sim.render.scene import PlaneObject, Pose, Scene, SphereObject
 from sim.render.trace import trace_camera
 from sim.render.trace_kernels import pixel_coordinates

@@ -38,9 +38,9 @@ from station.acquisition.acquire import (
     plan_events,
 )
 from station.acquisition.backend import Hardware, open_fake_hardware, open_hardware
-from station.cli import main
 from station.acquisition.config import example_text, parse_config
 from station.acquisition.run_store import CODE_MASK, RunStore
+from station.cli import main
 from station.lens.centroids import window_stats
 
 EXAMPLE = example_text("fake")

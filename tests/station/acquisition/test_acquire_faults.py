@@ -18,9 +18,9 @@ from drivers.interfaces import DeviceError
 from station.acquisition import run_store
 from station.acquisition.acquire import acquire
 from station.acquisition.backend import Hardware, open_fake_hardware
+from station.acquisition.config import example_text, parse_config
 from station.cli import main
 from station.errors import StationError
-from station.acquisition.config import example_text, parse_config
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -196,7 +196,7 @@ def test_random_faults_are_retried_or_resumed_to_the_fault_free_frames(reference
     config = small_config()
     failures, retries, bench = [], {}, {}
     caplog.set_level(logging.ERROR)
-    for attempt in range(12):
+    for _ in range(12):
         try:
             with open_fake_hardware(config) as fake:  # a fresh bench per run, as a re-run gets
                 bench["fake"] = fake

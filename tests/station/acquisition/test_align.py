@@ -17,8 +17,8 @@ from station.acquisition.align import (
     format_align,
     tilt_from_axis,
 )
-from station.cli import main
 from station.acquisition.config import example_text
+from station.cli import main
 
 TILT_DEG = (0.5, -0.3)
 OFFSET_MM = (1.0, -0.5)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from gv_fake import DEFAULT_SIZE, expected_pattern, running_fake_camera
 
 from drivers.camera import OpenCVCamera
 from drivers.genicam import PIXEL_FORMATS, GenICamCamera
@@ -20,7 +21,6 @@ from station.acquisition.config import (
     example_text,
     parse_config,
 )
-from gv_fake import DEFAULT_SIZE, expected_pattern, running_fake_camera
 
 FAKE = example_text("fake")
 REAL = example_text("real")

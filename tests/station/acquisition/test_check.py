@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from station.cli import main
 from station.acquisition.config import example_text
+from station.cli import main
 
 
 def test_check_fake_json_is_ok_and_writes_contact_sheet(tmp_path, capsys):

@@ -24,7 +24,11 @@ def test_examples_parse():
     [
         ("settle_s = 0.0", "settle_s = 0.0\nsettel_s = 1", r"field 'stage\.settel_s': Extra inputs"),
         ("depths_mm = [40.0,", "depths_mm = [-5.0,", r"depths_mm\[0\] = -5.0 is negative"),
-        ("period = 12", "period = 3", r"field 'patterns\.period': Input should be greater than or equal to 4"),
+        (
+            "period = 12",
+            "period = 3",
+            r"field 'patterns\.period': Input should be greater than or equal to 4",
+        ),
         ("depths_mm = [40.0,", "depths_mm = [250.0,", r"depths_mm\[0\] = 250.0 is outside stage\.travel_mm"),
         ("steps = 4", "steps = 5", r"patterns\.steps"),
         ('backend = "fake"', 'backend = "simulated"', r"field 'backend': Input should be 'fake' or 'real'"),

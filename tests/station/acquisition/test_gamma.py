@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from station.acquisition.backend import load_lut, open_hardware
-from station.cli import main
 from station.acquisition.config import example_text, parse_config
 from station.acquisition.gamma import (
     GammaError,
@@ -18,6 +17,7 @@ from station.acquisition.gamma import (
     relative_response,
     save_lut,
 )
+from station.cli import main
 
 TRUE_INVERSE = 255.0 * (np.arange(256) / 255.0) ** (1 / 2.2)  # float inverse of gamma 2.2
 

@@ -126,7 +126,7 @@ def test_gray_code_numbers_half_period_stripes_along_both_axes():
 
 def test_phase_patterns_shift_along_their_axis():
     plan = StationPatternPlan.for_lcd(LCD, 8, 4)
-    for i, step in zip(plan.indices["phase_y"], range(4)):
+    for i, step in zip(plan.indices["phase_y"], range(4), strict=True):
         img = plan.image(i, LCD).astype(float)
         y = np.arange(LCD[1])
         want = 255 * (0.5 + 0.5 * np.cos(2 * np.pi * y / 16 - 2 * np.pi * step / 4))
@@ -145,7 +145,7 @@ def test_indices_agree_with_descriptors():
         assert all(plan.descriptors[i].kind == kind and plan.descriptors[i].direction == direction
                    for i in idx[name])
     reg, _ = plan.fourier.frequencies
-    for (k, l), row in zip(reg, idx["regular"]):
+    for (k, l), row in zip(reg, idx["regular"], strict=True):
         ds = [plan.descriptors[i] for i in row]
         assert [(d.k, d.l, d.shift, d.steps) for d in ds] == [(k, l, m, 3) for m in range(3)]
     n_used = sum(v.size for v in idx.values())
@@ -178,7 +178,8 @@ def test_bad_definitions_name_the_field():
         FourierPatternSet(period=3)
     with pytest.raises(ValidationError, match="steps"):
         FourierPatternSet(steps=2)
-    with pytest.raises(ValidationError, match=r"offset A=0.7 and amplitude B=0.5 must keep A \+- B in \[0, 1\]"):
+    with pytest.raises(ValidationError,
+                       match=r"offset A=0.7 and amplitude B=0.5 must keep A \+- B in \[0, 1\]"):
         FourierPatternSet(offset=0.7, amplitude=0.5)
     with pytest.raises(ValidationError, match="localisation period must be even"):
         LocalisationPatternSet(period=15)

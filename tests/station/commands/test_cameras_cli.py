@@ -7,10 +7,10 @@ import json
 import sys
 
 import pytest
+from gv_fake import running_fake_camera
 
 import drivers.camera
 from drivers.camera import VideoDevice, list_video_devices
-from gv_fake import running_fake_camera
 from station.cli import main
 
 

@@ -7,9 +7,10 @@ from __future__ import annotations
 import json
 import re
 
+from gv_fake import expected_pattern, running_fake_camera
+
 from drivers.zaber_protocol import ACCEL_UNIT, SPEED_UNIT
 from fakes.zaber import FakeZaberDevice, FakeZaberPty
-from gv_fake import expected_pattern, running_fake_camera
 from station.acquisition.config import example_text
 from station.cli import main
 

@@ -4,8 +4,8 @@ acquisition added ([frame_check], [acquire])."""
 import pytest
 
 from drivers.frame_code import frame_code_rect
-from station.cli import main
 from station.acquisition.config import ConfigError, example_config, example_text, parse_config
+from station.cli import main
 
 
 @pytest.mark.parametrize("kind", ["fake", "real"])
@@ -53,9 +53,11 @@ def test_fake_example_check_code_sits_in_the_lcd_and_real_defaults_next_to_the_c
 
 @pytest.mark.parametrize(("section", "line", "message"), [
     ("[frame_check]", "min_margin = 0.5", r"field 'frame_check\.min_margin': Input should be less than 0\.5"),
-    ("[frame_check]", "origin_px = [1, 2, 3]", r"field 'frame_check\.origin_px': Tuple should have at most 2"),
+    ("[frame_check]", "origin_px = [1, 2, 3]",
+     r"field 'frame_check\.origin_px': Tuple should have at most 2"),
     ("[frame_check]", "bits = 0", r"field 'frame_check\.bits': Input should be greater than or equal to 1"),
-    ("[acquire]", "max_retries = -1", r"field 'acquire\.max_retries': Input should be greater than or equal to 0"),
+    ("[acquire]", "max_retries = -1",
+     r"field 'acquire\.max_retries': Input should be greater than or equal to 0"),
     ("[camera]", "matrix = [[1.0, 0.0]]", r"field 'camera\.matrix\.0\.2': Field required"),
 ])
 def test_new_sections_are_validated(section, line, message):

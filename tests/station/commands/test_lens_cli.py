@@ -6,9 +6,9 @@ import json
 
 import numpy as np
 import pytest
+from ltc_stores import write_true_ltc_store
 
 from fakes.bench import BenchConfig, FakeBench
-from ltc_stores import write_true_ltc_store
 from sim.optics.measured_lens import load_lens
 from sim.optics.rig import Rig, small_rig
 from station.cli import main

@@ -79,7 +79,8 @@ def sphere_render(tmp_path_factory):
 
 def test_sphere_acceptance(sphere_render, capsys):
     d = sphere_render
-    code, out, _ = ltc(capsys, "scan", d / "render", "--rig", d / "rig.json", "--out", d / "cloud.ply", "--json")
+    code, out, _ = ltc(capsys, "scan", d / "render", "--rig", d / "rig.json", "--out", d / "cloud.ply",
+                       "--json")
     assert code == 0
     summary = json.loads(out)
     assert summary["points"] > 50000 and summary["mode"] == "stereo"
@@ -92,7 +93,8 @@ def test_sphere_acceptance(sphere_render, capsys):
     cloud = read_ply(d / "cloud.ply")
     assert cloud.normals is not None and cloud.quality is not None
     # the same images from the zarr stack give the same cloud
-    code, _, _ = ltc(capsys, "scan", d / "render" / "render.zarr", "--rig", d / "rig.json", "--out", d / "z.ply")
+    code, _, _ = ltc(capsys, "scan", d / "render" / "render.zarr", "--rig", d / "rig.json", "--out",
+                     d / "z.ply")
     assert code == 0
     np.testing.assert_array_equal(read_ply(d / "z.ply").points, cloud.points)
 
@@ -125,11 +127,13 @@ def test_camera_projector_scan_and_cloud_comparisons(sphere_render, capsys):
 
 
 def test_ball_bar_acceptance(tmp_path, capsys):
-    ends = np.array([[x, y, z] for x in (-BAR_L / 2 - 20, BAR_L / 2 + 20) for y in (-20, 20) for z in (-20, 20)])
+    ends = np.array([[x, y, z] for x in (-BAR_L / 2 - 20, BAR_L / 2 + 20)
+                     for y in (-20, 20) for z in (-20, 20)])
     objects = f'kind = "ball_bar"\ndiameter_mm = {BAR_D}\ncentre_distance_mm = {BAR_L}'
     scene = make_scene(tmp_path, objects, 'kind = "gray_code"\nperiod_px = 16.0\nsteps = 4', ends, 4)
     assert main(["render", str(scene), "--out", str(tmp_path / "render"), "--quiet"]) == 0
-    code, _, _ = ltc(capsys, "scan", tmp_path / "render", "--rig", tmp_path / "rig.json", "--out", tmp_path / "bar.ply")
+    code, _, _ = ltc(capsys, "scan", tmp_path / "render", "--rig", tmp_path / "rig.json", "--out",
+                     tmp_path / "bar.ply")
     assert code == 0
     code, out, _ = ltc(capsys, "measure", tmp_path / "bar.ply", "--ballbar", "--diameter", BAR_D,
                        "--length", BAR_L, "--json")
@@ -172,8 +176,10 @@ def test_scan_errors_wrong_count_sizes_dark_rig(sphere_render, tmp_path, capsys)
     assert code == 1 and "camera 0: no pixel has a fringe modulation" in err and "dark" in err
 
     default_rig().save(tmp_path / "full_rig.json")
-    code, _, err = ltc(capsys, "scan", d / "render", "--rig", tmp_path / "full_rig.json", "--out", tmp_path / "x.ply")
-    assert code == 1 and "but the rig's camera 'left' is 4096 x 2168; is the rig file for these images?" in err
+    code, _, err = ltc(capsys, "scan", d / "render", "--rig", tmp_path / "full_rig.json", "--out",
+                       tmp_path / "x.ply")
+    assert code == 1
+    assert "but the rig's camera 'left' is 4096 x 2168; is the rig file for these images?" in err
 
 
 def test_scan_errors_inputs_and_pattern_sets(sphere_render, tmp_path, capsys):
@@ -198,15 +204,18 @@ def test_scan_errors_inputs_and_pattern_sets(sphere_render, tmp_path, capsys):
     pfile.write_text("{not json")
     code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", pfile)
     assert code == 1 and "not valid JSON" in err
-    code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", tmp_path / "no.json")
+    code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns",
+                       tmp_path / "no.json")
     assert code == 1 and "no.json: not found" in err
     (plain / "camera_1" / "notes.txt").write_text("x")
     shutil.rmtree(plain / "camera_1")
     (plain / "camera_1").mkdir()
-    code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", tmp_path / "patterns.json")
+    code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns",
+                       tmp_path / "patterns.json")
     assert code == 1 and "camera_1: no PNG, TIFF or .npy images" in err
     cv2.imwrite(str(plain / "camera_1" / "a.png"), np.zeros((4, 4, 3), np.uint8))
-    code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns", tmp_path / "patterns.json")
+    code, _, err = ltc(capsys, "scan", plain, "--rig", rig, "--out", tmp_path / "x.ply", "--patterns",
+                       tmp_path / "patterns.json")
     assert code == 1 and "a.png: not a single-channel image" in err
     z = tmp_path / "z.zarr"
     z.mkdir()
@@ -244,7 +253,8 @@ def test_measure_finds_the_example_sphere_and_refuses_wrong_nominals(tmp_path, c
     rig = example.parent / "sphere_rig.yaml"
     code, _, _ = ltc(capsys, "scan", tmp_path / "render", "--rig", rig, "--out", tmp_path / "c.ply")
     assert code == 0
-    code, out, _ = ltc(capsys, "measure", tmp_path / "c.ply", "--sphere", "--json", "--png", tmp_path / "s.png")
+    code, out, _ = ltc(capsys, "measure", tmp_path / "c.ply", "--sphere", "--json", "--png",
+                       tmp_path / "s.png")
     free = json.loads(out)
     assert code == 0 and cv2.imread(str(tmp_path / "s.png")) is not None
     code, out, _ = ltc(capsys, "measure", tmp_path / "c.ply", "--sphere", "--diameter", SPHERE_D, "--json")

@@ -11,7 +11,7 @@ from sim.render.fringe_patterns import PhaseShiftSet
 from sim.render.images import RenderSettings
 from sim.render.scene import Scene, SphereObject
 from sim.scanner import Scanner
-from station.experiment.run import build_rig, ExperimentConfig
+from station.experiment.run import ExperimentConfig, build_rig
 
 NOISY = {"projector": {"input_bits": 8},
          "camera": {"exposure_e": 8000.0, "full_well_e": 10000.0, "bit_depth": 12,
@@ -63,7 +63,8 @@ def test_smoothing_a_measured_lens_removes_node_noise_and_keeps_the_field():
     assert smoothed_lens(lens, 0) is lens
     s = smoothed_lens(lens, 2)
     inner = (slice(3, -3), slice(3, -3))
-    err = lambda a, b: np.sqrt(np.mean((a[inner] - b[inner]) ** 2))
+    def err(a, b):
+        return np.sqrt(np.mean((a[inner] - b[inner]) ** 2))
     for got, noisy, truth in ((s.aperture_x_mm, noisy_x, truth_x),
                               (s.aperture_y_mm, noisy_y, truth_y)):
         assert err(got, truth) < 0.3 * err(noisy, truth)  # noise averaged over ~25 nodes
@@ -89,7 +90,8 @@ def test_smoothing_keeps_the_apertures_size_when_samples_do_not_correspond():
     lens = MeasuredLens(800.0, np.zeros(3), (48, 40), np.arange(gu) * 4.0,
                         np.arange(gv) * 4.0, x, y, w, np.ones((gv, gu)), "bilinear")
     s = smoothed_lens(lens, 2)
-    cov = lambda a, b: (a * b).mean() - a.mean() * b.mean()
+    def cov(a, b):
+        return (a * b).mean() - a.mean() * b.mean()
     truth = np.array([[cov(disk_x, disk_x), cov(disk_x, disk_y)],
                       [cov(disk_x, disk_y), cov(disk_y, disk_y)]])
 

@@ -48,8 +48,14 @@ def test_every_object_of_the_built_in_configs_lies_in_both_crops():
     from sim.render.fringe_patterns import PhaseShiftSet
     from sim.render.images import RenderSettings
     from sim.scanner import Scanner
-    from station.experiment.run import (RENDER, check_views, paper_size_config, positions,
-                                        scene_of, view_extents_px)
+    from station.experiment.run import (
+        RENDER,
+        check_views,
+        paper_size_config,
+        positions,
+        scene_of,
+        view_extents_px,
+    )
 
     for cfg in (ExperimentConfig(), paper_size_config()):
         check_views(cfg, build_rig(cfg))
@@ -60,7 +66,7 @@ def test_every_object_of_the_built_in_configs_lies_in_both_crops():
                       PhaseShiftSet(periods_px=[256.0], steps=4, direction="u"),
                       scene_of(pos, cfg, None), RenderSettings.model_validate(RENDER))
     images = scanner.render()
-    for cam, (u0, u1, v0, v1) in zip(images.cameras, view_extents_px(pos, cfg, rig)):
+    for cam, (u0, u1, v0, v1) in zip(images.cameras, view_extents_px(pos, cfg, rig), strict=True):
         v, u = np.nonzero(cam.images.max(axis=0) > 0)
         # lit pixels: those whose centre's ray meets a ball, within the box, touching it
         assert u0 - 0.5 <= u.min() <= u0 + 1.5 and u1 - 1.5 <= u.max() <= u1 + 0.5

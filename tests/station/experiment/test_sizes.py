@@ -8,8 +8,14 @@ import numpy as np
 import pytest
 
 from sim.fpp.cloud import PointCloud
-from station.experiment.run import (SPHERE_DIAMETER_MM, ExperimentConfig,
-                                    Position, scene_of, shared_size_mm, size_fit)
+from station.experiment.run import (
+    SPHERE_DIAMETER_MM,
+    ExperimentConfig,
+    Position,
+    scene_of,
+    shared_size_mm,
+    size_fit,
+)
 
 CFG = ExperimentConfig()
 CAP_DEG = 50.0  # the demo's spheres are caps of about 50 degrees about the view axis
@@ -120,9 +126,9 @@ def test_a_ball_a_scanner_saw_only_in_patches_is_refused_naming_it():
         clouds.append((p, uv + [400 * k, 0], cam))
 
     def scans(second: float) -> dict:
-        full = cloud(*(np.concatenate(a) for a in zip(*clouds)))
+        full = cloud(*(np.concatenate(a) for a in zip(*clouds, strict=True)))
         n = int(second * len(clouds[1][0]))
-        part = cloud(*(np.concatenate([a, b[:n]]) for a, b in zip(*clouds)))
+        part = cloud(*(np.concatenate([a, b[:n]]) for a, b in zip(*clouds, strict=True)))
         return {"real": Scan(full, None, 0.0), "ltc": Scan(part, None, 0.0),
                 "gaussian": Scan(full, None, 0.0), "pinhole": Scan(full, None, 0.0)}
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from ltc_stores import write_true_ltc_store
 from scipy.ndimage import gaussian_filter
 
 from fakes.bench import BenchConfig, FakeBench
-from ltc_stores import write_true_ltc_store
 from sim.optics.projection import pixel_to_normalized
 from station.api import derive_lens, lens_config
 from station.lens.derive import aim_offsets, local_ray_slopes, sample_moment

@@ -46,7 +46,7 @@ def bench_windows(bench: FakeBench, z: float) -> tuple[np.ndarray, np.ndarray]:
 @pytest.fixture(scope="module")
 def volume(bench) -> LtcVolume:
     w, h = bench.config.camera_size
-    wins, orgs = zip(*(bench_windows(bench, z) for z in DEPTHS))
+    wins, orgs = zip(*(bench_windows(bench, z) for z in DEPTHS), strict=True)
     d = len(DEPTHS)
     return LtcVolume(np.array(wins).reshape(d, h, w, P, P), np.array(orgs).reshape(d, h, w, 2),
                      np.ones((d, h, w)), np.zeros((d, h, w)), np.array(DEPTHS),

@@ -22,7 +22,7 @@ FOOTPRINT_MM = np.array([1.12, 1.20, 1.27, 1.57, 1.64, 1.72])  # box-equivalent,
 
 
 def mixed(rows: np.ndarray, w: np.ndarray) -> np.ndarray:
-    return sum(wi * np.outer(r, r) for wi, r in zip(w, rows))
+    return sum(wi * np.outer(r, r) for wi, r in zip(w, rows, strict=True))
 
 
 def test_blur_kernels_have_the_box_and_footprint_variances():
@@ -55,7 +55,8 @@ def test_richardson_lucy_kernel_equals_the_numpy_formulas():
     richardson_lucy_kernel(d, w, rows, norm_rows, 7, x)
     for k in range(n):
         ker = mixed(rows, w[k])
-        conv = lambda a: ndimage.convolve(a, ker, mode="constant")  # noqa: E731
+        def conv(a, ker=ker):
+            return ndimage.convolve(a, ker, mode="constant")
         norm = conv(np.ones((g, g)))
         ref = d[k].copy()
         for _ in range(7):

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from ltc_stores import write_true_ltc_store
 
 from fakes.bench import BenchConfig, FakeBench
-from ltc_stores import write_true_ltc_store
 from sim.optics.measured_lens import load_lens, read_lens_nodes
 from station.api import derive_lens
 from station.lens.geometry import LensFitConfig

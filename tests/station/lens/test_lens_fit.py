@@ -34,15 +34,14 @@ from station.lens.aperture import (
     ApertureGrid,
     fusion_weights,
     grid_moments,
-    ring_samples,
     resample,
+    ring_samples,
     scale_ratio,
 )
-from station.ltc.store import LtcVolume
 from station.lens.derive import aperture_set, derive_lens, node_positions
 from station.lens.geometry import LensFitConfig, LensFitError, fit_geometry
-from station.ltc.store import centred_origins, windows_from_sparse
 from station.lens.rays import FLAG_FEW_DEPTHS
+from station.ltc.store import LtcVolume, centred_origins, windows_from_sparse
 
 P = 24
 DEPTHS = (0.0, 20.0, 40.0, 110.0, 250.0, 290.0)
@@ -96,7 +95,7 @@ def truth(bench):
         win, org, t = windows(bench, z)
         win[flat], org[flat], _ = windows(bench, z, fine, flat)
         out.append((win.reshape(h, w, P, P), org.reshape(h, w, 2), t.reshape(h, w)))
-    return [np.array(a) for a in zip(*out)]
+    return [np.array(a) for a in zip(*out, strict=True)]
 
 
 def make_volume(bench, truth, seed: int | None = None, offset: float = 0.0, K=True):
@@ -202,7 +201,7 @@ def test_fused_aperture_matches_the_true_pupil(bench, clean):
     ov = overlap(aps.fused, true_pupil(bench, r.grid, list(SCORED.values()),
                                        r.geometry.centre.position))
     print("\nnoise-free overlap with the true pupil: "
-          + ", ".join(f"{k} {v:.4f}" for k, v in zip(SCORED, ov)))
+          + ", ".join(f"{k} {v:.4f}" for k, v in zip(SCORED, ov, strict=True)))
     assert np.all(ov >= 0.95)
 
 
@@ -216,7 +215,7 @@ def test_fusing_depths_beats_the_best_single_depth(bench, noisy):
     single_err = 1 - overlap(aps.per_depth, t[:, None])
     best = single_err.min(axis=1)
     print("\ndefault noise, 1 - overlap: fused vs best single depth: "
-          + ", ".join(f"{k} {f:.4f} vs {b:.4f}" for k, f, b in zip(SCORED, fused_err, best)))
+          + ", ".join(f"{k} {f:.4f} vs {b:.4f}" for k, f, b in zip(SCORED, fused_err, best, strict=True)))
     assert np.all(fused_err < best)
 
 
@@ -458,9 +457,9 @@ def test_local_plane_fit_passes_a_linear_field_and_averages_the_noise():
 
 def test_focus_zones_recover_the_spherical_aberration(bench, clean):
     """The focus per pupil zone, fitted to the LTCs at the optical centre with the bench's
-    pixels as boxes (the fake integrates each pixel's area), follows the true ``z_f + spherical (rho / rho_max)^2`` (250 ->
-    256 mm) and finds the pupil radius; the lens file carries the table and its rays aim at
-    their zone's focus."""
+    pixels as boxes (the fake integrates each pixel's area), follows the true
+    ``z_f + spherical (rho / rho_max)^2`` (250 -> 256 mm) and finds the pupil radius; the lens
+    file carries the table and its rays aim at their zone's focus."""
     from station.lens.zones import fit_focus_zones
 
     vol, r = clean
