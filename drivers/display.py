@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import abc
 import contextlib
+import ctypes
 import logging
 import os
 import time
@@ -56,6 +57,14 @@ class _RendererDisplay(PatternDisplay):
     and an offscreen display can live side by side) and put the drawn frame on screen."""
 
     _closed = False
+    _renderer: PatternRenderer | None = None
+
+    @property
+    def _gl(self) -> PatternRenderer:
+        """The renderer, once started."""
+        if self._renderer is None:
+            raise DisplayError(f"{type(self).__name__} is not open")
+        return self._renderer
 
     def _start(self, renderer: PatternRenderer, lut: np.ndarray | None,
                frame_code: bool | FrameCodeLayout) -> None:
@@ -78,7 +87,7 @@ class _RendererDisplay(PatternDisplay):
     @property
     def size(self) -> tuple[int, int]:
         """(width, height) in display pixels."""
-        return self._renderer.size
+        return self._gl.size
 
     @property
     def frame_code_layout(self) -> FrameCodeLayout | None:
@@ -93,7 +102,7 @@ class _RendererDisplay(PatternDisplay):
     def set_lut(self, lut: np.ndarray | None) -> None:
         """Set the inverse response LUT (256 values in 0..255); None for identity."""
         with self._bound():
-            self._renderer.set_lut(lut)
+            self._gl.set_lut(lut)
 
     def show(self, image: np.ndarray, frame_code: int | None = None) -> ShownFrame:
         """Show ``image`` ((height, width) or (height, width, 3) uint8) through the LUT and return
@@ -112,7 +121,7 @@ class _RendererDisplay(PatternDisplay):
             code = render_frame_code(frame_code, self._layout)
         xy = (0, 0) if self._code_rect is None else self._code_rect[:2]
         with self._bound():
-            self._renderer.draw(image, code, xy)
+            self._gl.draw(image, code, xy)
             self._present()
             shown = ShownFrame(index=self._index, swap_time=time.monotonic(), frame_code=frame_code)
         log.debug("%s: frame %d shown (swap at %.6f s, frame code %s)", type(self).__name__,
@@ -124,12 +133,12 @@ class _RendererDisplay(PatternDisplay):
     def read_back(self) -> np.ndarray:
         """The last drawn frame: (height, width, 3) uint8, row 0 at the top."""
         with self._bound():
-            return self._renderer.read()
+            return self._gl.read()
 
     def _present(self) -> None:
         """Put the drawn framebuffer on screen and return when it is there: offscreen, when
         the GPU has finished drawing it (``glFinish``)."""
-        self._renderer.ctx.finish()
+        self._gl.ctx.finish()
 
     def _after_present(self) -> None:
         """Housekeeping after the frame is shown and timed (window events)."""
@@ -143,9 +152,9 @@ class OffscreenDisplay(_RendererDisplay):
         width, height = int(size[0]), int(size[1])
         if width < 1 or height < 1:
             raise DeviceSettingError(f"display size must be positive (width, height), got {size}")
-        self._ctx = moderngl.create_standalone_context(backend="egl")
+        # moderngl's stub types the **settings values as dicts; backend is a string
+        self._ctx = moderngl.create_standalone_context(backend="egl")  # type: ignore[arg-type]
         self._closed = False
-        self._renderer = None
         opened = False
         try:
             with self._current():
@@ -170,11 +179,18 @@ class OffscreenDisplay(_RendererDisplay):
             self._ctx.release()
 
 
+def _text(value: bytes | str | None) -> str:
+    """A GLFW string: pyGLFW returns bytes (its annotations say str)."""
+    if isinstance(value, bytes):
+        return value.decode(errors="replace")
+    return "" if value is None else value
+
+
 def _monitor_list(monitors: list) -> str:
     items = []
     for i, monitor in enumerate(monitors):
         mode = glfw.get_video_mode(monitor)
-        name = glfw.get_monitor_name(monitor).decode(errors="replace")
+        name = _text(glfw.get_monitor_name(monitor))
         x, y = glfw.get_monitor_pos(monitor)
         items.append(f"{i}: {name!r} {mode.size.width}x{mode.size.height} at ({x}, {y})")
     return "; ".join(items) or "none"
@@ -182,7 +198,7 @@ def _monitor_list(monitors: list) -> str:
 
 def _glfw_error() -> str:
     code, description = glfw.get_error()
-    return f"GLFW error {code:#x}: {description.decode(errors='replace')}" if code else "no GLFW error"
+    return f"GLFW error {code:#x}: {_text(description)}" if code else "no GLFW error"
 
 
 class GlfwDisplay(_RendererDisplay):
@@ -193,8 +209,7 @@ class GlfwDisplay(_RendererDisplay):
                  frame_code: bool | FrameCodeLayout = False, gl_version: tuple[int, int] = (3, 3),
                  title: str = "pattern display") -> None:
         global _glfw_users
-        self._window = None
-        self._renderer = None
+        self._window: ctypes._Pointer[glfw._GLFWwindow] | None = None
         self._closed = False
         if not glfw.init():
             display = os.environ.get("DISPLAY")
@@ -236,30 +251,39 @@ class GlfwDisplay(_RendererDisplay):
             glfw.swap_interval(1)
         glfw.set_input_mode(self._window, glfw.CURSOR, glfw.CURSOR_HIDDEN)
 
+    @property
+    def _win(self) -> ctypes._Pointer[glfw._GLFWwindow]:
+        """The open window."""
+        if not self._window:
+            raise DisplayError("the display window is not open")
+        return self._window
+
     @contextlib.contextmanager
     def _current(self) -> Iterator[None]:
-        glfw.make_context_current(self._window)
+        glfw.make_context_current(self._win)
         try:
             yield
         finally:
-            glfw.make_context_current(None)
+            # None detaches the context (GLFW API); pyGLFW's annotation omits None
+            glfw.make_context_current(None)  # type: ignore[arg-type]
 
     @property
     def window_size(self) -> tuple[int, int]:
         """Framebuffer (width, height) of the window, pixels."""
-        return tuple(glfw.get_framebuffer_size(self._window))
+        width, height = glfw.get_framebuffer_size(self._win)
+        return int(width), int(height)
 
     def describe(self) -> dict:
         """Monitor, video mode and GL renderer, for run metadata."""
         mode = glfw.get_video_mode(self._monitor)
         with self._bound():
-            renderer = self._renderer.ctx.info["GL_RENDERER"]
+            renderer = self._gl.ctx.info["GL_RENDERER"]
         return {
             "type": type(self).__name__,
-            "monitor": glfw.get_monitor_name(self._monitor).decode(errors="replace"),
+            "monitor": _text(glfw.get_monitor_name(self._monitor)),
             "monitor_pos": tuple(glfw.get_monitor_pos(self._monitor)),
             "video_mode": (mode.size.width, mode.size.height, mode.refresh_rate),
-            "window_size": tuple(glfw.get_window_size(self._window)),
+            "window_size": tuple(glfw.get_window_size(self._win)),
             "framebuffer_size": self.window_size,
             "gl_renderer": renderer,
         }
@@ -269,10 +293,10 @@ class GlfwDisplay(_RendererDisplay):
         before it is queued), swap, and ``glFinish`` again: with swap interval 1 the second
         one blocks until the swap has happened at the refresh, so :meth:`show` returns only
         once the pattern is on screen, as careful SLM and display tools do."""
-        ctx = self._renderer.ctx
-        ctx.copy_framebuffer(ctx.screen, self._renderer.framebuffer)
+        ctx = self._gl.ctx
+        ctx.copy_framebuffer(ctx.screen, self._gl.framebuffer)
         ctx.finish()
-        glfw.swap_buffers(self._window)
+        glfw.swap_buffers(self._win)
         ctx.finish()
 
     def _after_present(self) -> None:

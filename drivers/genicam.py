@@ -77,6 +77,11 @@ PIXEL_FORMATS: dict[str, tuple[np.dtype, int]] = {
 }
 
 
+
+def _message(exc: BaseException) -> str:
+    """The text of a GLib.Error (its ``message``), or of any other exception."""
+    return str(getattr(exc, "message", exc))
+
 class GenICamCamera(Camera):
     """A GenICam camera through Aravis.
 
@@ -134,7 +139,7 @@ class GenICamCamera(Camera):
             try:
                 self._camera = self._arv.Camera.new(device_id)
             except self._gerror as exc:
-                raise CameraNotFound(f"camera {self._name}: cannot open: {exc.message}") from None
+                raise CameraNotFound(f"camera {self._name}: cannot open: {_message(exc)}") from None
             self._device = self._camera.get_device()
             self._device_id = device_id
             self._serial = self._camera.get_device_serial_number() or ""
@@ -474,9 +479,9 @@ class GenICamCamera(Camera):
             self._raise_no_frame(f"{what} not acknowledged in time")
         except self._gerror as exc:
             if not self._check_alive():
-                raise CameraLost(f"camera {self._name}: {what} failed ({exc.message}); the "
+                raise CameraLost(f"camera {self._name}: {what} failed ({_message(exc)}); the "
                                  "camera no longer answers") from None
-            raise CameraSettingError(f"camera {self._name}: {what} failed: {exc.message}") \
+            raise CameraSettingError(f"camera {self._name}: {what} failed: {_message(exc)}") \
                 from None
         raise AssertionError("unreachable")
 

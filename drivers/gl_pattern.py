@@ -10,6 +10,8 @@ window; :meth:`PatternRenderer.read` returns what was drawn.
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import moderngl
 import numpy as np
 
@@ -84,6 +86,12 @@ def _nearest(texture: moderngl.Texture) -> moderngl.Texture:
     return texture
 
 
+
+class _GLObject(Protocol):
+    """A moderngl object that holds GL resources."""
+
+    def release(self) -> None: ...
+
 class PatternRenderer:
     """Draws patterns of one size on a moderngl context into its own RGBA8 framebuffer."""
 
@@ -141,6 +149,7 @@ class PatternRenderer:
 
     def release(self) -> None:
         """Free the GL objects."""
-        for obj in (self._vao, self._program, self.framebuffer, self._target, self._lut, self._code,
-                    *self._images.values()):
+        objects: list[_GLObject] = [self._vao, self._program, self.framebuffer, self._target, self._lut,
+                                    self._code, *self._images.values()]
+        for obj in objects:
             obj.release()

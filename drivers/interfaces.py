@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field
+from typing import Self
 
 import numpy as np
 
@@ -54,7 +55,7 @@ class Stage(abc.ABC):
         """Identity and settings to record in run metadata (device id, firmware, limits)."""
         return {"type": type(self).__name__}
 
-    def __enter__(self) -> Stage:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -91,7 +92,7 @@ class PatternDisplay(abc.ABC):
     def close(self) -> None:
         """Close the window or context; idempotent."""
 
-    def __enter__(self) -> PatternDisplay:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -139,7 +140,7 @@ class Camera(abc.ABC):
     def close(self) -> None:
         """Release the device; idempotent."""
 
-    def __enter__(self) -> Camera:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:

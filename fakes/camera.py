@@ -184,13 +184,14 @@ class FakeCamera(SettableExposure, Camera):
         self._frame_id += 1
         key = self.scene_key(z)
         scene = (key, self._exposure_ms)
-        if scene != self._scene:
+        electrons = self._scene_electrons
+        if scene != self._scene or electrons is None:
             self._scene, self._scene_frames = scene, 0
-            self._scene_electrons = self.expected_electrons(z)
+            electrons = self._scene_electrons = self.expected_electrons(z)
         if self.seed_per_scene and self.seed is not None:
             k = self._scene_frames
             self.rng = np.random.default_rng([self.seed, *key] + ([k] if k else []))
-        image = self._digitise(self._scene_electrons)
+        image = self._digitise(electrons)
         if f.garbage > 0:
             f.garbage -= 1
             image = np.full_like(image, 2 ** (self.noise.bit_depth - 1))

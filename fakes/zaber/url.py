@@ -53,6 +53,8 @@ def remove_url_device(name: str = "default") -> None:
 class FakeZaberSerial(SerialBase):
     """pyserial port object connected to a registered FakeZaberDevice."""
 
+    is_open: bool  # set by SerialBase
+
     def open(self) -> None:
         if self.is_open:
             raise SerialException("port is already open")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -53,7 +53,7 @@ class RigSource(_Model):
 
 Family = Literal["primitive", "union", "displaced", "steps", "holes", "sphere", "ball_bar",
                  "plane"]
-FAMILIES: tuple[str, ...] = Family.__args__  # type: ignore[attr-defined]
+FAMILIES: tuple[Family, ...] = get_args(Family)
 
 
 class ObjectSource(_Model):
@@ -203,6 +203,16 @@ class GrayCodeChoice(_Model):
 PatternChoice = Annotated[PhaseShiftChoice | GrayCodeChoice, Field(discriminator="kind")]
 
 
+def _pinhole_per_camera() -> list[list[LensChoice]]:
+    """The default lenses: a pinhole for each of the two cameras."""
+    return [[PinholeChoice()], [PinholeChoice()]]
+
+
+def _phase_shift_only() -> list[PatternChoice]:
+    """The default patterns: phase shifting only."""
+    return [PhaseShiftChoice()]
+
+
 class Split(_Model):
     train: float = Field(0.8, ge=0)
     val: float = Field(0.1, ge=0)
@@ -231,11 +241,11 @@ class DatasetConfig(_Model):
     objects: ObjectSource = Field(default_factory=ObjectSource)
     placement: Placement = Field(default_factory=Placement)
     lenses: list[list[LensChoice]] = Field(
-        default_factory=lambda: [[PinholeChoice()], [PinholeChoice()]],
+        default_factory=_pinhole_per_camera,
         description="per camera, the lens models to draw from")
     projector: ProjectorChoice = Field(default_factory=ProjectorChoice)
     camera: CameraChoice = Field(default_factory=CameraChoice)
-    patterns: list[PatternChoice] = Field(default_factory=lambda: [PhaseShiftChoice()],
+    patterns: list[PatternChoice] = Field(default_factory=_phase_shift_only,
                                           min_length=1)
     split: Split = Field(default_factory=Split)
     storage: Storage = Field(default_factory=Storage)

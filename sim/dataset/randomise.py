@@ -10,7 +10,7 @@ them; and changing, say, the lens ranges leaves the poses of every sample as the
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -269,6 +269,7 @@ def draw_scene(cfg: DatasetConfig, rig: Rig, index: int) -> SampleScene:
     r = stream(seed, index, OBJECT)
     size = _u(r, src.size_mm)
     albedo = _u(r, src.albedo)
+    obj: dict[str, Any]
     if src.mesh_folder is not None and r.random() < src.mesh_fraction:
         files = mesh_files(src.mesh_folder)
         obj = dict(kind="mesh", path=str(files[int(r.integers(len(files)))]))
@@ -323,7 +324,7 @@ def config_rig(cfg: DatasetConfig, where: str = "config") -> Rig:
     from sim.optics.rig import CAMERA_FOCAL_MM, CAMERA_PITCH_MM, PROJECTOR_FOCAL_PX, _scaled_rig
 
     b = cfg.rig.builtin
-    rig = _scaled_rig(tuple(b.camera_size_px), tuple(b.projector_size_px), 1.0, b.distortion)
+    rig = _scaled_rig(b.camera_size_px, b.projector_size_px, 1.0, b.distortion)
     f_cam = CAMERA_FOCAL_MM / CAMERA_PITCH_MM * b.camera_scale
     f_proj = PROJECTOR_FOCAL_PX * b.projector_scale
 

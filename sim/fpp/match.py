@@ -133,11 +133,11 @@ class _Side:
 
 
 def _refine(side: _Side, x: np.ndarray, y: np.ndarray, q: np.ndarray, iterations: int = 5
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Newton search along the rectified rows ``y`` (n,) of ``side`` for the rectified column
     where its local phase model equals ``q`` (n,), from ``x`` (n,): the column, the original
-    pixel there (n, 2), and whether it converged inside the stencil of a valid model with a
-    non-zero slope along the row."""
+    pixel there (n, 2), whether it converged inside the stencil of a valid model with a
+    non-zero slope along the row, and that slope (n,) (projector px per rectified px)."""
     h, w = side.coord.shape
     ok = np.ones(len(x), dtype=bool)
     step = 1e-3  # rectified px, finite difference of the row's mapping into the image

@@ -104,9 +104,9 @@ def plane_ltc(
         lo = box[:, :2]
         span = np.maximum(box[:, 2:] - lo + 1, 1)
         wx, wy = int(span[:, 0].max()), int(span[:, 1].max())
-        acc = np.zeros((n, wy, wx))
-        deposit_footprints(xy, half, weight, lo, np.array([pw, ph], dtype=np.int64), acc)
-        acc = acc.ravel()
+        acc3 = np.zeros((n, wy, wx))
+        deposit_footprints(xy, half, weight, lo, np.array([pw, ph], dtype=np.int64), acc3)
+        acc = acc3.ravel()
         nz = np.flatnonzero(acc)
         p_loc, rem = np.divmod(nz, wx * wy)
         jj, ii = np.divmod(rem, wx)

@@ -43,10 +43,12 @@ class Sensor:
                dtype: type = np.float64) -> np.ndarray:
         """Electrons read out (same shape, ``dtype``) for expected ``electrons``: shot noise,
         full-well clipping, read noise. ``rng`` may be None only when not :attr:`noisy`."""
-        if self.noisy and rng is None:
+        e: np.ndarray = np.asarray(electrons)
+        if not self.noisy:
+            return np.minimum(e, dtype(self.full_well_e)).astype(dtype, copy=False)
+        if rng is None:
             raise SimInputError("Sensor.expose: rng is required when shot noise or read noise is "
                                 "on")
-        e = np.asarray(electrons)
         if self.shot_noise:
             e = rng.poisson(np.maximum(e, 0)).astype(dtype)
         e = np.minimum(e, dtype(self.full_well_e)).astype(dtype, copy=False)
@@ -60,7 +62,7 @@ class Sensor:
         variance, ``e + sqrt(max(e, 0) + read_noise_e^2) N(0, 1)`` (close to Poisson above a
         few tens of electrons; about 7x faster, for full-size synthetic frames), then clipped at
         the full well."""
-        e = np.asarray(electrons, dtype=dtype)
+        e: np.ndarray = np.asarray(electrons, dtype=dtype)
         if self.noisy:
             if rng is None:
                 raise SimInputError("Sensor.expose_gaussian: rng is required when noise is on")
@@ -80,5 +82,5 @@ class Sensor:
     def variance_dn(self, electrons: np.ndarray) -> np.ndarray:
         """Expected DN variance below saturation: shot (if on) and read noise, and the
         uniform rounding (1/12)."""
-        shot = np.asarray(electrons) if self.shot_noise else 0.0
+        shot = np.asarray(electrons) if self.shot_noise else np.zeros_like(electrons, dtype=np.float64)
         return self.dn_per_e**2 * (shot + self.read_noise_e**2) + 1.0 / 12.0

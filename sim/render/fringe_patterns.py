@@ -122,7 +122,7 @@ class PhaseShiftSet(_Fringes):
     def descriptors(self, projector_size: tuple[int, int]) -> list[PatternDescriptor]:
         """What each image of ``images(projector_size)`` shows, in order."""
         _check_size(projector_size)
-        out = []
+        out: list[PatternDescriptor] = []
         for axis in _axes(self.direction):
             for p in self.periods_px:
                 for i in range(self.steps):
@@ -208,8 +208,11 @@ def _periods_from_fringes(raw: dict, projector_size: tuple[int, int] | None) -> 
     phase-shift set) or ``period_px`` (a Gray-code set), projector pixels."""
     raw = dict(raw)
     fringes = raw.pop("fringes")
+    keys = {"phase_shift": "periods_px", "gray_code": "period_px"}
     kind = raw.get("kind")
-    key = {"phase_shift": "periods_px", "gray_code": "period_px"}[kind]
+    if kind not in keys:
+        raise ValueError(f"'fringes' needs kind 'phase_shift' or 'gray_code', got {kind!r}")
+    key = keys[kind]
     if key in raw:
         raise ValueError(f"give 'fringes' or '{key}', not both")
     if projector_size is None:

@@ -136,12 +136,21 @@ class FaceArrays(NamedTuple):
     spheres: np.ndarray
 
 
-TRANSPORT_ARRAYS = ("proj_uv", "weight", "depth", "proj_chief", "lit", "object_id")
-ChunkTransport = NamedTuple("ChunkTransport", [(name, np.ndarray) for name in TRANSPORT_ARRAYS])
-ChunkTransport.__doc__ = """A chunk's slice of the arrays of ``sim.render.trace.Transport``
-(``TRANSPORT_ARRAYS``, in its order), written in place: per lens ray ``proj_uv`` (n K, 2)
-float32 and ``weight`` (n K,) float32; per pixel ``depth`` (n,) float64, ``proj_chief`` (n, 2)
-float64, ``lit`` (n,) bool, ``object_id`` (n,) int32."""
+class ChunkTransport(NamedTuple):
+    """A chunk's slice of the arrays of ``sim.render.trace.Transport``
+    (``TRANSPORT_ARRAYS``, in its order), written in place: per lens ray ``proj_uv`` (n K, 2)
+    float32 and ``weight`` (n K,) float32; per pixel ``depth`` (n,) float64, ``proj_chief`` (n, 2)
+    float64, ``lit`` (n,) bool, ``object_id`` (n,) int32."""
+
+    proj_uv: np.ndarray
+    weight: np.ndarray
+    depth: np.ndarray
+    proj_chief: np.ndarray
+    lit: np.ndarray
+    object_id: np.ndarray
+
+
+TRANSPORT_ARRAYS: tuple[str, ...] = ChunkTransport._fields
 
 
 class ShadowRays(NamedTuple):

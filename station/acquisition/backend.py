@@ -144,7 +144,7 @@ def preflight(config: StationConfig, source: str, text: str | None = None) -> li
         except ValueError as exc:
             raise ConfigError(str(exc)) from exc
     if lcd_size is not None:
-        check_on_lcd(config, tuple(lcd_size), source)
+        check_on_lcd(config, (int(lcd_size[0]), int(lcd_size[1])), source)
     warnings = (placeholder_warnings(text, source)
                 if text is not None and config.backend == "real" else [])
     if config.backend != "fake" and config.fake:
@@ -175,6 +175,9 @@ def open_hardware(config: StationConfig, *, lut: np.ndarray | None = None) -> It
     from drivers.display import GlfwDisplay
     from drivers.stage import ZaberStage
 
+    camera_config = config.camera
+    if camera_config.kind == "fake":  # StationConfig refuses it; checked before a device opens
+        raise ConfigError("camera.kind = 'fake' needs backend = 'fake'")
     with contextlib.ExitStack() as stack:
         stage = stack.enter_context(ZaberStage(
             s.port, baudrate=s.baudrate, address=s.address, axis=s.axis,
@@ -184,5 +187,5 @@ def open_hardware(config: StationConfig, *, lut: np.ndarray | None = None) -> It
         display = stack.enter_context(GlfwDisplay(
             config.display.monitor, lut=lut, frame_code=frame_code_layout(config) or False,
         ))
-        camera = stack.enter_context(open_camera(config.camera))
+        camera = stack.enter_context(open_camera(camera_config))
         yield Hardware(stage, display, camera)

@@ -236,7 +236,7 @@ class FrameCheckConfig(_Strict):
         w, h = lcd_size
         origin = self.origin_px or (w // 2 + self.block_px, h // 2 + self.block_px)
         return FrameCodeLayout(bits=self.bits, block_px=self.block_px, style="blocks",
-                               columns=self.columns, origin=tuple(origin))
+                               columns=self.columns, origin=(int(origin[0]), int(origin[1])))
 
 
 class AcquireConfig(_Strict):

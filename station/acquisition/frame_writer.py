@@ -90,11 +90,13 @@ class FrameWriter:
         kind, what, args, seq = item
         if kind != "frame":
             return item
+        depth, pattern, image, meta = args
         if not self._threads:
-            return kind, what, (self.store.encode_frame(*args), None), seq
+            return kind, what, (self.store.encode_frame(depth, pattern, image, meta), None), seq
         codec = self._codecs.get()  # free again once the shard is stored
         try:
-            return kind, what, (self.store.encode_frame(*args, codec=codec), codec), seq
+            return kind, what, (self.store.encode_frame(depth, pattern, image, meta, codec=codec),
+                                codec), seq
         except BaseException:
             self._codecs.put(codec)
             raise

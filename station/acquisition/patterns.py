@@ -14,7 +14,7 @@ steps along x then y), then the Fourier set, frequency by frequency in the order
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import Literal
+from typing import Final, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -22,8 +22,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from sim.render.fringe_patterns import Modulation, PatternDescriptor
 from station.errors import StationInputError
 
-PLAN_FORMAT = "station-pattern-plan"
-PLAN_VERSION = 1
+PLAN_FORMAT: Final = "station-pattern-plan"
+PLAN_VERSION: Final = 1
 
 
 def half_plane_frequencies(period: int) -> tuple[np.ndarray, np.ndarray]:
@@ -201,14 +201,20 @@ class StationPatternPlan(BaseModel):
         if d.kind in ("white", "black"):
             return np.full((1, 1), 1.0 if d.kind == "white" else 0.0)
         if d.kind == "fourier":
+            if d.k is None or d.l is None or d.shift is None:
+                raise StationInputError(f"pattern {index}: a fourier pattern needs k, l and shift")
             return self.fourier.tile(d.k, d.l, d.shift)
         along_u = d.direction == "u"
         coord = np.arange(w if along_u else h)
         if d.kind == "gray":
+            if d.bit is None:
+                raise StationInputError(f"pattern {index}: a gray pattern needs its bit")
             bits = loc.bits_x if along_u else loc.bits_y
             m = coord // (loc.period // 2)
             line = (((m ^ (m >> 1)) >> (bits - 1 - d.bit)) & 1).astype(np.float64)
         else:
+            if d.phase_rad is None:
+                raise StationInputError(f"pattern {index}: a phase pattern needs phase_rad")
             line = 0.5 + 0.5 * np.cos(2 * np.pi * coord / loc.period - d.phase_rad)
         return line[None, :] if along_u else line[:, None]
 

@@ -23,6 +23,7 @@ principal-ray intersection (the paper's definition) is used, and the report says
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -47,6 +48,11 @@ class OpticalCentre:
     @property
     def std(self) -> np.ndarray:
         return np.sqrt(np.diag(self.covariance))
+
+
+def _weighted(prior: np.ndarray, robust: np.ndarray, b: slice) -> np.ndarray:
+    """The weights of the rays in block ``b``: a-priori times robust."""
+    return prior[b] * robust[b]
 
 
 def _huber(r: np.ndarray) -> np.ndarray:
@@ -191,8 +197,7 @@ def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
     dist_n = np.empty(n)
     scratch = np.empty(n)
     for _ in range(iterations):
-        # robust bound as a default: the name is deleted below, once the weights are final
-        ata, atb = normal(lambda b, robust=robust: prior[b] * robust[b])
+        ata, atb = normal(functools.partial(_weighted, prior, robust))
         theta = np.linalg.solve(ata, atb)
         for b in blocks:  # each ray's miss, and scaled by its a-priori std
             x0, x1, y = xn[b, 0], xn[b, 1], data(b)
