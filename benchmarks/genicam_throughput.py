@@ -1,7 +1,7 @@
 """GenICam capture throughput: our GenICamCamera against a minimal raw Aravis loop.
 
 Both read the same free-running stream from Aravis's fake GigE Vision camera on loopback
-(tests/gv_fake.py, in a child process), with the same ROI, pixel format, frame rate setting,
+(tests/support/gv_fake.py, in a child process), with the same ROI, pixel format, frame rate setting,
 number of stream buffers and frame count. "Raw" is the least a Python program must do per
 frame: ``timeout_pop_buffer``, check the status, ``get_image_data`` into a numpy array,
 ``push_buffer``. "Ours" is ``GenICamCamera.capture()`` in free run (status and frame-id checks,
@@ -25,12 +25,12 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]
+sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 
 from _results import captured, command_line, text_block, write_results  # noqa: E402
-from gv_fake import running_fake_camera  # noqa: E402
 
 from drivers.genicam import CameraFrameError, GenICamCamera, _aravis  # noqa: E402
+from tests.support.gv_fake import running_fake_camera  # noqa: E402
 
 
 def show(runs: list) -> str:

@@ -1,6 +1,6 @@
 """One contract for every Camera implementation (drivers.interfaces.Camera).
 
-Implementations: GenICamCamera on Aravis's fake GigE Vision camera (tests/gv_fake.py),
+Implementations: GenICamCamera on Aravis's fake GigE Vision camera (tests/support/gv_fake.py),
 OpenCVCamera on a small lossless video written here with cv2.VideoWriter, and the fake bench
 camera (fakes/camera.py) looking at the offscreen fake LCD.
 """
@@ -16,7 +16,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import pytest
-from gv_fake import running_fake_camera
 
 from drivers.camera import CameraError, CameraTimeout, OpenCVCamera
 from drivers.display import OffscreenDisplay
@@ -25,6 +24,7 @@ from drivers.interfaces import Camera, DeviceError, Frame
 from fakes.bench import BenchConfig, FakeBench
 from fakes.camera import FakeCamera, NoiseModel
 from fakes.lcd import FakeLCD
+from tests.support.gv_fake import running_fake_camera
 
 VIDEO_SIZE, VIDEO_FRAMES = (64, 48), 6
 _serials = itertools.count(1)

@@ -7,7 +7,6 @@ import time
 import cv2
 import numpy as np
 import pytest
-from conftest import XVFB_SCREEN, start_xvfb
 from PIL import ImageGrab
 
 from drivers.display import DisplayError, GlfwDisplay, OffscreenDisplay
@@ -21,6 +20,7 @@ from drivers.frame_code import (
     stamp_frame_code,
 )
 from drivers.gl_pattern import as_lut
+from tests.support.xvfb import XVFB_SCREEN, start_xvfb
 
 SIZE = XVFB_SCREEN[:2]  # (width, height): the offscreen display matches the Xvfb screen
 GAMMA_LUT = np.round(255.0 * (np.arange(256) / 255.0) ** (1 / 2.2)).astype(np.uint8)

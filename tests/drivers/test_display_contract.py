@@ -16,12 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from conftest import XVFB_SCREEN
 from PIL import ImageGrab
 
 from drivers.display import DisplayError, GlfwDisplay, OffscreenDisplay
 from drivers.interfaces import DeviceError, PatternDisplay, ShownFrame
 from fakes.lcd import FakeLCD, PanelResponse
+from tests.support.xvfb import XVFB_SCREEN
 
 SIZE = XVFB_SCREEN[:2]  # (width, height)
 GAMMA_LUT = np.round(255.0 * (np.arange(256) / 255.0) ** (1 / 2.2)).astype(np.uint8)

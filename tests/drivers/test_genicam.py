@@ -1,6 +1,6 @@
 """GenICamCamera against Aravis's fake GigE Vision camera on loopback (issue 14).
 
-Each test starts its own fake camera in a child process (tests/gv_fake.py) with its own serial
+Each test starts its own fake camera in a child process (tests/support/gv_fake.py) with its own serial
 number; frames are checked against the fake's documented diagonal ramp.
 """
 
@@ -11,10 +11,10 @@ import time
 
 import numpy as np
 import pytest
-from gv_fake import DEFAULT_SIZE, expected_pattern, running_fake_camera
 
 from drivers.camera import CameraError, CameraTimeout
 from drivers.genicam import CameraLost, CameraNotFound, CameraSettingError, GenICamCamera, list_cameras
+from tests.support.gv_fake import DEFAULT_SIZE, expected_pattern, running_fake_camera
 
 _serials = itertools.count(1)
 

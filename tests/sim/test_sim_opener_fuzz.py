@@ -1,6 +1,6 @@
 """Fuzzing the file openers of sim (rig JSON and YAML, scene TOML, pattern-set JSON, PLY point
 clouds, PLY/STL/OBJ meshes, lens files): every mutated or garbage input loads or raises a
-one-line error naming the file (tests/fuzz_inputs.py)."""
+one-line error naming the file (tests/support/fuzz_inputs.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from fuzz_inputs import FUZZ, awkward_array, file_inputs, mutated_tree, opens_or_names_file
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -22,6 +21,7 @@ from sim.fpp.stereo import PointCloud
 from sim.optics.measured_lens import MeasuredLens, load_lens, save_lens
 from sim.optics.rig import Rig, small_rig
 from sim.render.scene import MeshObject, Scene, load_scene_file
+from tests.support.fuzz_inputs import FUZZ, awkward_array, file_inputs, mutated_tree, opens_or_names_file
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -1,6 +1,6 @@
 """Fuzzing the file openers of the station (config TOML, run store and LTC store attributes):
 every mutated or garbage input opens or raises a one-line error naming the file
-(tests/fuzz_inputs.py)."""
+(tests/support/fuzz_inputs.py)."""
 
 from __future__ import annotations
 
@@ -10,13 +10,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fuzz_inputs import FUZZ, file_inputs, mutated_tree, opens_or_names_file
 from hypothesis import given
 
 from station.acquisition.config import example_text, load_config
 from station.acquisition.patterns import StationPatternPlan
 from station.acquisition.run_store import FrameMeta, RunStore
 from station.ltc.store import create_ltc_store, mark_depth_complete, open_ltc_volume
+from tests.support.fuzz_inputs import FUZZ, file_inputs, mutated_tree, opens_or_names_file
 
 pytestmark = pytest.mark.timeout(120)
 

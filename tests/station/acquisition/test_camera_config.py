@@ -6,7 +6,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from gv_fake import DEFAULT_SIZE, expected_pattern, running_fake_camera
 
 from drivers.camera import OpenCVCamera
 from drivers.genicam import PIXEL_FORMATS, GenICamCamera
@@ -21,6 +20,7 @@ from station.acquisition.config import (
     example_text,
     parse_config,
 )
+from tests.support.gv_fake import DEFAULT_SIZE, expected_pattern, running_fake_camera
 
 FAKE = example_text("fake")
 REAL = example_text("real")

@@ -7,11 +7,11 @@ import json
 import sys
 
 import pytest
-from gv_fake import running_fake_camera
 
 import drivers.camera
 from drivers.camera import VideoDevice, list_video_devices
 from station.cli import main
+from tests.support.gv_fake import running_fake_camera
 
 
 @pytest.fixture

@@ -7,12 +7,11 @@ from __future__ import annotations
 import json
 import re
 
-from gv_fake import expected_pattern, running_fake_camera
-
 from drivers.zaber_protocol import ACCEL_UNIT, SPEED_UNIT
 from fakes.zaber import FakeZaberDevice, FakeZaberPty
 from station.acquisition.config import example_text
 from station.cli import main
+from tests.support.gv_fake import expected_pattern, running_fake_camera
 
 ROI = (0, 0, 64, 48)
 

@@ -6,12 +6,12 @@ import json
 
 import numpy as np
 import pytest
-from ltc_stores import write_true_ltc_store
 
 from fakes.bench import BenchConfig, FakeBench
 from sim.optics.measured_lens import load_lens
 from sim.optics.rig import Rig, small_rig
 from station.cli import main
+from tests.support.ltc_stores import write_true_ltc_store
 
 P = 24
 DEPTHS = [0.0, 30.0, 60.0, 250.0, 290.0]

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from ltc_stores import write_true_ltc_store
 from scipy.ndimage import gaussian_filter
 
 from fakes.bench import BenchConfig, FakeBench
@@ -14,6 +13,7 @@ from sim.optics.projection import pixel_to_normalized
 from station.api import derive_lens, lens_config
 from station.lens.derive import aim_offsets, local_ray_slopes, sample_moment
 from station.lens.geometry import LensFitConfig
+from tests.support.ltc_stores import write_true_ltc_store
 
 DEPTHS = [0.0, 30.0, 60.0, 250.0, 290.0, 320.0]
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from ltc_stores import write_true_ltc_store
 
 from fakes.bench import BenchConfig, FakeBench
 from sim.optics.measured_lens import load_lens, read_lens_nodes
 from station.api import derive_lens
 from station.lens.geometry import LensFitConfig
+from tests.support.ltc_stores import write_true_ltc_store
 
 P = 24
 DEPTHS = [0.0, 30.0, 60.0, 250.0, 290.0]

@@ -5,7 +5,7 @@ the driver talks to it exactly as to a camera on the network; killing the child 
 vanishes. Only one can listen on 127.0.0.1:3956 at a time, so each test starts its own, with its
 own serial number, and stops it on the way out.
 
-Run as a script: ``python tests/gv_fake.py SERIAL`` prints ``READY`` once the camera listens
+Run as a script: ``python tests/support/gv_fake.py SERIAL`` prints ``READY`` once the camera listens
 and serves until its stdin closes or it is killed.
 
 The fake's test pattern (Aravis 0.8 ``arvfakecamera.c``, ``diagonal_ramp``): with
