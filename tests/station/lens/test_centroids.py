@@ -90,7 +90,7 @@ def test_noise_propagates_to_the_centroid_std(bench, z):
     window's (OPTICS.md section 5)."""
     w, _ = bench.config.camera_size
     win = bench_windows(bench, z)[0][15 * w + 20]
-    sigma = 6e-4  # the default camera's per-weight noise for P = 24 (see test_lens_fit)
+    sigma = 6e-4  # the default camera's per-weight noise for P = 24 (see test_derive)
     rng = np.random.default_rng(1)
     noisy = win[None] + rng.normal(0.0, sigma, (400, P, P))
     st = window_stats(noisy, np.full(400, sigma))

@@ -93,7 +93,7 @@ def test_intersection_is_robust_to_wrong_rays():
 
 @pytest.fixture(scope="module")
 def benches():
-    """Fake benches with the reference distances of test_lens_fit, cheap sampling."""
+    """Fake benches with the reference distances of test_derive, cheap sampling."""
     common = {"lcd_size": (120, 96), "lcd_distance_at_zero_mm": 100.0, "pupil_samples": 400,
               "subpixels": 1, "spherical_mm": 0.0}
     return {"plain": FakeBench(BenchConfig.small(vignetting_shift_mm=0.0, **common)),
