@@ -29,6 +29,7 @@ def _load_benchmark():
 B = _load_benchmark()
 
 
+@pytest.mark.slow
 def test_tiny_run_counts_the_rays_it_times(tmp_path):
     out = tmp_path / "r.json"
     s = B.main(["--scale", "0.06", "--repeats", "2", "--samples", "3", "--band-fraction", "0.25",

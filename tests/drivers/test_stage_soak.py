@@ -44,6 +44,7 @@ def soak_url() -> Iterator[str]:
     remove_url_device("soak")
 
 
+@pytest.mark.slow
 def test_soak_thousands_of_moves_with_random_faults(soak_url: str) -> None:
     rng = np.random.default_rng(SEED)
     device = url_device("soak")

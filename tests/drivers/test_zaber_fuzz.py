@@ -49,6 +49,7 @@ def quoted(exc: Exception, line: str) -> bool:
     return repr(line.strip()) in str(exc)
 
 
+@pytest.mark.slow
 @settings(max_examples=EXAMPLES["parse_reply"], **FUZZ)
 @given(REPLY_TEXT)
 def test_fuzz_parse_reply(line: str) -> None:
@@ -202,6 +203,7 @@ def fuzz_stage() -> ZaberStage:
     stage.close()
 
 
+@pytest.mark.slow
 @settings(max_examples=EXAMPLES["driver_reply"], **FUZZ)
 @given(WIRE)
 def test_fuzz_driver_reply_handling(fuzz_stage: ZaberStage, wire: bytes) -> None:

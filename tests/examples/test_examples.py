@@ -26,6 +26,7 @@ def run_example(name: str, *args: str, timeout: float = 600) -> str:
     return proc.stdout
 
 
+@pytest.mark.slow
 def test_drive_fake_bench_homes_moves_shows_captures_and_saves(tmp_path):
     out = run_example("drive_fake_bench.py", str(tmp_path))
     assert "homed: stage at 0.000 mm" in out
@@ -39,6 +40,7 @@ def test_drive_fake_bench_homes_moves_shows_captures_and_saves(tmp_path):
     assert np.isclose(image[:, :32].mean(), meta["mean_left"])
 
 
+@pytest.mark.slow
 def test_virtual_scan_measures_the_sphere_of_the_example_scene(tmp_path):
     ply = tmp_path / "sphere.ply"
     out = run_example("virtual_scan.py", str(EXAMPLES / "sphere_scene.toml"), str(ply))
@@ -104,6 +106,7 @@ def sequence(tmp_path_factory) -> dict:
             "out": out}
 
 
+@pytest.mark.slow
 def test_unattended_sequence_resumes_after_a_kill_and_finds_the_true_optical_centre(sequence):
     from fakes.truth import lens_truth
 
@@ -129,6 +132,7 @@ def test_unattended_sequence_resumes_after_a_kill_and_finds_the_true_optical_cen
     assert "check: done in an earlier run, skipped" in log and "sequence" in log
 
 
+@pytest.mark.slow
 def test_measured_vs_gaussian_compares_the_two_scanners(sequence, tmp_path):
     import sim
     from sim.optics import centre_moments

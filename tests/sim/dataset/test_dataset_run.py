@@ -76,6 +76,7 @@ def reference(tmp_path_factory) -> tuple[Path, Path]:
     return cfg, out
 
 
+@pytest.mark.slow
 def test_a_sample_regenerated_alone_equals_the_one_in_the_data_set(reference):
     cfg_path, out = reference
     cfg = load_config(cfg_path)

@@ -136,6 +136,7 @@ def test_match_row_cubic_is_exact_on_a_cubic_row():
 # ---------------------------------------------------------------- analytic sphere
 
 
+@pytest.mark.slow
 def test_stereo_cloud_of_an_analytic_sphere_is_exact(sphere_pair):
     cams, proj, c, maps = sphere_pair
     cloud = stereo_cloud(maps[0], maps[1], cams[0], cams[1], projector=proj,
@@ -161,6 +162,7 @@ def test_stereo_cloud_of_an_analytic_sphere_is_exact(sphere_pair):
     assert abs(fit_sphere(linear.points).diameter - fit.diameter) < 1e-7
 
 
+@pytest.mark.slow
 def test_ambiguous_matches_resolved_by_the_projector(sphere_pair):
     cams, proj, c, maps = sphere_pair
     right = maps[1].copy()
@@ -231,6 +233,7 @@ def test_reconstruct_errors():
 # ---------------------------------------------------------------- rendered, with camera noise
 
 
+@pytest.mark.slow
 def test_camera_noise_degrades_the_sphere_gracefully():
     """Shot noise, 5 e- read noise, 8-bit images (the default camera, 80 % of full well at
     white): the per-point noise grows to ~13 um, the diameter stays within a few um."""

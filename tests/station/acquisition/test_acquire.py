@@ -201,6 +201,7 @@ def test_config_differences_name_every_leaf():
 # ---- durability ---------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_sigkill_then_resume_gives_the_frames_of_an_uninterrupted_run(reference, tmp_path):
     cfg = tmp_path / "small.toml"
     cfg.write_text(small_text())
@@ -241,6 +242,7 @@ def test_sigkill_then_resume_gives_the_frames_of_an_uninterrupted_run(reference,
     assert attrs["status"] == "complete" and (after["retries"] == 0).all()
 
 
+@pytest.mark.slow
 def test_ctrl_c_loses_only_the_frame_in_flight_and_resume_finishes(reference, tmp_path):
     out = tmp_path / "run.zarr"
 
@@ -543,6 +545,7 @@ def test_devices_that_fail_to_close_do_not_hide_the_runs_error(tmp_path, monkeyp
 # ---- end to end -----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_fake_example_acquire_and_reconstruct_recover_the_true_ltc(tmp_path, capsys):
     cfg = tmp_path / "fake.toml"
     assert main(["config", "--example", "fake"]) == 0
@@ -596,6 +599,7 @@ def test_fake_example_acquire_and_reconstruct_recover_the_true_ltc(tmp_path, cap
               + "\n  ".join(lines))
 
 
+@pytest.mark.slow
 def test_every_frame_is_captured_after_the_latency_and_the_lcd_settle_time(tmp_path):
     config = small_config(**{"latency_frames = 0 ": "latency_frames = 1\nsettle_ms = 40.0 "})
     assert config.display.settle_ms == 40.0

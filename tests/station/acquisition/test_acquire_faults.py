@@ -106,6 +106,7 @@ def _one_error_line(capsys, command: str) -> str:
     return err[0]
 
 
+@pytest.mark.slow
 def test_acquire_into_a_full_disk_stops_with_one_line_and_resumes_bit_identical(
         reference, tmp_path, monkeypatch, capsys):
     ref, _ = read_store(reference / "run.zarr")

@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 import re
 
+import pytest
+
 from drivers.zaber_protocol import ACCEL_UNIT, SPEED_UNIT
 from fakes.zaber import FakeZaberDevice, FakeZaberPty
 from station.acquisition.config import example_text
@@ -51,6 +53,7 @@ def assert_camera_steps(report: dict) -> None:
         assert s["saturated_fraction"] == 0
 
 
+@pytest.mark.slow
 def test_check_with_the_fake_gige_camera_on_the_fake_bench_is_ok(tmp_path, capsys):
     with running_fake_camera("CHECK1") as fake:
         text = with_camera(example_text("fake"), genicam_section(fake.serial))
@@ -60,6 +63,7 @@ def test_check_with_the_fake_gige_camera_on_the_fake_bench_is_ok(tmp_path, capsy
     assert [p.read_bytes()[:4] for p in (tmp_path / "check").glob("check-*.png")] == [b"\x89PNG"]
 
 
+@pytest.mark.slow
 def test_check_with_real_drivers_and_the_fake_gige_camera_is_ok(tmp_path, capsys, xvfb_display):
     um = 0.1
     device = FakeZaberDevice(limit_max=round(360_000 / um), position=0,

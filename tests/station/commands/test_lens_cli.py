@@ -34,6 +34,7 @@ def store(tmp_path_factory, bench):
     return write_store(tmp_path_factory.mktemp("cli") / "ltc.zarr", bench)
 
 
+@pytest.mark.slow
 def test_lens_json_figures_and_file(tmp_path, store, bench, capsys):
     out, figs = tmp_path / "lens.npz", tmp_path / "figs"
     assert main(["lens", str(store), "--out", str(out), "--json", "--figures", str(figs),
@@ -55,6 +56,7 @@ def test_lens_json_figures_and_file(tmp_path, store, bench, capsys):
                                                         "aperture.png", "ray_residuals.png")]
 
 
+@pytest.mark.slow
 def test_lens_options_and_text_report(tmp_path, store, capsys):
     out = tmp_path / "lens.npz"
     rc = main(["lens", str(store), "--out", str(out), "--samples", "12", "--grid-step", "10",
@@ -70,6 +72,7 @@ def test_lens_options_and_text_report(tmp_path, store, capsys):
     assert "focus distance: configured 250.000 mm (used), fitted" in text
 
 
+@pytest.mark.slow
 def test_rig_gives_the_camera_matrix(tmp_path, bench, capsys):
     store = write_store(tmp_path / "nok.zarr", bench, with_k=False)
     base = small_rig()
@@ -97,6 +100,7 @@ def test_rig_gives_the_camera_matrix(tmp_path, bench, capsys):
     assert any("principal-ray intersection" in n for n in report["notes"])
 
 
+@pytest.mark.slow
 def test_errors_are_reported_not_raised(tmp_path, store, capsys):
     out = tmp_path / "lens.npz"
     assert main(["lens", str(tmp_path / "none.zarr"), "--out", str(out)]) == 1

@@ -77,6 +77,7 @@ def sphere_render(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_sphere_acceptance(sphere_render, capsys):
     d = sphere_render
     code, out, _ = ltc(capsys, "scan", d / "render", "--rig", d / "rig.json", "--out", d / "cloud.ply",
@@ -99,6 +100,7 @@ def test_sphere_acceptance(sphere_render, capsys):
     np.testing.assert_array_equal(read_ply(d / "z.ply").points, cloud.points)
 
 
+@pytest.mark.slow
 def test_camera_projector_scan_and_cloud_comparisons(sphere_render, capsys):
     d = sphere_render
     code, out, _ = ltc(capsys, "scan", d / "render", "--rig", d / "rig.json", "--out", d / "cp.ply",
@@ -126,6 +128,7 @@ def test_camera_projector_scan_and_cloud_comparisons(sphere_render, capsys):
     assert code == 0 and out.startswith("reference:")
 
 
+@pytest.mark.slow
 def test_ball_bar_acceptance(tmp_path, capsys):
     ends = np.array([[x, y, z] for x in (-BAR_L / 2 - 20, BAR_L / 2 + 20)
                      for y in (-20, 20) for z in (-20, 20)])
@@ -182,6 +185,7 @@ def test_scan_errors_wrong_count_sizes_dark_rig(sphere_render, tmp_path, capsys)
     assert "but the rig's camera 'left' is 4096 x 2168; is the rig file for these images?" in err
 
 
+@pytest.mark.slow
 def test_scan_errors_inputs_and_pattern_sets(sphere_render, tmp_path, capsys):
     d = sphere_render
     rig = d / "rig.json"
@@ -227,6 +231,7 @@ def test_scan_errors_inputs_and_pattern_sets(sphere_render, tmp_path, capsys):
     assert code == 1 and "not a readable zarr group" in err
 
 
+@pytest.mark.slow
 def test_measure_errors(sphere_render, tmp_path, capsys):
     d = sphere_render
     if not (d / "cloud.ply").exists():
@@ -245,6 +250,7 @@ def test_measure_errors(sphere_render, tmp_path, capsys):
     assert code == 0 and out.startswith("sphere: diameter 50.80")
 
 
+@pytest.mark.slow
 def test_measure_finds_the_example_sphere_and_refuses_wrong_nominals(tmp_path, capsys):
     """examples/sphere_scene.toml (sphere and backdrop, noisy 12-bit images): the sphere found
     with no nominal is the one found with it; the radius typed as the diameter is refused."""

@@ -455,6 +455,7 @@ def test_local_plane_fit_passes_a_linear_field_and_averages_the_noise():
     np.testing.assert_array_equal(local_plane_fit(values, var, ok, (w, h), pixels, 0), values)
 
 
+@pytest.mark.slow
 def test_focus_zones_recover_the_spherical_aberration(bench, clean):
     """The focus per pupil zone, fitted to the LTCs at the optical centre with the bench's
     pixels as boxes (the fake integrates each pixel's area), follows the true
@@ -494,6 +495,7 @@ def _blur_at(bundle, z_mm: float) -> tuple[np.ndarray, np.ndarray]:
     return c, (w * q**3).sum(axis=1) / (w * q**2).sum(axis=1) ** 1.5
 
 
+@pytest.mark.slow
 def test_zoned_lens_follows_the_true_blur_and_finds_the_centre(bench, clean):
     """With ``focus_zones`` the LTCs are mapped onto the aperture plane through each zone's
     focus and the optical centre is refitted with the zones' misses removed. Against the

@@ -29,6 +29,7 @@ def store(tmp_path_factory):
                                 gain_jitter=100.0)
 
 
+@pytest.mark.slow
 def test_streamed_and_dask_lenses_equal_the_in_memory_one(store, tmp_path):
     cfg = LensFitConfig.basic()  # every pixel a node
     ref = derive_lens(store, cfg, progress=False, workers=1)
