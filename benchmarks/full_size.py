@@ -66,7 +66,7 @@ def peak_mb() -> float:
 
 def stage(name: str, out: Path, rows: int, workers: int | None, depths: int = 2) -> dict:
     from station.api import acquire, load_config, open_bench
-    from station.ltc.parallel import default_workers
+    from station.compute import default_workers
     from station.acquisition.acquire import pattern_plan
 
     cfg_path = out / "bench.toml"

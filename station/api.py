@@ -142,7 +142,7 @@ def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,
     from station.lens.derive import derive_lens as _derive
     from station.lens.figures import write_figures
     from station.lens.geometry import LensFitConfig
-    from station.ltc.parallel import Engine
+    from station.compute import Engine
     from station.ltc.store import open_ltc_volume
 
     try:

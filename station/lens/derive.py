@@ -37,7 +37,7 @@ from sim.optics.measured_lens import (LensFileWriter, MeasuredLens, aim_depths, 
 from sim.optics.projection import pixel_to_normalized
 from station.lens import aperture as ap
 from station.lens.centroids import STATUS_OK, region_stats
-from station.ltc.parallel import Engine, run_ordered
+from station.compute import Engine, run_ordered
 from station.ltc.store import LtcVolume
 from station.lens.geometry import (
     LensFitConfig,
@@ -658,7 +658,7 @@ def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,
     """The measured lens of an LTC volume (see the module docstrings for every step);
     ``progress`` shows bars over the centroid and aperture passes.
 
-    engine : where the centroid and aperture blocks are computed (``station.ltc.parallel``;
+    engine : where the centroid and aperture blocks are computed (``station.compute``;
     default: in this process); every engine gives the same lens bit for bit.
     out : write the lens file there as nodes are produced (``LensFileWriter``) instead of
     building it in memory: memory then does not grow with the number of nodes, and the

@@ -280,7 +280,7 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
 
     K, dist : camera matrix and distortion; default: the volume's (``camera_matrix``).
     progress : a progress bar over the centroid pass; engine : where the centroid pass
-    runs (``station.ltc.parallel.Engine``; default: in this process).
+    runs (``station.compute.Engine``; default: in this process).
     """
     cfg = config or LensFitConfig()
     K = volume.camera_matrix if K is None else np.asarray(K, dtype=np.float64)

@@ -36,7 +36,7 @@ import scipy.fft
 from tqdm import tqdm
 
 from station.ltc.localise import lcd_coordinates
-from station.ltc.parallel import Engine, run_ordered
+from station.compute import Engine, run_ordered
 from station.ltc.store import (
     TILE_STATS,
     LtcStoreError,
@@ -726,7 +726,7 @@ def reconstruct(
         on the pattern count and on the workers, not on the sensor size.
     resume : finish the LTC store ``out_path`` a killed reconstruction of this run left
         (tiles recorded done are kept; the result equals an uninterrupted run bit for bit).
-    workers, dask, scheduler : where tiles are computed (``station.ltc.parallel.Engine``):
+    workers, dask, scheduler : where tiles are computed (``station.compute.Engine``):
         default every core in local processes; 1 in this process; ``dask`` a Dask
         LocalCluster of ``workers`` processes; ``scheduler`` an existing Dask cluster.
         Every engine gives bit-identical stores.
