@@ -138,6 +138,9 @@ def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,
     """
     from pydantic import ValidationError
 
+    import contextlib
+
+    from sim.storage.lock import StoreLock
     from sim.validation import format_validation_error
     from station.lens.derive import derive_lens as _derive
     from station.lens.figures import write_figures
@@ -152,10 +155,13 @@ def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,
                                "pixel_samples": pixel_samples, **(settings or {})})
     except ValidationError as exc:
         raise UsageError(format_validation_error("lens settings", exc)) from exc
-    volume = open_ltc_volume(ltc)
-    K, dist = _rig_camera(rig, rig_camera, volume.camera_size)
-    with Engine(workers, dask=dask, scheduler=scheduler) as engine:
-        result = _derive(volume, cfg, K, dist, progress=progress, engine=engine, out=out)
+    with contextlib.ExitStack() as held:
+        if out is not None:  # one writer per lens file: a second is refused, naming this one
+            held.enter_context(StoreLock.for_file(out))
+        volume = open_ltc_volume(ltc)
+        K, dist = _rig_camera(rig, rig_camera, volume.camera_size)
+        with Engine(workers, dask=dask, scheduler=scheduler) as engine:
+            result = _derive(volume, cfg, K, dist, progress=progress, engine=engine, out=out)
     if figures is not None:
         result.figures = write_figures(volume, result, figures)
     return result

@@ -34,7 +34,7 @@ from typing import IO
 import tomli_w
 
 from station.acquisition.config import StationConfig, load_config, parse_config
-from station.acquisition.lock import LOCK_NAME, StoreLock
+from sim.storage.lock import LOCK_NAME, StoreLock
 from station.errors import StationError, UsageError, describe_os_error
 
 STEPS = ("check", "gamma", "align", "acquire", "reconstruct", "lens")

@@ -54,6 +54,7 @@ import numpy as np
 
 from sim.optics.lens import GaussianLens, RayBundle
 from sim.optics.projection import normalized_to_pixel
+from sim.storage.durable import durable_file
 from sim.tolerances import WEIGHT_SUM_TOL
 
 FORMAT = "ltc-fpp-measured-lens"
@@ -518,10 +519,8 @@ def save_lens(path: str | Path, lens: MeasuredLens) -> Path:
     arrays = {**_header(lens, lens.node_u, lens.node_v),
               "aperture_x_mm": lens.aperture_x_mm, "aperture_y_mm": lens.aperture_y_mm,
               "weights": lens.weights, **_trailer(lens, lens.transmittance)}
-    with open(path, "wb") as f:
+    with durable_file(path, "wb") as f:
         np.savez_compressed(f, **arrays)
-        f.flush()
-        os.fsync(f.fileno())
     return path
 
 
@@ -544,6 +543,7 @@ class LensFileWriter:
         self.node_u = np.asarray(node_u, dtype=np.float64)
         self.node_v = np.asarray(node_v, dtype=np.float64)
         self.shape = (len(self.node_v), len(self.node_u), int(samples))
+        self.existed = self.path.exists()  # checked again before the rename into place
         self.part = self.path.with_name(self.path.name + ".partial")
         if self.part.exists():
             import shutil
@@ -643,8 +643,9 @@ class LensFileWriter:
         tail = _trailer(lens, transmittance)
         if aim_offset is not None:
             tail["aim_offset"] = aim_offset
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        with open(tmp, "wb") as raw:
+        # an output that was not there when this writer started and is there now was
+        # written by another writer meanwhile: refused, not replaced
+        with durable_file(self.path, "wb", exclusive=not self.existed) as raw:
             with zipfile.ZipFile(raw, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
                 for name, a in small.items():
                     with zf.open(f"{name}.npy", "w", force_zip64=True) as m:
@@ -659,9 +660,6 @@ class LensFileWriter:
                 for name, a in tail.items():
                     with zf.open(f"{name}.npy", "w", force_zip64=True) as m:
                         np.lib.format.write_array(m, np.asanyarray(a), allow_pickle=False)
-            raw.flush()
-            os.fsync(raw.fileno())
-        os.replace(tmp, self.path)
         self.abort()
         return self.path
 
@@ -673,7 +671,6 @@ class LensFileWriter:
             f.close()
         self._files = {}
         shutil.rmtree(self.part, ignore_errors=True)
-        self.path.with_name(self.path.name + ".tmp").unlink(missing_ok=True)
 
 
 def read_lens_nodes(path: str | Path,

@@ -25,7 +25,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict:
-    from station.acquisition.lock import StoreLock
+    from sim.storage.lock import StoreLock
     from station.api import acquire, load_config
 
     if not logging.getLogger().handlers:
@@ -50,4 +50,7 @@ def run(args: argparse.Namespace) -> dict:
 def text(s: dict) -> str:
     return (f"ltc acquire: {s['status']}: {s['frames_written']} frames in {s['seconds']:.1f} s "
             f"({s['frames_per_second']:.1f}/s) -> {s['out']}; retries {s['retries'] or 'none'}; "
-            f"saturated frames {s['saturated_frames']}")
+            f"saturated frames {s['saturated_frames']}"
+            + (f"; recaptured {len(s['frames_recaptured'])} damaged frame(s) "
+               f"{[tuple(f) for f in s['frames_recaptured']]}"
+               if s.get("frames_recaptured") else ""))

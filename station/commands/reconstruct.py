@@ -36,7 +36,13 @@ def run(args: argparse.Namespace) -> dict:
     if args.resume and args.force:
         raise UsageError("--resume and --force exclude each other (--force starts afresh)")
     if not args.resume and check_output(args.out, args.force).exists():
-        shutil.rmtree(args.out) if args.out.is_dir() else args.out.unlink()
+        if args.out.is_dir():
+            from sim.storage.lock import StoreLock
+
+            with StoreLock(args.out):  # never under a live writer (refused, naming it)
+                shutil.rmtree(args.out)
+        else:
+            args.out.unlink()
     return reconstruct_ltc(args.run, args.out, tile_px=args.tile, progress=not args.quiet,
                            resume=args.resume, workers=args.workers, dask=args.dask,
                            scheduler=args.scheduler)

@@ -47,7 +47,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from station.acquisition.lock import LOCK_NAME, StoreLock
+from sim.storage.lock import LOCK_NAME, StoreLock
 from station.errors import StationError, UsageError
 from station.sequence import durable_file, run_sequence, write_json
 

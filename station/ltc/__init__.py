@@ -11,4 +11,6 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "store": "LtcStoreError LtcVolume LtcVolumeError create_ltc_store open_ltc_store "
              "open_ltc_volume write_ltc_tile LtcTileWriter mark_depth_complete mark_tile_done "
              "TileRecords",
+    "checked": "CheckedArray LtcChunkError",
+    "verify": "StoreReport verify_store",
 })

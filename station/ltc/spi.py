@@ -22,6 +22,7 @@ propagates to one normalised LTC weight as
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import datetime as _dt
 import threading
 import time
@@ -35,6 +36,8 @@ import numpy as np
 import scipy.fft
 from tqdm import tqdm
 
+from sim.storage.durable import aligned_empty
+from sim.storage.lock import StoreLock
 from station.ltc.localise import lcd_coordinates
 from station.compute import Engine, run_ordered
 from station.ltc.store import (
@@ -54,8 +57,7 @@ from station.acquisition.patterns import (
     apply_lut,
     shown_luminance,
 )
-from station.acquisition.run_store import (RunStore, RunStoreError, aligned_empty,
-                                           software_versions)
+from station.acquisition.run_store import RunStore, RunStoreError, software_versions
 
 PIXELS_PER_BLOCK = 128  # pixels reconstructed at once: bounds memory whatever the tile size;
 # 128 keeps a block's spectrum planes (1.2 MB) in a core's L2 cache (2 MB here): 8 % less CPU
@@ -651,11 +653,13 @@ _BUFFERS = threading.local()  # per worker thread: the band buffer, reused from 
 
 def _band_job(run_path: str, token: str, depth: int, row0: int, col0: int, n_tiles: int,
               tile_px: int, todo: list[int], plan: StationPatternPlan, lut: np.ndarray | None,
-              min_snr: float, code_mask: np.ndarray, out_path: str) -> list[np.ndarray]:
+              min_snr: float, code_mask: np.ndarray, out_path: str
+              ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Read one band of tiles (``n_tiles`` of ``tile_px`` side by side from camera pixel
     (row0, col0)) from the run store and reconstruct and write the tiles at band indices
-    ``todo``; returns their statistics in that order. Run by a worker (or in process): the
-    frames go from the store to the worker without passing through the caller. ``token``
+    ``todo``; returns their statistics and chunk checksums in that order. Run by a worker
+    (or in process): the frames go from the store to the worker without passing through
+    the caller. ``token``
     names one reconstruction, so a store reopened at the same path is never a stale one.
     code_mask : (rows, cols) bool over the band."""
     import zarr
@@ -682,7 +686,7 @@ def _band_job(run_path: str, token: str, depth: int, row0: int, col0: int, n_til
                                  check_index=row0 == 0 and c0 == 0)
                  for c0 in range(col0, min(col0 + n_tiles * tile_px, w), tile_px)]
     p = plan.fourier.period
-    stats = []
+    stats, crcs = [], []
     writing = None  # the previous tile's write, in the writer thread while this one computes
     try:
         for i in todo:
@@ -692,7 +696,7 @@ def _band_job(run_path: str, token: str, depth: int, row0: int, col0: int, n_til
             blk, st = reconstruct_tile(tile.frames, plan, lut, min_snr,
                                        code_mask[:th, c0 : c0 + tw])
             if writing is not None:
-                writing.result()  # at most one tile waits to be written: memory stays flat
+                crcs.append(writing.result())  # one tile waits to be written at most
             writing = _writer().submit(
                 out.write, depth, tile.row0, tile.col0, ltc=blk.ltc.reshape(th, tw, p, p),
                 origin=blk.origin.reshape(th, tw, 2), gain=blk.gain.reshape(th, tw),
@@ -700,8 +704,8 @@ def _band_job(run_path: str, token: str, depth: int, row0: int, col0: int, n_til
             stats.append(st)
     finally:
         if writing is not None:  # every tile reported is written (an error is raised here)
-            writing.result()
-    return stats
+            crcs.append(writing.result())
+    return list(zip(stats, crcs))
 
 
 def _writer() -> cf.ThreadPoolExecutor:
@@ -725,7 +729,9 @@ def reconstruct(
     tile_px : camera tile edge (default: the run store's inner chunk); memory depends on it,
         on the pattern count and on the workers, not on the sensor size.
     resume : finish the LTC store ``out_path`` a killed reconstruction of this run left
-        (tiles recorded done are kept; the result equals an uninterrupted run bit for bit).
+        (tiles recorded done are kept; the result equals an uninterrupted run bit for bit);
+        refused unless the store records this run's identity (``RunStore.identity``).
+    The LTC store's writer lock is held throughout: a second writer is refused naming it.
     workers, dask, scheduler : where tiles are computed (``station.compute.Engine``):
         default every core in local processes; 1 in this process; ``dask`` a Dask
         LocalCluster of ``workers`` processes; ``scheduler`` an existing Dask cluster.
@@ -751,74 +757,80 @@ def reconstruct(
         raise RunStoreError(f"{store.path}: tile_px must be >= 1, got {tile_px}")
     w, h = store.camera_size
     out_path = Path(out_path)
-    if resume and out_path.exists():
-        out = _open_for_resume(out_path, store, t)
-    else:
-        out = create_ltc_store(
-            out_path, depths_mm=store.depths_mm, camera_size=store.camera_size, period=p,
-            pitch_mm=store.lcd_pitch_mm, lcd_size=store.lcd_size, tile_px=t,
-            attrs={"run_store": str(store.path), "pattern_set": plan.model_dump(mode="json"),
-                   "camera_matrix": store.config.get("camera", {}).get("matrix"),
-                   "config": store.config,
-                   "software": software_versions(),
-                   "created": _dt.datetime.now(_dt.timezone.utc).isoformat()},
-        )
-    records = TileRecords(out)
-    done = records.done.copy()
-    n_left = int((~done).sum())
-    per_tile = len(plan) * t * t * store.dtype.itemsize
-    band = max(1, BAND_BYTES // per_tile)  # tiles a worker reads and computes per task
-    token = uuid.uuid4().hex
-    px_done = [0]
-    with Engine(workers, dask=dask, scheduler=scheduler) as engine, \
-            tqdm(total=done.size, initial=done.size - n_left, desc="reconstruct", unit="tile",
-                 disable=None if progress else True) as bar:
-        bar.set_postfix_str(engine.describe(), refresh=False)
+    with contextlib.ExitStack() as held:
+        if resume and out_path.exists():
+            held.enter_context(StoreLock(out_path))
+            out = _open_for_resume(out_path, store, t)
+        else:
+            out = create_ltc_store(
+                out_path, depths_mm=store.depths_mm, camera_size=store.camera_size, period=p,
+                pitch_mm=store.lcd_pitch_mm, lcd_size=store.lcd_size, tile_px=t,
+                attrs={"run_store": str(store.path),
+                       "pattern_set": plan.model_dump(mode="json"),
+                       "camera_matrix": store.config.get("camera", {}).get("matrix"),
+                       "config": store.config,
+                       "software": software_versions(),
+                       "created": _dt.datetime.now(_dt.timezone.utc).isoformat(),
+                       "run_id": store.identity()},
+            )
+            held.enter_context(StoreLock(out_path))
+        records = TileRecords(out)
+        done = records.done.copy()
+        n_left = int((~done).sum())
+        per_tile = len(plan) * t * t * store.dtype.itemsize
+        band = max(1, BAND_BYTES // per_tile)  # tiles a worker reads and computes per task
+        token = uuid.uuid4().hex
+        px_done = [0]
+        with Engine(workers, dask=dask, scheduler=scheduler) as engine, \
+                tqdm(total=done.size, initial=done.size - n_left, desc="reconstruct",
+                     unit="tile", disable=None if progress else True) as bar:
+            bar.set_postfix_str(engine.describe(), refresh=False)
+            for di in range(store.n_depths):
+                if done[di].all():
+                    if di in incomplete_depths(out):
+                        mark_depth_complete(out, di)
+                    continue
+                code_mask = store.code_mask(di)
+
+                def tasks(di=di, code_mask=code_mask):
+                    bands = [(r0, b0, min(band, -(-(w - b0) // t)))
+                             for r0 in range(0, h, t) for b0 in range(0, w, band * t)
+                             if not done[di, r0 // t, b0 // t : b0 // t + band].all()]
+                    for i, (r0, b0, n) in enumerate(bands):
+                        # the disk reads this band and the next while the workers compute
+                        # the ones before (for the stored tile size; a hint, nothing else)
+                        for r1, b1, n1 in bands[(i > 0) + i : i + 2] if t == store.tile_px else ():
+                            store.prefetch_tile_row(di, r1, b1, n1)
+                        tr = r0 // t
+                        todo = [k for k in range(n) if not done[di, tr, b0 // t + k]]
+                        for k in todo:
+                            px_done[0] += min(t, h - r0) * min(t, w - b0 - k * t)
+                        cm = np.ascontiguousarray(code_mask[r0 : r0 + t, b0 : b0 + n * t])
+                        yield ((di, tr, [b0 // t + k for k in todo]), _band_job,
+                               (str(store.path), token, di, r0, b0, n, t, todo, plan, lut,
+                                float(min_snr), cm, str(out_path)))
+
+                def finished(key, results) -> None:
+                    di_, tr, cols = key
+                    records.mark(di_, tr, cols, [st for st, _ in results],
+                                 [crc for _, crc in results])
+                    bar.update(len(cols))
+
+                run_ordered(engine, tasks(), finished)
+                mark_depth_complete(out, di)
+            used = engine.describe()
+        stats_all = np.asarray(out["tile_stats"][...])
+        per_depth = []
         for di in range(store.n_depths):
-            if done[di].all():
-                if di in incomplete_depths(out):
-                    mark_depth_complete(out, di)
-                continue
-            code_mask = store.code_mask(di)
-
-            def tasks(di=di, code_mask=code_mask):
-                bands = [(r0, b0, min(band, -(-(w - b0) // t)))
-                         for r0 in range(0, h, t) for b0 in range(0, w, band * t)
-                         if not done[di, r0 // t, b0 // t : b0 // t + band].all()]
-                for i, (r0, b0, n) in enumerate(bands):
-                    # the disk reads this band and the next while the workers compute
-                    # the ones before (for the stored tile size; a hint, nothing else)
-                    for r1, b1, n1 in bands[(i > 0) + i : i + 2] if t == store.tile_px else ():
-                        store.prefetch_tile_row(di, r1, b1, n1)
-                    tr = r0 // t
-                    todo = [k for k in range(n) if not done[di, tr, b0 // t + k]]
-                    for k in todo:
-                        px_done[0] += min(t, h - r0) * min(t, w - b0 - k * t)
-                    cm = np.ascontiguousarray(code_mask[r0 : r0 + t, b0 : b0 + n * t])
-                    yield ((di, tr, [b0 // t + k for k in todo]), _band_job,
-                           (str(store.path), token, di, r0, b0, n, t, todo, plan, lut,
-                            float(min_snr), cm, str(out_path)))
-
-            def finished(key, stats) -> None:
-                di_, tr, cols = key
-                records.mark(di_, tr, cols, stats)
-                bar.update(len(cols))
-
-            run_ordered(engine, tasks(), finished)
-            mark_depth_complete(out, di)
-        used = engine.describe()
-    stats_all = np.asarray(out["tile_stats"][...])
-    per_depth = []
-    for di in range(store.n_depths):
-        st = stats_all[di].reshape(-1, len(TILE_STATS))
-        per_depth.append({
-            "depth_mm": store.depths_mm[di],
-            "valid_fraction": float(np.nansum(st[:, 0])) / (w * h),
-            "gain_median_adu": _median(st[:, 1]),
-            "noise_median": _median(st[:, 2]),
-            "edge_mass_p95": _max(st[:, 3]),
-        })
-    out.attrs["noise_median"] = [q["noise_median"] for q in per_depth]
+            st = stats_all[di].reshape(-1, len(TILE_STATS))
+            per_depth.append({
+                "depth_mm": store.depths_mm[di],
+                "valid_fraction": float(np.nansum(st[:, 0])) / (w * h),
+                "gain_median_adu": _median(st[:, 1]),
+                "noise_median": _median(st[:, 2]),
+                "edge_mass_p95": _max(st[:, 3]),
+            })
+        out.attrs["noise_median"] = [q["noise_median"] for q in per_depth]
     seconds = time.perf_counter() - t_start
     return {
         "run": str(store.path), "out": str(out_path), "camera_size": list(store.camera_size),
@@ -833,9 +845,13 @@ def _open_for_resume(out_path: Path, store: RunStore, tile_px: int):
     """The LTC store a killed reconstruction of ``store`` left, checked to be that one."""
     out = open_ltc_store(out_path, mode="r+")
     a = out.attrs
-    if a.get("run_store") != str(store.path):
-        raise LtcStoreError(f"{out_path}: was reconstructed from {a.get('run_store')!r}, not "
-                            f"{str(store.path)!r}; cannot resume it from this run")
+    if a.get("run_id") != store.identity():
+        started = store.group.attrs.get("start_time", "?")
+        raise LtcStoreError(f"{out_path}: was reconstructed from run {a.get('run_id')!r} (run "
+                            f"store {a.get('run_store')!r}, created {a.get('created', '?')}), "
+                            f"but {store.path} is run {store.identity()!r} (acquired from "
+                            f"{started}); cannot resume it from another run: reconstruct "
+                            "afresh with --force")
     if int(a.get("tile_px", -1)) != tile_px:
         raise LtcStoreError(f"{out_path}: was written with tile_px {a.get('tile_px')}, not "
                             f"{tile_px}; resume with --tile {a.get('tile_px')}")
