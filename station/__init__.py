@@ -23,7 +23,7 @@ from __future__ import annotations
 from sim._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
-    "api": "Bench open_bench load_config acquire reconstruct_ltc derive_lens",
+    "api": "Bench open_bench load_config acquire reconstruct_ltc derive_lens verify_store",
     "sequence": "run_sequence",
     "experiment.run": "ExperimentConfig load_experiment_config run_experiment",
     "experiment.demo": "run_demo",

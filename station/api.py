@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from drivers.interfaces import Camera, PatternDisplay, Stage
     from station.acquisition.config import StationConfig
     from station.lens.derive import LensResult
+    from station.ltc.verify import StoreReport
 
 
 def load_config(path: str | Path) -> StationConfig:
@@ -165,6 +166,15 @@ def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,
     if figures is not None:
         result.figures = write_figures(volume, result, figures)
     return result
+
+
+def verify_store(path: str | Path) -> StoreReport:
+    """Check a run store, an LTC store or a lens file for damage without changing it:
+    every checksummed byte is read; the report names each damaged frame, chunk or member
+    (``report.ok`` False when any is damaged)."""
+    from station.ltc.verify import verify_store as _verify
+
+    return _verify(path)
 
 
 def _rig_camera(rig: str | Path | None, name: str | None,

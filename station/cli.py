@@ -32,6 +32,7 @@ COMMAND_MODULES = (
     "align",
     "reconstruct",
     "lens",
+    "verify",
     "run",
     "render",
     "scan",

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from sim.storage.checksum import NO_CRC, crc32c
+from sim.storage.checksum import NO_CRC, crc32c, readonly
 
 CHECKED_ARRAYS = ("ltc", "origin", "gain", "noise", "lcd_xy")  # order of tile_crc32c's last axis
 CRC_ARRAY = "tile_crc32c"
@@ -170,7 +170,7 @@ class CheckedArray:
                 raise LtcChunkError(f"{where}: chunk file is truncated or resized "
                                     f"({os.path.getsize(path)} bytes, expected "
                                     f"{self._nbytes}); the LTC store is damaged")
-            if crc32c(memoryview(buf).toreadonly()) != record:
+            if crc32c(readonly(np.frombuffer(buf, np.uint8))) != record:
                 raise LtcChunkError(f"{where}: chunk fails its crc32c (recorded in "
                                     f"'{CRC_ARRAY}'); the LTC store is damaged")
         elif n != self._nbytes or extra:
