@@ -107,7 +107,7 @@ def reconstruct_ltc(run: str | Path, out: str | Path, *, tile_px: int | None = N
     workers : worker processes (default every core; 1: this process); dask : on a local
     Dask cluster of ``workers`` processes; scheduler : on an existing Dask cluster's
     address. Every choice gives the same store, bit for bit."""
-    from station.ltc.spi import reconstruct
+    from station.ltc.tiles import reconstruct
 
     return reconstruct(run, out, tile_px=tile_px, progress=progress, resume=resume,
                        workers=workers, dask=dask, scheduler=scheduler)
@@ -137,16 +137,16 @@ def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,
         Dask cluster of ``workers`` processes; scheduler : an existing Dask cluster's
         address. Every choice gives the same lens, bit for bit.
     """
-    from pydantic import ValidationError
-
     import contextlib
+
+    from pydantic import ValidationError
 
     from sim.storage.lock import StoreLock
     from sim.validation import format_validation_error
+    from station.compute import Engine
     from station.lens.derive import derive_lens as _derive
     from station.lens.figures import write_figures
     from station.lens.geometry import LensFitConfig
-    from station.compute import Engine
     from station.ltc.store import open_ltc_volume
 
     try:

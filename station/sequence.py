@@ -21,20 +21,18 @@ from the LTC store, and nothing before it is redone (``config.toml`` takes the n
 from __future__ import annotations
 
 import datetime as _dt
-import contextlib
 import json
 import logging
-import os
 import shutil
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
-from typing import IO
 
 import tomli_w
 
-from station.acquisition.config import StationConfig, load_config, parse_config
+from sim.storage.durable import durable_file, publish
 from sim.storage.lock import LOCK_NAME, StoreLock
+from station.acquisition.config import StationConfig, load_config, parse_config
 from station.errors import StationError, UsageError, describe_os_error
 
 STEPS = ("check", "gamma", "align", "acquire", "reconstruct", "lens")
@@ -44,23 +42,6 @@ log = logging.getLogger("station.sequence")
 
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-@contextlib.contextmanager
-def durable_file(path: Path, mode: str = "w") -> Iterator[IO]:
-    """A file written durably: the block writes a temporary file beside ``path`` (text modes
-    UTF-8), which is fsynced and renamed to ``path`` when the block completes, removed if it
-    raises."""
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, mode, encoding=None if "b" in mode else "utf-8") as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def write_json(path: Path, data: dict) -> None:
@@ -243,7 +224,7 @@ class Sequence:
                        force=self.force)
 
     def _reconstruct(self) -> dict:
-        from station.ltc.spi import reconstruct
+        from station.ltc.tiles import reconstruct
 
         return _atomic(self.out / "ltc.zarr", lambda tmp: reconstruct(
             self.out / "run.zarr", tmp, progress=self.progress))
@@ -266,13 +247,13 @@ class Sequence:
 
 
 def _atomic(final: Path, write: Callable[[Path], dict | None], suffix: str = "") -> dict:
-    """Write an output under a temporary name, then rename it into place."""
+    """Write an output under a temporary name, then put it in place of any old one
+    (:func:`sim.storage.durable.publish`); the result names ``final``."""
     tmp = final.with_name(final.stem + ".partial" + (suffix or final.suffix))
     _remove(tmp)
     result = write(tmp)
-    _remove(final)
-    os.replace(tmp, final)
-    return result if isinstance(result, dict) else {"out": str(final)}
+    publish(tmp, final, replace=True)
+    return {**result, "out": str(final)} if isinstance(result, dict) else {"out": str(final)}
 
 
 def _lens_settings_changed(before: str, now: str) -> list[str] | None:

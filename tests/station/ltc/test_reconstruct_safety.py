@@ -14,7 +14,7 @@ from sim.storage.lock import StoreLock, StoreLockedError
 from station.acquisition.config import example_text
 from station.acquisition.run_store import RunStore
 from station.cli import main
-from station.ltc import spi
+from station.ltc import tiles
 from station.ltc.store import open_ltc_store
 
 
@@ -107,14 +107,14 @@ def test_the_reconstruction_holds_the_lock_while_it_computes(run, tmp_path, monk
     _, run_path = run
     out = tmp_path / "ltc.zarr"
     seen = []
-    real = spi.run_ordered
+    real = tiles.run_ordered
 
     def run_ordered(*args, **kwargs):
         with pytest.raises(StoreLockedError, match=f"PID {os.getpid()}") as exc:
             StoreLock(out).acquire()
         seen.append(str(exc.value))
         return real(*args, **kwargs)
-    monkeypatch.setattr(spi, "run_ordered", run_ordered)
+    monkeypatch.setattr(tiles, "run_ordered", run_ordered)
     assert main(reconstruct(run_path, out)) == 0
     assert len(seen) == 1 and "reconstruct" in seen[0]
     assert not (out / "writer.lock").exists()
