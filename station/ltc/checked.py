@@ -66,8 +66,9 @@ class CheckedArray:
     (worker processes read through it too)."""
 
     def __init__(self, root: Path, array: zarr.Array, records: np.ndarray,
-                 done: np.ndarray) -> None:
+                 done: np.ndarray, verify: bool = True) -> None:
         self.root = Path(root)
+        self.verify = verify  # False only to measure what verifying costs (benchmarks)
         self.name = array.basename
         self.shape = tuple(int(v) for v in array.shape)
         self.chunks = tuple(int(v) for v in array.chunks)
@@ -162,7 +163,7 @@ class CheckedArray:
             chunk = np.full(self.chunks[1:], self.fill, self.dtype)
             self._last = (key, chunk)
             return chunk
-        if done:
+        if done and self.verify:
             if record == ABSENT:
                 raise LtcChunkError(f"{where}: a chunk file exists where none was written; "
                                     "the LTC store is damaged")
@@ -181,11 +182,13 @@ class CheckedArray:
         return chunk
 
 
-def checked_arrays(path: Path, group: zarr.Group) -> dict[str, CheckedArray]:
-    """The checked view of every array of ``CHECKED_ARRAYS`` in an LTC store."""
+def checked_arrays(path: Path, group: zarr.Group,
+                   verify: bool = True) -> dict[str, CheckedArray]:
+    """The checked view of every array of ``CHECKED_ARRAYS`` in an LTC store (``verify``
+    False: the same reads without the checks, for measuring their cost only)."""
     records = np.asarray(group[CRC_ARRAY][...], np.int64)
     done = np.asarray(group["tile_done"][...], bool)
-    return {name: CheckedArray(path, group[name], records[..., k], done)
+    return {name: CheckedArray(path, group[name], records[..., k], done, verify)
             for k, name in enumerate(CHECKED_ARRAYS) if name in group}
 
 
