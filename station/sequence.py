@@ -30,7 +30,7 @@ from pathlib import Path
 
 import tomli_w
 
-from sim.storage.durable import durable_file, publish
+from sim.storage.durable import durable_file, publish, write_json
 from sim.storage.lock import LOCK_NAME, StoreLock
 from station.acquisition.config import StationConfig, load_config, parse_config
 from station.errors import StationError, UsageError, describe_os_error
@@ -42,12 +42,6 @@ log = logging.getLogger("station.sequence")
 
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-def write_json(path: Path, data: dict) -> None:
-    """Write JSON durably (``durable_file``)."""
-    with durable_file(path) as f:
-        json.dump(data, f, indent=2)
 
 
 def _remove(path: Path) -> None:

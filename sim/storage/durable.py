@@ -190,6 +190,22 @@ def durable_file(path: str | os.PathLike, mode: str = "w",
         raise
 
 
+def write_json(path: str | os.PathLike, data: object) -> None:
+    """Write ``data`` as indented JSON, durably (:func:`durable_file`)."""
+    import json
+
+    with durable_file(path) as f:
+        json.dump(data, f, indent=2)
+
+
+def durable_figure(fig: object, path: str | os.PathLike) -> Path:
+    """Save a matplotlib figure durably (format from the path's suffix); returns the path."""
+    path = Path(path)
+    with durable_file(path, "wb") as f:
+        fig.savefig(f, format=path.suffix.lstrip(".") or "png")  # type: ignore[attr-defined]
+    return path
+
+
 def sync_tree(root: Path) -> None:
     """fsync every file and folder under ``root`` (a folder built before its rename)."""
     for folder, _, files in os.walk(root):

@@ -10,8 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-from station.experiment.run import (BALLBAR_LENGTH_MM, MODELS, SPHERE_DIAMETER_MM, VIRTUAL,
-                                    ExperimentConfig, size_vs_real_um)
+from sim.storage.durable import durable_figure, durable_file
+from station.experiment.acceptance import size_vs_real_um
+from station.experiment.config import (BALLBAR_LENGTH_MM, MODELS, SPHERE_DIAMETER_MM, VIRTUAL,
+                                       ExperimentConfig)
 
 LABELS = {"real": "real", "ltc": "measured LTC", "gaussian": "Gaussian", "pinhole": "pinhole"}
 
@@ -65,7 +67,7 @@ def fringe_figure(images: dict, path: Path) -> Path:
         ax.set_yticks([])
     fig.suptitle(f"position {images['name']} ({images['defocus']} defocus)")
     fig.tight_layout()
-    fig.savefig(path)
+    durable_figure(fig, path)
     return path
 
 
@@ -82,7 +84,7 @@ def distance_map_figure(name: str, maps: dict, path: Path) -> Path:
         ax.set_ylabel("world y, mm")
         fig.colorbar(sc, ax=ax, shrink=0.8, label="um (same scale: ltc's 98th percentile)")
     fig.tight_layout()
-    fig.savefig(path)
+    durable_figure(fig, path)
     return path
 
 
@@ -109,7 +111,7 @@ def cad_figure(maps: dict, path: Path) -> Path:
                            f"um, RMSE {np.sqrt(np.mean(d * d)) * 1e3:.0f} um")
         fig.colorbar(sc, ax=ax, shrink=0.8, label="um")
     fig.tight_layout()
-    fig.savefig(path)
+    durable_figure(fig, path)
     return path
 
 
@@ -135,7 +137,7 @@ def summary_figure(rows: list[dict], path: Path) -> Path:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path)
+    durable_figure(fig, path)
     return path
 
 
@@ -294,5 +296,6 @@ def write_report(results: dict, cfg: ExperimentConfig, rig, measured, models: di
             lines += [f"- camera {i}: " + ", ".join(
                 f"[{Path(p).stem}]({rel(p)})" for p in s["figures"])]
     lines += ["", "Every number: `results.json`.", ""]
-    (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
+    with durable_file(out / "report.md") as f:
+        f.write("\n".join(lines))
     return [str(p) for p in paths]
