@@ -74,8 +74,9 @@ def lens_seconds(path: Path, mode: str, out: Path, workers: int | None,
 
 
 def fake_store(root: Path) -> tuple[Path, float | None, str]:
-    from fakes.bench import BenchConfig, FakeBench
     from ltc_stores import write_true_ltc_store
+
+    from fakes.bench import BenchConfig, FakeBench
 
     bench = FakeBench(BenchConfig.small(lcd_size=(120, 96), lcd_distance_at_zero_mm=100.0,
                                         pupil_samples=150, subpixels=1))

@@ -124,7 +124,7 @@ class Sequence:
         """Run every step not yet done; returns the summary (``status`` "complete" or the
         step that failed). Raises the failing step's error after recording it. One sequence
         per folder at a time: a second is refused, naming the holder (``writer.lock``; a
-        killed run's lock is taken over with ``force``)."""
+        killed run's lock is free, :mod:`sim.storage.lock`)."""
         with StoreLock(self.out, force=self.force):
             self._take_config()
             return self._run_steps()

@@ -135,12 +135,12 @@ class LensFileWriter:
         if w.ndim != 3 or w.shape[2] != k:
             raise LensFileError(f"{self.path}: node block of shape {w.shape}, expected (.., .., "
                                 f"{k})")
-        for name, a in zip(self.NAMES, (x, y, w)):
+        for name, a in zip(self.NAMES, (x, y, w), strict=True):
             _finite(name, np.asarray(a))
         if np.any(w < 0) or np.any(np.abs(w.sum(axis=2) - 1.0) > WEIGHT_SUM_TOL):
             raise LensFileError(f"{self.path}: field 'weights' of nodes from row {j0}, col {i0} "
                                 "are negative or do not sum to 1")
-        for name, a in zip(self.NAMES, (x, y, w)):
+        for name, a in zip(self.NAMES, (x, y, w), strict=True):
             a = np.ascontiguousarray(a, dtype="<f8")
             f = self._files[name]
             for r in range(a.shape[0]):

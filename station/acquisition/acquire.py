@@ -496,7 +496,8 @@ def acquire(
 
     hw : opened hardware to use (left open); by default the config's backend is opened and
         closed here. before_event : called before each event (e.g. to trigger a fake's fault).
-    force : with ``resume``, take over the writer lock left by a process that is gone.
+    force : accepted with ``resume`` (a lock left by a process that is gone is free anyway:
+        :mod:`sim.storage.lock`).
     writer_queue : frames captured ahead of the store writer's thread (0: write serially).
     Returns a JSON-able summary. Raises :class:`AcquisitionError` (or the device's error)
     when the run cannot start or go on; frames already done stay done. A store locked by

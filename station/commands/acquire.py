@@ -14,8 +14,8 @@ import shutil
 from station.errors import UsageError
 
 OPTIONS = {"config": None, "out": "run store to create (RUN.zarr)",
-           "force": "delete an existing run store in --out and start again; with --resume, take "
-                    "over the writer lock left by a killed run (never a live writer's)",
+           "force": "delete an existing run store in --out and start again (never one a live "
+                    "writer holds)",
            "json": None, "quiet": None}
 
 

@@ -97,7 +97,7 @@ def _band_job(run_path: str, token: str, depth: int, row0: int, col0: int, n_til
     finally:
         if writing is not None:  # every tile reported is written (an error is raised here)
             crcs.append(writing.result())
-    return list(zip(stats, crcs))
+    return list(zip(stats, crcs, strict=True))
 
 
 def _writer() -> cf.ThreadPoolExecutor:
@@ -162,7 +162,7 @@ def reconstruct(
                        "camera_matrix": store.config.get("camera", {}).get("matrix"),
                        "config": store.config,
                        "software": software_versions(),
-                       "created": _dt.datetime.now(_dt.timezone.utc).isoformat(),
+                       "created": _dt.datetime.now(_dt.UTC).isoformat(),
                        "run_id": store.identity()},
             )
             held.enter_context(StoreLock(out_path))

@@ -8,9 +8,9 @@ import subprocess
 import sys
 
 import pytest
+from ltc_stores import write_true_ltc_store
 
 from fakes.bench import BenchConfig, FakeBench
-from ltc_stores import write_true_ltc_store
 from sim.optics import measured_lens
 from station.cli import main
 

@@ -9,9 +9,9 @@ import shutil
 import numpy as np
 import pytest
 import zarr
+from ltc_stores import write_true_ltc_store
 
 from fakes.bench import BenchConfig, FakeBench
-from ltc_stores import write_true_ltc_store
 from station.cli import main
 from station.ltc.store import open_ltc_volume
 
