@@ -80,11 +80,14 @@ class CheckedArray:
         self.done = np.asarray(done, bool)  # (D, TR, TC)
         self._stored = np.dtype(self.dtype).newbyteorder("<")
         self._nbytes = int(np.prod(self.chunks)) * self.dtype.itemsize
+        self._row_bytes = self._nbytes // self.chunks[1]
         self._last: tuple[tuple[int, int, int], np.ndarray] | None = None
+        # chunks verified whole by this process: key -> the file's (inode, size, mtime_ns)
+        self._verified: dict[tuple[int, int, int], tuple[int, int, int]] = {}
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state["_last"] = None
+        state["_last"], state["_verified"] = None, {}
         return state
 
     def __len__(self) -> int:
@@ -127,13 +130,40 @@ class CheckedArray:
                 a0, a1 = max(r0, tr * ch), min(r1, (tr + 1) * ch)
                 for tc in range(c0 // cw, -(-c1 // cw)):
                     b0, b1 = max(c0, tc * cw), min(c1, (tc + 1) * cw)
-                    chunk = self.chunk(d, tr, tc)
+                    rows = self._rows(d, tr, tc, a0 - tr * ch, a1 - tr * ch)
                     out[d - d0, a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = \
-                        chunk[a0 - tr * ch : a1 - tr * ch, b0 - tc * cw : b1 - tc * cw]
+                        rows[:, b0 - tc * cw : b1 - tc * cw]
         out = out[tuple(0 if ax in drop else slice(None) for ax in range(3))]
         if rest:
             out = out[(slice(None),) * (3 - len(drop)) + tuple(rest)]
         return out
+
+    def _rows(self, depth: int, tile_row: int, tile_col: int, r0: int, r1: int) -> np.ndarray:
+        """Rows ``r0:r1`` of a chunk. A chunk this process verified whole is read in part
+        while its file is unchanged (same inode, size and modification time); any other read
+        verifies the whole chunk first (:meth:`chunk`)."""
+        key = (depth, tile_row, tile_col)
+        seen = self._verified.get(key)
+        if seen is None or (r1 - r0) * 4 > self.chunks[1] or \
+                (self._last is not None and self._last[0] == key):
+            return self.chunk(depth, tile_row, tile_col)[r0:r1]
+        path = chunk_path(self.root, self.name, depth, tile_row, tile_col, self.ndim)
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except FileNotFoundError:
+            return self.chunk(depth, tile_row, tile_col)[r0:r1]
+        try:
+            st = os.fstat(fd)
+            if (st.st_ino, st.st_size, st.st_mtime_ns) != seen:
+                return self.chunk(depth, tile_row, tile_col)[r0:r1]
+            n = (r1 - r0) * self._row_bytes
+            buf = os.pread(fd, n, r0 * self._row_bytes)
+        finally:
+            os.close(fd)
+        if len(buf) != n:
+            return self.chunk(depth, tile_row, tile_col)[r0:r1]
+        rows = np.frombuffer(buf, self._stored).reshape((r1 - r0,) + self.chunks[2:])
+        return rows.astype(self.dtype, copy=False)
 
     def chunk(self, depth: int, tile_row: int, tile_col: int) -> np.ndarray:
         """Chunk (depth, tile_row, tile_col) as stored (ch, cw, ...), verified when its tile is
@@ -155,6 +185,7 @@ class CheckedArray:
                 buf = bytearray(self._nbytes)
                 n = f.readinto(buf)
                 extra = f.read(1)
+                st = os.fstat(f.fileno())
         except FileNotFoundError:
             if done and record != ABSENT:
                 raise LtcChunkError(f"{where}: chunk file is missing; the LTC store is damaged; "
@@ -176,6 +207,8 @@ class CheckedArray:
                                     f"'{CRC_ARRAY}'); the LTC store is damaged")
         elif n != self._nbytes or extra:
             raise LtcChunkError(f"{where}: chunk file has the wrong size")
+        if done:
+            self._verified[key] = (st.st_ino, st.st_size, st.st_mtime_ns)
         chunk = np.frombuffer(buf, self._stored).reshape(self.chunks[1:])
         chunk = chunk.astype(self.dtype, copy=False)
         self._last = (key, chunk)

@@ -4,6 +4,7 @@ store, array, depth and tile; the undamaged store reads exactly as zarr reads it
 
 from __future__ import annotations
 
+import os
 import shutil
 
 import numpy as np
@@ -13,6 +14,7 @@ from ltc_stores import write_true_ltc_store
 
 from fakes.bench import BenchConfig, FakeBench
 from station.cli import main
+from station.ltc.checked import LtcChunkError
 from station.ltc.store import open_ltc_volume
 
 DEPTHS = [0.0, 30.0, 60.0, 250.0, 290.0]
@@ -102,3 +104,20 @@ def test_an_undamaged_store_verifies_and_gives_the_lens(store, tmp_path, capsys)
     (tmp_path / "bad.npz").write_bytes(bytes(raw))
     assert main(["verify", str(tmp_path / "bad.npz")]) == 1
     assert "damaged" in capsys.readouterr().out
+
+
+def test_a_chunk_changed_after_its_first_read_is_verified_again(store, tmp_path):
+    """Reads of a few rows of a chunk this process verified whole read only those rows, while
+    the chunk's file is unchanged; a chunk replaced since is verified (and refused) again."""
+    copy = tmp_path / "ltc.zarr"
+    shutil.copytree(store, copy)
+    v = open_ltc_volume(copy)
+    want = np.asarray(zarr.open_group(str(copy), mode="r")["ltc"][2, 16:18, 32:48])
+    np.testing.assert_array_equal(v.ltc[2, 16:32, 32:48][:2], want)  # verified whole
+    np.testing.assert_array_equal(v.ltc[2, 16:18, 32:48], want)  # rows only
+    v.ltc[1, 0:16, 0:16]  # another chunk read last
+    path = chunk(copy, "ltc", 2, 1, 2)
+    damage_weight(path)  # rewritten: a new modification time
+    os.utime(path, ns=(0, 0))
+    with pytest.raises(LtcChunkError, match=r"array 'ltc', depth 2, tile \(1, 2\).*crc32c"):
+        v.ltc[2, 16:18, 32:48]
