@@ -5,7 +5,9 @@ read of a done tile's chunk is verified against it.
 A record is the crc32c of the chunk file's bytes (int64), :data:`ABSENT` for a chunk zarr did
 not write because it holds only the fill value, -1 while not recorded. A chunk whose file is
 missing, has the wrong size or fails its crc32c is refused with :class:`LtcChunkError`
-naming the store, the array, the depth and the tile.
+naming the store, the array, the depth and the tile. A process verifies a chunk when it first
+reads it whole; later reads of a few of its rows read only those rows while the chunk's file
+is unchanged (same inode, size and modification time), else the chunk is verified again.
 """
 
 from __future__ import annotations
