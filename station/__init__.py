@@ -29,5 +29,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "experiment.demo": "run_demo",
     "acquisition.config": "StationConfig ConfigError",
     "lens.derive": "LensResult",
-    "errors": "StationError UsageError",
+    "errors": "StationError StationInputError UsageError",
 })

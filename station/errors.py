@@ -1,10 +1,13 @@
-"""Error kinds the ``ltc`` command line turns into one line and an exit code.
+"""The station's errors, and the kinds of failure the ``ltc`` command line turns into one line.
 
+- :class:`StationError`: the root of every error the station raises on purpose (a device
+  step, the data, a store, a lock); exit code 1. :class:`StationInputError` is an input the
+  station refuses (a file, a field, a value) and is a ``ValueError`` too.
 - :class:`UsageError`: what was typed is wrong (an option value, a missing option, an output
   that exists without ``--force``): exit code 2.
-- :class:`StationError`: a run failed for a reason its message names (a device, the data, the
-  disk): exit code 1. ``ValueError`` (bad data in a file, a corrupt store), ``OSError`` (disk
-  full, permission denied, path missing) and ``drivers.DeviceError`` are exit code 1 too.
+- ``drivers.DeviceError`` and ``sim.SimError`` (the other packages' roots), ``OSError`` (disk
+  full, permission denied, path missing) and pydantic's validation errors are exit code 1 too.
+- Anything else is a bug: exit code 3, see ``station.cli``.
 
 Kept free of heavy imports: ``ltc --help`` loads it.
 """
@@ -16,12 +19,17 @@ import os
 from pathlib import Path
 
 
-class UsageError(ValueError):
-    """The command line is wrong; the message names the option and what to type (exit 2)."""
-
-
 class StationError(RuntimeError):
-    """A station step failed; the message names the device, file or step and what to do."""
+    """Root of the station's errors: a step failed; the message names the device, file or step
+    and what to do."""
+
+
+class StationInputError(StationError, ValueError):
+    """An input the station refuses: a file, a field or a value; the message names it."""
+
+
+class UsageError(StationError, ValueError):
+    """The command line is wrong; the message names the option and what to type (exit 2)."""
 
 
 _HINTS = {

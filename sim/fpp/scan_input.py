@@ -28,13 +28,14 @@ import numpy as np
 import zarr
 from pydantic import TypeAdapter, ValidationError
 
+from sim.errors import SimInputError
 from sim.render.fringe_patterns import PatternSet
 from sim.validation import format_validation_error
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
 
 
-class ScanInputError(ValueError):
+class ScanInputError(SimInputError):
     """IMAGES cannot be read as a scan; the message names the path and what was expected."""
 
 

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.errors import SimInputError
 from sim.metrology.compare import compare_clouds, distance_colormap_png, icp, mesh_signed_distance
 from sim.metrology.spheres import find_sphere_unknown, find_spheres, measure_ball_bar, sphere_shell
 
@@ -21,7 +22,7 @@ def distance_stats(d: np.ndarray) -> dict:
             "std_mm": float(d.std()), "min_mm": float(d.min()), "max_mm": float(d.max())}
 
 
-class NotCredible(ValueError):
+class NotCredible(SimInputError):
     """A fit that does not match what the user said was measured (exit 1 in the CLI)."""
 
 
@@ -44,10 +45,10 @@ def measure_sphere(points: np.ndarray, diameter_mm: float | None = None,
     points near the sphere (m, 3) and their signed radial distances (m,) mm."""
     if diameter_mm is not None:
         if not diameter_mm > 0:
-            raise ValueError(f"nominal diameter must be > 0 mm, got {diameter_mm:g}")
+            raise SimInputError(f"nominal diameter must be > 0 mm, got {diameter_mm:g}")
         try:
             fit = find_spheres(points, 1, diameter_mm / 2)[0]
-        except ValueError as exc:
+        except SimInputError as exc:
             raise NotCredible(f"no sphere of nominal diameter {diameter_mm:g} mm in the points "
                               f"({exc}); is the nominal diameter right (not the radius)?") from exc
         _check_diameter("sphere", fit.diameter, diameter_mm, tolerance)
@@ -67,7 +68,7 @@ def measure_ballbar(points: np.ndarray, diameter_mm: float, length_mm: float | N
     ``NotCredible``. Returns the report, the points near the balls and their distances (mm)."""
     try:
         bar = measure_ball_bar(points, diameter_mm / 2)
-    except ValueError as exc:
+    except SimInputError as exc:
         raise NotCredible(f"no two balls of nominal diameter {diameter_mm:g} mm: {exc}") from exc
     for i, s in enumerate(bar.spheres):
         _check_diameter(f"ball {i + 1}", s.diameter, diameter_mm, tolerance)
@@ -87,7 +88,7 @@ def load_mesh(path: str | Path):
         raise FileNotFoundError(2, "not found", str(path))
     mesh = trimesh.load(path, force="mesh")
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ValueError(f"{path}: no triangles in the file")
+        raise SimInputError(f"{path}: no triangles in the file")
     return mesh
 
 

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.errors import SimInputError
 from sim.optics.lens import RayBundle
 from sim.optics.projection import normalized_to_pixel
 from sim.tolerances import WEIGHT_SUM_TOL
@@ -37,7 +38,7 @@ REQUIRED = ("format", "format_version", "focus_distance_mm", "optical_centre_mm"
 OPTIONAL = ("camera_matrix", "dist_coeffs", "metadata_json", "focus_zones_mm", "aim_offset")
 
 
-class LensFileError(ValueError):
+class LensFileError(SimInputError):
     """A measured-lens file or model is invalid; the message names the file and the field."""
 
 

@@ -16,6 +16,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from sim.errors import SimInputError
 from sim.tolerances import PATTERN_RANGE_TOL
 
 Direction = Literal["u", "v", "both"]
@@ -60,7 +61,7 @@ def _coordinate(axis: str, size: tuple[int, int]) -> np.ndarray:
 def _check_size(size: tuple[int, int]) -> tuple[int, int]:
     w, h = (int(x) for x in size)
     if w < 1 or h < 1:
-        raise ValueError(f"projector_size must be (width, height) >= 1 pixel, got {size}")
+        raise SimInputError(f"projector_size must be (width, height) >= 1 pixel, got {size}")
     return w, h
 
 
@@ -76,7 +77,7 @@ class Modulation(BaseModel):
     def _in_range(self):
         tol = PATTERN_RANGE_TOL
         if self.offset - self.amplitude < -tol or self.offset + self.amplitude > 1 + tol:
-            raise ValueError(
+            raise SimInputError(
                 f"offset A={self.offset} and amplitude B={self.amplitude} must keep A +- B in [0, 1]"
             )
         return self
@@ -103,7 +104,7 @@ class PhaseShiftSet(_Fringes):
     @model_validator(mode="after")
     def _periods(self):
         if any(p <= 0 for p in self.periods_px):
-            raise ValueError(f"periods_px must all be > 0, got {self.periods_px}")
+            raise SimInputError(f"periods_px must all be > 0, got {self.periods_px}")
         return self
 
     def descriptors(self, projector_size: tuple[int, int]) -> list[PatternDescriptor]:

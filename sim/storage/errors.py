@@ -3,6 +3,8 @@ trusted; the message names the path and what to do."""
 
 from __future__ import annotations
 
+from sim.errors import SimInputError
 
-class StorageError(ValueError):
+
+class StorageError(SimInputError):
     """A store or output is locked, damaged or misused; the message names the path."""

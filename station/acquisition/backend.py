@@ -67,9 +67,13 @@ def open_fake_hardware(config: StationConfig, *, lut: np.ndarray | None = None):
     Tests reach the fakes' fault switches and wire log through it; the station does not."""
     from fakes.hardware import FakeHardware, parse_fake_settings
 
+    try:
+        settings = parse_fake_settings(config.fake)
+    except ValueError as exc:  # the [fake] section, refused by its validation
+        raise ConfigError(str(exc)) from exc
     s = config.stage
     fake = FakeHardware(
-        parse_fake_settings(config.fake), microstep_um=s.microstep_um, travel_mm=s.travel_mm,
+        settings, microstep_um=s.microstep_um, travel_mm=s.travel_mm,
         tolerance_um=s.tolerance_um, timeout_s=s.timeout_s, settle_s=s.settle_s,
         frame_code=frame_code_layout(config), lut=lut,
     )

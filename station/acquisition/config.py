@@ -13,9 +13,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from drivers.frame_code import FrameCodeLayout
 from sim.render.fringe_patterns import Modulation
 from sim.validation import field_path
+from station.errors import StationError
 
 
-class ConfigError(ValueError):
+class ConfigError(StationError, ValueError):
     """A config file is missing, unreadable or invalid; the message names file and field."""
 
 

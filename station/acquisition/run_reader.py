@@ -21,11 +21,12 @@ from zarr.codecs.bytes import Endian
 from sim.storage.checksum import readonly
 from station.acquisition.patterns import StationPatternPlan
 from station.acquisition.shard_codec import CRC_BYTES, ShardCodec, frame_crc
+from station.errors import StationError
 
 CODE_MASK = "code_mask"  # array [depth, row, col] bool: camera pixels that see the check code
 
 
-class RunStoreError(ValueError):
+class RunStoreError(StationError, ValueError):
     """The run store is missing, malformed, incomplete or misused; the message names the path."""
 
 

@@ -19,13 +19,14 @@ import numpy as np
 import zarr
 
 from sim.storage.checksum import NO_CRC, crc32c, readonly
+from station.errors import StationError
 
 CHECKED_ARRAYS = ("ltc", "origin", "gain", "noise", "lcd_xy")  # order of tile_crc32c's last axis
 CRC_ARRAY = "tile_crc32c"
 ABSENT = -2  # record: the chunk holds only the fill value and has no file
 
 
-class LtcChunkError(ValueError):
+class LtcChunkError(StationError, ValueError):
     """A chunk of an LTC store is missing, truncated or altered; the message names the store,
     array, depth and tile."""
 

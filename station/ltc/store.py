@@ -44,7 +44,14 @@ import zarr
 
 from sim.storage.attrs import LtcStoreAttrs, check_attrs, open_zarr_group
 from sim.storage.checksum import NO_CRC, crc32c, readonly
-from sim.storage.durable import aligned_empty, publish, sync_tree, temporary_name, write_new_file
+from sim.storage.durable import (
+    aligned_empty,
+    publish,
+    sync_tree,
+    temporary_name,
+    write_new_file,
+)
+from station.errors import StationError
 from station.ltc.checked import (  # noqa: F401 - LtcChunkError, CheckedArray: store names
     CHECKED_ARRAYS,
     CRC_ARRAY,
@@ -61,7 +68,7 @@ ARRAYS = ("ltc", "origin", "gain", "noise")
 OPTIONAL_ARRAYS = ("lcd_xy",)
 
 
-class LtcStoreError(ValueError):
+class LtcStoreError(StationError, ValueError):
     """The LTC store is missing, malformed or of another format; the message names the path."""
 
 
@@ -362,7 +369,7 @@ def centred_origins(centres_xy: np.ndarray, period: int) -> np.ndarray:
     return (np.floor(c + 0.5) - period // 2).astype(np.int32)
 
 
-class LtcVolumeError(ValueError):
+class LtcVolumeError(StationError, ValueError):
     """An LTC volume is unusable; the message names the source, array and element."""
 
 
