@@ -12,9 +12,10 @@ Stores: the fake bench of the lens tests (40 x 30 camera, 5 depths, P = 24) and 
 full-width crop of the full-size synthetic bench (4096 x 64, 2 depths, P = 24; the crop
 machinery of ``benchmarks/full_size.py``). Target: checked at most 10 % over zarr.
 
-    python benchmarks/ltc_checksums.py [--repeats 3] [--crop-rows 64] [--workers N]
+    python benchmarks/ltc_checksums.py [--repeats 3] [--crop-rows 64] [--workers N] \
+        [--write-results]
 
-Prints the table and rewrites ``benchmarks/results/ltc_checksums.md``.
+Prints the table; ``--write-results`` rewrites ``benchmarks/results/ltc_checksums.md``.
 """
 
 from __future__ import annotations
@@ -122,6 +123,8 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=1,
                     help="lens worker processes (default 1: CPU time then counts all work)")
     ap.add_argument("--dir", type=Path, default=None, help="scratch folder (default: /tmp)")
+    ap.add_argument("--write-results", action="store_true",
+                    help="rewrite benchmarks/results/ltc_checksums.md whole")
     a = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory(dir=a.dir) as tmp:
@@ -154,11 +157,12 @@ def main() -> None:
         cells = " | ".join(f"{b[m]:.2f} ({b[m + '_wall']:.2f})" for m in MODES)
         lines.append(f"| {what} | {repeats} | {cells} | {b['checked'] / b['zarr']:.3f} | "
                      f"{b['checked'] / b['unchecked']:.3f} |")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    out = ROOT / "benchmarks" / "results" / "ltc_checksums.md"
-    out.parent.mkdir(exist_ok=True)
-    out.write_text(text)
+    print("\n".join(lines))
+    if a.write_results:
+        from _results import command_line, write_results
+
+        write_results(__file__, lines[0].lstrip("# "), "\n".join(lines[2:]),
+                      command=command_line())
 
 
 if __name__ == "__main__":
