@@ -198,11 +198,12 @@ def write_json(path: str | os.PathLike, data: object) -> None:
         json.dump(data, f, indent=2)
 
 
-def durable_figure(fig: object, path: str | os.PathLike) -> Path:
-    """Save a matplotlib figure durably (format from the path's suffix); returns the path."""
+def durable_figure(fig: object, path: str | os.PathLike, **savefig: object) -> Path:
+    """Save a matplotlib figure durably (format from the path's suffix; ``savefig``: more
+    ``Figure.savefig`` keywords); returns the path."""
     path = Path(path)
     with durable_file(path, "wb") as f:
-        fig.savefig(f, format=path.suffix.lstrip(".") or "png")  # type: ignore[attr-defined]
+        fig.savefig(f, format=path.suffix.lstrip(".") or "png", **savefig)  # type: ignore
     return path
 
 
