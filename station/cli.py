@@ -57,6 +57,7 @@ COMMAND_MODULES = (
     "verify",
     "run",
     "render",
+    "dataset",
     "scan",
     "measure",
     "experiment",

@@ -61,13 +61,11 @@ def describe_os_error(exc: OSError) -> str:
 
 
 def check_output(path: str | os.PathLike, force: bool, option: str = "--out") -> Path:
-    """``path`` as a Path, refused (UsageError) when it exists and ``force`` is not set.
-
-    The one overwrite rule of every command: an output that exists is never replaced without
-    ``--force``.
+    """``path`` as a Path, refused (UsageError) when it exists and ``force`` is not set, or
+    when ``force`` would replace something that is not a plain file (a folder, a device file,
+    the working directory): the rules of :func:`station.outputs.check_output`, which commands
+    writing a store, a folder or a file of a known kind call with that kind and their inputs.
     """
-    path = Path(path)
-    if (path.exists() or path.is_symlink()) and not force:
-        raise UsageError(f"{option} {path} exists; pass --force to overwrite it, or choose "
-                         "another path")
-    return path
+    from station.outputs import check_output as _check  # light; avoids an import cycle
+
+    return _check(path, force, option)

@@ -280,6 +280,9 @@ def load_lens(path: str | Path) -> MeasuredLens:
     path = Path(path)
     if not path.is_file():
         raise LensFileError(f"{path}: no such measured-lens file")
+    if not zipfile.is_zipfile(path):
+        raise LensFileError(f"{path}: not a readable measured-lens file: not a .npz archive "
+                            "as `ltc lens` writes it")
     try:
         with np.load(path, allow_pickle=False) as npz:
             data = {k: npz[k] for k in npz.files}

@@ -27,8 +27,11 @@ def write_png(path: str | Path, image: np.ndarray, bit_depth: int) -> None:
     if image.ndim != 2 or image.dtype != want or (bit_depth == 12 and image.max(initial=0) > 4095):
         raise SimInputError(f"write_png {path}: expected a 2-D {np.dtype(want).name} image with values "
                          f"< 2^{bit_depth}, got {image.dtype} {image.shape}")
-    if not cv2.imwrite(str(path), image):
-        raise OSError(f"write_png: could not write {path}")
+    ok, png = cv2.imencode(".png", image)  # encoded here, so a full disk is Python's OSError
+    if not ok:
+        raise SimInputError(f"write_png {path}: OpenCV could not encode the image")
+    with open(path, "wb") as f:
+        f.write(png.tobytes())
 
 
 def write_pngs(directory: str | Path, images: np.ndarray, bit_depth: int) -> list[Path]:

@@ -272,7 +272,7 @@ class SceneFile(BaseModel):
     objects: list[SceneObject] = Field(min_length=1, description="scene objects")
     patterns: PatternSet = Field(description="the projected pattern set")
     render: RenderSettings = Field(default_factory=RenderSettings, description="projector and camera")
-    seed: int = Field(0, description="seed of the camera noise generator")
+    seed: int = Field(0, ge=0, description="seed of the camera noise generator (>= 0)")
 
     @field_validator("lenses", mode="before")
     @classmethod
@@ -326,6 +326,15 @@ class LoadedScene:
     scene: Scene
     geometry: TraceGeometry
 
+    def input_files(self) -> list[Path]:
+        """Every file the scene reads: the scene file, its rig, measured lenses and meshes."""
+        base = self.source.parent
+        files = [self.source, _resolve(base, self.config.rig)]
+        files += [_resolve(base, s.path) for s in self.config.lenses
+                  if isinstance(s, MeasuredLensSpec)]
+        files += [o.path for o in self.scene.objects if isinstance(o, MeshObject)]
+        return files
+
     def render(self, progress: bool = False) -> RenderResult:
         """Render the scene's pattern set on every camera (noise seeded by ``config.seed``)."""
         imgs = self.config.patterns.images(self.rig.projector.size)
@@ -333,10 +342,13 @@ class LoadedScene:
                             np.random.default_rng(self.config.seed), progress=progress,
                             where=str(self.source))
 
-    def save(self, result: RenderResult, out: str | Path, radiance: bool = False) -> dict:
+    def save(self, result: RenderResult, out: str | Path, radiance: bool = False, *,
+             final: str | Path | None = None) -> dict:
         """Write a rendering into the new folder ``out`` (docs/formats.md, "ltc render
         folder"): 8/16-bit PNGs per camera (unless unquantised), ``render.zarr`` with the
-        images and truth maps, ``summary.json``. Returns the summary."""
+        images and truth maps, ``summary.json``. ``final``: the path the folder will have
+        once renamed into place (recorded in the summary; default ``out``). Returns the
+        summary."""
         out = Path(out)
         out.mkdir(parents=True)
         cam = self.config.render.camera
@@ -345,7 +357,9 @@ class LoadedScene:
         for c, d in zip(result.cameras, png_dirs):
             if d is not None:
                 write_pngs(d, c.images, cam.bit_depth)
-        summary = self._summary(result, out, png_dirs)
+        recorded = Path(final) if final is not None else out
+        summary = self._summary(result, recorded,
+                                [d and str(recorded / Path(d).name) for d in png_dirs])
         descriptors = self.config.patterns.descriptors(self.rig.projector.size)
         attrs = {"summary": summary, "scene": self.config.model_dump(mode="json"),
                  "rig": self.rig.model_dump(mode="json"),
@@ -378,6 +392,19 @@ class LoadedScene:
         }
 
 
+def _projector_size(raw: object, base: Path) -> tuple[int, int] | None:
+    """The rig's projector (width, height) when ``[patterns]`` gives ``fringes`` and the rig
+    file reads (a rig that does not is reported by the rig's own check)."""
+    patterns = raw.get("patterns") if isinstance(raw, dict) else None
+    if not (isinstance(patterns, dict) and "fringes" in patterns
+            and isinstance(raw.get("rig"), str)):
+        return None
+    try:
+        return tuple(Rig.load(_resolve(base, Path(raw["rig"]))).projector.size)
+    except (OSError, ValueError):
+        return None
+
+
 def load_scene_file(path: str | Path) -> LoadedScene:
     """Read a scene TOML file and everything it names; errors name the file and the field."""
     path = Path(path)
@@ -387,11 +414,11 @@ def load_scene_file(path: str | Path) -> LoadedScene:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SimInputError(f"{path}: not valid TOML: {exc}") from exc
+    base = path.parent
     try:
-        cfg = SceneFile.model_validate(raw)
+        cfg = SceneFile.model_validate(raw, context={"projector_size": _projector_size(raw, base)})
     except ValidationError as exc:
         raise SimInputError(format_validation_error(str(path), exc)) from exc
-    base = path.parent
     rig_path = _resolve(base, cfg.rig)
     try:
         rig = Rig.load(rig_path)
