@@ -12,7 +12,7 @@ from pathlib import Path
 
 from station.compute import _alive
 
-ROOT = Path(__file__).resolve().parents[3]
+ROOT = Path(__file__).resolve().parents[2]
 
 # a command whose compute runs in a 2-worker engine, each worker sleeping for a minute; it
 # prints the workers' process ids once they run
