@@ -446,7 +446,7 @@ def _open_for_resume(out: Path, record: dict) -> RunStore:
     if damaged:
         which = ", ".join(f"(depth {d}, pattern {p})" for d, p, _ in damaged[:20])
         more = f" and {len(damaged) - 20} more" if len(damaged) > 20 else ""
-        log.warning("%s: %d done frame(s) are damaged and will be captured again: %s%s "
+        log.warning("%s: %d done frame(s) are damaged and will be recaptured: %s%s "
                     "(first: %s)", out, len(damaged), which, more, damaged[0][2])
         store.mark_not_done([(d, p) for d, p, _ in damaged])
     store.recaptured = [[d, p] for d, p, _ in damaged]

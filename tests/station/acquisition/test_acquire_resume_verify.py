@@ -51,7 +51,7 @@ def test_resume_recaptures_damaged_frames_bit_for_bit(tmp_path, capsys, caplog):
 
     assert main(["acquire", str(cfg), "--out", str(run), "--resume", "--json"]) == 0
     report = capsys.readouterr()
-    assert "2 done frame(s) are damaged and will be captured again: (depth 0, pattern 2), " \
+    assert "2 done frame(s) are damaged and will be recaptured: (depth 0, pattern 2), " \
         "(depth 1, pattern 5)" in caplog.text  # a warning in the run's log and on stderr
     assert '"frames_recaptured": [[0, 2], [1, 5]]' in report.out
     assert '"frames_written": 2' in report.out
