@@ -54,6 +54,7 @@ COMMAND_MODULES = (
     "align",
     "reconstruct",
     "lens",
+    "verify",
     "run",
     "render",
     "dataset",

@@ -302,7 +302,7 @@ def staged(path: str | os.PathLike, kind: OutputKind, always: bool = False) -> I
             raise
         return
     if kind.folder and (path / "writer.lock").exists():
-        from station.acquisition.lock import StoreLock  # the store's own writer lock
+        from sim.storage.lock import StoreLock  # the store's own writer lock
 
         with StoreLock(path, force=True):  # refuses an output a live writer holds
             pass

@@ -50,6 +50,7 @@ from sim.optics.projection import (
     pixel_to_normalized,
     project_points,
 )
+from sim.storage.durable import durable_file
 from sim.tolerances import LOOK_AT_PARALLEL_TOL, ROTATION_TOL
 from sim.validation import format_validation_error
 
@@ -207,7 +208,8 @@ class Rig(BaseModel):
         path = Path(path)
         suffix = path.suffix.lower()
         if suffix == ".json":
-            path.write_text(self.model_dump_json(indent=2))
+            with durable_file(path) as f:
+                f.write(self.model_dump_json(indent=2))
         elif suffix in YAML_SUFFIXES:
             _write_filestorage(self, path)
         else:

@@ -48,6 +48,7 @@ from sim.render.images import RenderResult, RenderSettings, render_views, write_
 from sim.optics.rig import DeviceCalibration, Rig, _matrix
 from sim.validation import format_validation_error
 from sim.render.trace import TraceGeometry
+from sim.storage.durable import durable_file
 from sim.tolerances import ROTATION_TOL
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
@@ -365,7 +366,8 @@ class LoadedScene:
                  "patterns": [d.model_dump(mode="json") for d in descriptors],
                  "png_note": "12-bit images are stored unscaled (0..4095) in 16-bit PNG"}
         write_zarr(out / "render.zarr", result, attrs, radiance=radiance)
-        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        with durable_file(out / "summary.json") as f:
+            f.write(json.dumps(summary, indent=2))
         return summary
 
     def _summary(self, result: RenderResult, out: Path, png_dirs: list[str | None]) -> dict:

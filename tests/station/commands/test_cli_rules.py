@@ -35,6 +35,7 @@ MISSING = {
     "align": ["align", "{d}/none.toml"],
     "reconstruct": ["reconstruct", "{d}/none.zarr", "--out", "{d}/ltc.zarr"],
     "lens": ["lens", "{d}/none.zarr", "--out", "{d}/lens.npz"],
+    "verify": ["verify", "{d}/none.zarr"],
     "run": ["run", "{d}/none.toml", "--out", "{d}/seq"],
     "render": ["render", "{d}/none.toml", "--out", "{d}/render"],
     "dataset": ["dataset", "{d}/none.toml", "--out", "{d}/ds", "--samples", "1"],
