@@ -35,6 +35,8 @@ COMMAND_MODULES = (
     "run",
     "render",
     "scan",
+    "patterns",
+    "calibrate",
     "measure",
     "experiment",
     "demo",

@@ -164,7 +164,8 @@ def _check_conditioning(views: _Views, object_points: np.ndarray) -> None:
 
 
 def _zhang(obj: np.ndarray, feats: list[tuple[np.ndarray, np.ndarray]], size, model: str,
-           name: str, poses: list[str]) -> tuple[np.ndarray, np.ndarray, list, list]:
+           name: str, poses: list[str]) -> tuple[np.ndarray, np.ndarray, list, list, np.ndarray]:
+    """Zhang's method on one device: K, dist, rvecs, tvecs and the RMS error of each pose."""
     op = [obj[ids].astype(np.float32) for ids, _ in feats]
     ip = [uv.astype(np.float32).reshape(-1, 1, 2) for _, uv in feats]
     try:
@@ -174,7 +175,26 @@ def _zhang(obj: np.ndarray, feats: list[tuple[np.ndarray, np.ndarray]], size, mo
         raise CalibrationError(f"{poses[0]} .. {poses[-1]}, {name}: Zhang's initialisation "
                                f"failed ({' '.join(str(exc).split())[:120]}); vary the board's "
                                "tilt between poses") from exc
-    return K, dist.ravel()[:5], [r.ravel() for r in rv], [t.ravel() for t in tv]
+    per_pose = []
+    for o, i, r, t in zip(op, ip, rv, tv):
+        p, _ = cv2.projectPoints(o, r, t, K, dist)
+        per_pose.append(np.sqrt(np.mean(np.sum((p - i).reshape(-1, 2) ** 2, axis=1))))
+    return K, dist.ravel()[:5], [r.ravel() for r in rv], [t.ravel() for t in tv], \
+        np.array(per_pose)
+
+
+def _check_projector(pose_rms: list[np.ndarray], poses: list[str], stage: str) -> None:
+    """Refuse a projector error far above the cameras' (per-pose RMS px per device)."""
+    rms = [float(np.sqrt(np.mean(r**2))) for r in pose_rms]
+    cam = max(rms[:2])
+    if rms[2] > max(PROJECTOR_FLOOR_PX, PROJECTOR_RATIO * cam):
+        j = int(np.argmax(pose_rms[2]))
+        raise CalibrationError(
+            f"{poses[j]}, camera 0 and camera 1: the projector's reprojection error "
+            f"({rms[2]:.3g} px RMS {stage}, {pose_rms[2][j]:.3g} px at {poses[j]}) is far above "
+            f"the cameras' ({cam:.3g} px): the phase is wrong; likely causes: an uncorrected "
+            "projector gamma (linearise the projector or use more phase steps) or a capture "
+            "out of sync with the projector (each image must show its own pattern)")
 
 
 def _mean_rotation(Rs: list[np.ndarray]) -> np.ndarray:
@@ -209,14 +229,16 @@ def calibrate(capture_dir: str | Path, board: CalibrationBoard | str | Path,
     psize = capture.patterns.projector_size
     sizes = [views.camera_size, views.camera_size, psize]
     feats_per_dev = [views.cams[0], views.cams[1], views.proj]
-    K, D, rv, tv = [], [], [], []
+    K, D, rv, tv, zrms = [], [], [], [], []
     for d in range(3):
-        k, dist, r, t = _zhang(obj, feats_per_dev[d], sizes[d], models[d], DEVICE_NAMES[d],
-                               views.poses)
+        k, dist, r, t, e = _zhang(obj, feats_per_dev[d], sizes[d], models[d], DEVICE_NAMES[d],
+                                  views.poses)
         K.append(k)
         D.append(dist)
         rv.append(r)
         tv.append(t)
+        zrms.append(e)
+    _check_projector(zrms, views.poses, "after Zhang's method")
     ext_r, ext_t = [], []
     R0 = [cv2.Rodrigues(r)[0] for r in rv[0]]
     for d in (1, 2):
@@ -239,12 +261,6 @@ def calibrate(capture_dir: str | Path, board: CalibrationBoard | str | Path,
     sol = adjust(layout, x0, obs)
     t_ba = time.perf_counter()
     names = ["camera_0", "camera_1", "projector"]
-    for d in range(3):
-        if not sol.fx_rel_std[d] <= MAX_FOCAL_REL_STD:
-            raise CalibrationError(
-                f"{views.poses[0]} .. {views.poses[-1]}, {DEVICE_NAMES[d]}: the focal length is "
-                f"unconstrained by these poses (relative std {sol.fx_rel_std[d]:.2g}); tilt the "
-                "board by 20-40 degrees about different axes in several poses")
     residuals, rms, pose_rms = [], {}, {}
     for d in range(3):
         sel = obs.dev == d
@@ -256,15 +272,14 @@ def calibrate(capture_dir: str | Path, board: CalibrationBoard | str | Path,
             pr = PoseResiduals(pname, names[d], obs.point[s], obs.uv[s], sol.residuals[s])
             residuals.append(pr)
             pose_rms[names[d]][pname] = pr.rms_px
-    cam_rms = max(rms["camera_0"], rms["camera_1"])
-    if rms["projector"] > max(PROJECTOR_FLOOR_PX, PROJECTOR_RATIO * cam_rms):
-        worst = max(pose_rms["projector"], key=pose_rms["projector"].get)
-        raise CalibrationError(
-            f"{worst}, camera 0 and camera 1: the projector's reprojection error "
-            f"({rms['projector']:.3g} px RMS, {pose_rms['projector'][worst]:.3g} px at {worst}) "
-            f"is far above the cameras' ({cam_rms:.3g} px): the phase is wrong; likely causes: "
-            "an uncorrected projector gamma (linearise the projector or use more phase steps) "
-            "or a capture out of sync with the projector (each image must show its pattern)")
+    _check_projector([np.array(list(pose_rms[n].values())) for n in names], views.poses,
+                     "after the bundle adjustment")
+    for d in range(3):
+        if not sol.fx_rel_std[d] <= MAX_FOCAL_REL_STD:
+            raise CalibrationError(
+                f"{views.poses[0]} .. {views.poses[-1]}, {DEVICE_NAMES[d]}: the focal length is "
+                f"unconstrained by these poses (relative std {sol.fx_rel_std[d]:.2g}); tilt the "
+                "board by 20-40 degrees about different axes in several poses")
     devices = []
     for d in range(3):
         devices.append(DeviceCalibration(name=names[d], K=sol.K[d], dist=sol.dist[d], R=sol.R[d],

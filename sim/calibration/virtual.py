@@ -24,21 +24,24 @@ PNG_COMPRESSION = 1  # fast zlib level: the capture is written and read back, no
 
 
 def calibration_rig(camera_dist: Sequence[float] = (0.0,) * 5,
-                    projector_dist: Sequence[float] = (0.0,) * 5) -> Rig:
+                    projector_dist: Sequence[float] = (0.0,) * 5, scale: float = 1.0) -> Rig:
     """A lab-sized scanner: two 1280 x 1024 cameras (f = 2400 px) 760 mm from the world origin
     converging at +-15 degrees, a 1920 x 1080 projector (f = 3040 px) between them; principal
-    points off centre. World: origin at the centre of the volume, z away from the rig, y down."""
+    points off centre. ``scale`` multiplies image sizes and focal lengths (0.25: 320 x 256
+    cameras). World: origin at the centre of the volume, z away from the rig, y down."""
     a = np.radians(15.0)
+    s = float(scale)
     devs = []
     for name, x, pp in (("left", -1.0, (652.3, 498.1)), ("right", 1.0, (628.7, 521.4))):
         R, T = look_at(np.array([x * 760 * np.sin(a), 0.0, -760 * np.cos(a)]), np.zeros(3))
-        K = [[2400.0, 0, pp[0]], [0, 2400.0, pp[1]], [0, 0, 1]]
+        K = [[2400.0 * s, 0, (pp[0] + 0.5) * s - 0.5], [0, 2400.0 * s, (pp[1] + 0.5) * s - 0.5],
+             [0, 0, 1]]
         devs.append(DeviceCalibration(name=name, K=K, dist=list(camera_dist), R=R, T=T,
-                                      size=(1280, 1024)))
+                                      size=(round(1280 * s), round(1024 * s))))
     R, T = look_at(np.array([0.0, -40.0, -760.0]), np.zeros(3))
-    K = [[3040.0, 0, 961.2], [0, 3040.0, 612.5], [0, 0, 1]]
+    K = [[3040.0 * s, 0, 961.7 * s - 0.5], [0, 3040.0 * s, 613.0 * s - 0.5], [0, 0, 1]]
     proj = DeviceCalibration(name="projector", K=K, dist=list(projector_dist), R=R, T=T,
-                             size=(1920, 1080))
+                             size=(round(1920 * s), round(1080 * s)))
     return Rig(cameras=devs, projector=proj)
 
 

@@ -37,8 +37,9 @@ from sim.optics.rig import DeviceCalibration
 from sim.render.trace import Transport, normalized_grid
 
 BoardKind = Literal["chessboard", "circles", "asymmetric_circles", "charuco"]
-FOOTPRINT_SAMPLES = (233, 144)  # Fibonacci lattice (points, generator) over a footprint where
-# the albedo changes inside it: straight edges at any angle are integrated to ~1/233 of a pixel
+FOOTPRINT_SAMPLES = (144, 89)  # Fibonacci lattice (points, generator), mirrored in both axes,
+# over a footprint where the albedo changes inside it: straight edges at any angle are
+# integrated to ~1/500 of a pixel
 CHARUCO_PX_PER_SQUARE = 120  # raster of the ChArUco markers (squares stay exact)
 
 
@@ -238,12 +239,47 @@ def _footprint_integral(board: CalibrationBoard, centre: np.ndarray, J: np.ndarr
         n, gen = FOOTPRINT_SAMPLES
         k = np.arange(n)
         s = np.stack([(k + 0.5) / n - 0.5, np.mod(k * gen + 0.5, n) / n - 0.5], axis=1)
+        # mirrored in both axes: no centroid bias along an axis-aligned edge
+        s = np.concatenate([s, s * [-1, 1], s * [1, -1], -s])
         off = np.einsum("nij,kj->nki", J[mixed], s)
         a = board.albedo(centre[mixed][:, None, :] + off)
         am = a.mean(axis=1)
         mean[mixed] = am
         shift[mixed] = np.einsum("nk,nki->ni", a, off) / (a.sum(axis=1)[:, None])
     return mean, shift
+
+
+def _corner_xy(cam: DeviceCalibration, pixels: np.ndarray) -> np.ndarray:
+    """Normalised coordinates (n, 4, 2) of the four corners of flat pixels (u -+ 0.5, v -+ 0.5;
+    order (-,-), (+,-), (-,+), (+,+)); through the pixel-centre grid and its differences where
+    the camera is distorted (second order in the pixel)."""
+    xy, J = _camera_xy(cam, pixels)
+    corners = np.array([[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5]])
+    return xy[:, None, :] + np.einsum("nij,kj->nki", J, corners)
+
+
+def _apply_pinhole(tr: Transport, b: PlacedBoard, rows: np.ndarray, cam: DeviceCalibration,
+                   projector: DeviceCalibration) -> None:
+    """``apply_boards`` for one ray per pixel: the footprint is the pixel's four corners."""
+    cxy = _corner_xy(cam, tr.pixels[rows]).reshape(-1, 2)
+    corners = _plane_hits(b, cam.centre_world, _device_dirs(cam, cxy)).reshape(-1, 4, 2)
+    light = b.board.is_light(corners)
+    mixed = np.any(light != light[:, :1], axis=1)
+    w = tr.weight[rows, 0]
+    w *= np.where(light[:, 0], b.board.light_albedo, b.board.dark_albedo).astype(np.float32)
+    m = np.flatnonzero(mixed & (w > 0))
+    if len(m):
+        c = corners[m]
+        centre = c.mean(axis=1)
+        J = np.stack([0.5 * (c[:, 1] - c[:, 0] + c[:, 3] - c[:, 2]),
+                      0.5 * (c[:, 2] - c[:, 0] + c[:, 3] - c[:, 1])], axis=2)
+        mean, shift = _footprint_integral(b.board, centre, J)
+        base = np.where(light[m, 0], b.board.light_albedo, b.board.dark_albedo)
+        w[m] *= (mean / base).astype(np.float32)
+        p = centre + shift
+        world = np.concatenate([p, np.zeros((len(p), 1))], axis=1) @ b.R.T + b.t
+        tr.proj_uv[rows[m], 0] = projector.project(world).astype(np.float32)
+    tr.weight[rows, 0] = w
 
 
 def apply_boards(tr: Transport, boards: tuple[PlacedBoard, ...], cam: DeviceCalibration,
@@ -254,6 +290,9 @@ def apply_boards(tr: Transport, boards: tuple[PlacedBoard, ...], cam: DeviceCali
     for b in boards:
         rows = np.flatnonzero(tr.object_id == b.object_index)
         if len(rows) == 0:
+            continue
+        if nk == 1:
+            _apply_pinhole(tr, b, rows, cam, projector)
             continue
         xy, Jxy = _camera_xy(cam, tr.pixels[rows])
         dirs = _device_dirs(cam, xy)
