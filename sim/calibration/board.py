@@ -135,11 +135,11 @@ def detect(image: np.ndarray, board: CalibrationBoard) -> Features | None:
 
 
 def refine_circles(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Circle centres (n, 2) refined to the grey-level centroid of each dark blob: the weight
-    of a pixel is how much darker it is than the window's white (its 95th percentile), over a
-    disc of half the distance to the nearest other centre. On area-integrated images this is
-    the centroid of the circle's image (an ellipse's centre), free of the blob detector's
-    threshold steps."""
+    """Circle centres (n, 2) refined to the grey-level centroid of each dark blob: the white
+    around it is a plane fitted over an annulus (the shading varies across the board), a
+    pixel's weight is how much darker than that plane it is, over a disc of 1.6 times the
+    blob's radius. On area-integrated images this is the centroid of the circle's image, the
+    projected ellipse's centre."""
     im = np.asarray(image, dtype=np.float64)
     h, w = im.shape
     d = np.linalg.norm(uv[:, None] - uv[None], axis=2)
@@ -149,16 +149,24 @@ def refine_circles(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
         r = 0.5 * float(d[i].min())
         x0, x1 = max(int(u - r), 0), min(int(u + r) + 2, w)
         y0, y1 = max(int(v - r), 0), min(int(v + r) + 2, h)
-        if x1 - x0 < 3 or y1 - y0 < 3:
+        if x1 - x0 < 5 or y1 - y0 < 5:
             continue
         yy, xx = np.mgrid[y0:y1, x0:x1]
-        disc = (xx - u) ** 2 + (yy - v) ** 2 <= r * r
+        rr = np.hypot(xx - u, yy - v)
         win = im[y0:y1, x0:x1]
-        white = np.percentile(win[disc], 95)
-        wgt = np.where(disc, np.clip(white - win, 0, None), 0.0)
-        s = wgt.sum()
-        if s > 0:
-            out[i] = (np.sum(wgt * xx) / s, np.sum(wgt * yy) / s)
+        disc = rr <= r
+        lo, hi = np.percentile(win[disc], [2, 98])
+        rc = np.sqrt(np.sum(disc & (win < 0.5 * (lo + hi))) / np.pi)  # blob radius, px
+        ring = (rr >= 1.6 * rc + 2) & disc
+        if rc < 1 or ring.sum() < 10:
+            continue
+        A = np.stack([np.ones(ring.sum()), xx[ring] - u, yy[ring] - v], axis=1)
+        coef = np.linalg.lstsq(A, win[ring], rcond=None)[0]
+        bg = coef[0] + coef[1] * (xx - u) + coef[2] * (yy - v)
+        wgt = np.where(rr <= 1.6 * rc + 1, np.clip(bg - win, 0, None), 0.0)
+        total = wgt.sum()
+        if total > 0:
+            out[i] = (np.sum(wgt * xx) / total, np.sum(wgt * yy) / total)
     return out
 
 

@@ -25,11 +25,12 @@ from sim.calibration.bundle import (
     Layout,
     Observations,
     adjust,
+    distort_project,
     initial_vector,
 )
 from sim.calibration.capture import Capture
 from sim.calibration.errors import CalibrationError
-from sim.calibration.projector import Method, projector_features
+from sim.calibration.projector import Method, apply_maps, projector_features
 from sim.fpp.decode import DecodeSettings
 from sim.optics.rig import DeviceCalibration, Rig
 from sim.render.board import CalibrationBoard
@@ -95,11 +96,27 @@ class _Views:
     cams: list[list[tuple[np.ndarray, np.ndarray]]]
     proj: list[tuple[np.ndarray, np.ndarray]]
     camera_size: tuple[int, int]
+    maps: list[list[np.ndarray]]  # per camera, per pose: the local maps to the projector
+
+    def projector_view(self, j: int, cams_uv: list[np.ndarray], n: int
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """Pose j's projector features from camera points (one (k, 2) per camera, in the
+        order of their ids) through the local maps, averaged over the cameras."""
+        acc, cnt = np.zeros((n, 2)), np.zeros(n)
+        for c in range(2):
+            ids = self.cams[c][j][0]
+            p = apply_maps(self.maps[c][j], cams_uv[c])
+            ok = np.all(np.isfinite(p), axis=1)
+            np.add.at(acc, ids[ok], p[ok])
+            np.add.at(cnt, ids[ok], 1)
+        ids = np.flatnonzero(cnt > 0)
+        return ids, acc[ids] / cnt[ids, None]
 
 
 def _gather(capture: Capture, board: CalibrationBoard, method: Method,
             settings: DecodeSettings) -> _Views:
     cams: list[list] = [[], []]
+    maps: list[list] = [[], []]
     proj: list = []
     size = None
     for pose in capture.poses:
@@ -122,7 +139,9 @@ def _gather(capture: Capture, board: CalibrationBoard, method: Method,
                     "in the white image; check focus, exposure and that the whole board is in "
                     "view, or remove the pose")
             cams[c].append((feats.ids, feats.uv))
-            per_cam.append((feats, projector_features(view.u_p, view.v_p, feats.uv, method)))
+            p, m = projector_features(view.u_p, view.v_p, feats.uv, method)
+            maps[c].append(m)
+            per_cam.append((feats, p))
         # the projector's view: the mean of the cameras' estimates of each feature
         n = len(board.object_points())
         acc, cnt = np.zeros((n, 2)), np.zeros(n)
@@ -137,7 +156,7 @@ def _gather(capture: Capture, board: CalibrationBoard, method: Method,
                 "projector phase around them; is the board lit by the projector and the fringe "
                 "modulation high enough?")
         proj.append((ids, acc[ids] / cnt[ids, None]))
-    return _Views(list(capture.poses), cams, proj, tuple(size))
+    return _Views(list(capture.poses), cams, proj, tuple(size), maps)
 
 
 def _check_conditioning(views: _Views, object_points: np.ndarray) -> None:
@@ -195,6 +214,49 @@ def _check_projector(pose_rms: list[np.ndarray], poses: list[str], stage: str) -
             f"the cameras' ({cam:.3g} px): the phase is wrong; likely causes: an uncorrected "
             "projector gamma (linearise the projector or use more phase steps) or a capture "
             "out of sync with the projector (each image must show its own pattern)")
+
+
+def ellipse_offsets(layout: Layout, x: np.ndarray, obs: Observations, radius_mm: float,
+                    sel: np.ndarray) -> np.ndarray:
+    """Pixel offsets (k, 2) from the image of each circle's centre to the centre of its image
+    (the projected ellipse), for the observations ``sel``: through the dual conic
+    ``H diag(r^2, r^2, -1) H^T`` of the board-to-device plane homography (distortion applied to
+    both points)."""
+    intr = layout.intrinsics(x)
+    Rp, tp = layout.poses(x)
+    Re, te = layout.extrinsics(x)
+    d, j = obs.dev[sel], obs.pose[sel]
+    R = np.einsum("mij,mjk->mik", Re[d], Rp[j])
+    t = np.einsum("mij,mj->mi", Re[d], tp[j]) + te[d]
+    c = obs.object_points[obs.point[sel]]
+    Hn = np.stack([R[:, :, 0], R[:, :, 1], t + np.einsum("mij,mj->mi", R[:, :, :2], c[:, :2])],
+                  axis=2)  # board plane centred on the circle -> device (normalised)
+    Q = np.diag([radius_mm**2, radius_mm**2, -1.0])
+    M = np.einsum("mij,jk,mlk->mil", Hn, Q, Hn)
+    ell = np.stack([M[:, 0, 2] / M[:, 2, 2], M[:, 1, 2] / M[:, 2, 2], np.ones(len(M))], axis=1)
+    ctr = Hn[:, :, 2]
+    return distort_project(ell, intr[d]) - distort_project(ctr, intr[d])
+
+
+def _circle_corrected(views: _Views, obs: Observations, layout: Layout, x: np.ndarray,
+                      board: CalibrationBoard) -> Observations:
+    uv = obs.uv.copy()
+    cams = obs.dev < 2
+    uv[cams] -= ellipse_offsets(layout, x, obs, board.diameter_mm / 2, cams)
+    proj = np.flatnonzero(obs.dev == 2)
+    n = len(obs.object_points)
+    dev, pose, point, pts = [obs.dev[~(obs.dev == 2)]], [obs.pose[obs.dev != 2]], \
+        [obs.point[obs.dev != 2]], [uv[obs.dev != 2]]
+    del proj
+    for j in range(len(views.poses)):
+        cams_uv = [uv[(obs.dev == c) & (obs.pose == j)] for c in range(2)]
+        ids, p = views.projector_view(j, cams_uv, n)
+        dev.append(np.full(len(ids), 2))
+        pose.append(np.full(len(ids), j))
+        point.append(ids)
+        pts.append(p)
+    return Observations(np.concatenate(dev), np.concatenate(pose), np.concatenate(point),
+                        np.concatenate(pts), obs.object_points)
 
 
 def _mean_rotation(Rs: list[np.ndarray]) -> np.ndarray:
@@ -259,6 +321,11 @@ def calibrate(capture_dir: str | Path, board: CalibrationBoard | str | Path,
     obs = Observations(np.concatenate(dev), np.concatenate(pose), np.concatenate(point),
                        np.concatenate(uv), obj)
     sol = adjust(layout, x0, obs)
+    if board.kind in ("circles", "asymmetric_circles"):
+        # a circle's image is an ellipse whose centre is not the centre's image: take the
+        # perspective offset off the cameras' points, carry them into the projector, adjust again
+        obs = _circle_corrected(views, obs, layout, sol.x, board)
+        sol = adjust(layout, sol.x, obs)
     t_ba = time.perf_counter()
     names = ["camera_0", "camera_1", "projector"]
     residuals, rms, pose_rms = [], {}, {}

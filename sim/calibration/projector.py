@@ -65,12 +65,14 @@ def _robust_homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
 
 
 def local_homography(u_p: np.ndarray, v_p: np.ndarray, uv: np.ndarray,
-                     half_px: int = PATCH_HALF_PX) -> np.ndarray:
+                     half_px: int = PATCH_HALF_PX, return_maps: bool = False):
     """Projector pixels (n, 2) of camera points uv (n, 2) through a robust local homography
     fitted over a (2 half_px + 1)^2 patch of the phase maps (H, W); NaN where the patch has
-    fewer than ``MIN_PATCH_PIXELS`` valid pixels."""
+    fewer than ``MIN_PATCH_PIXELS`` valid pixels. With ``return_maps`` also the homographies
+    (n, 3, 3), camera to projector pixels (NaN where none), to map points near the features."""
     h, w = u_p.shape
     out = np.full((len(uv), 2), np.nan)
+    maps = np.full((len(uv), 3, 3), np.nan)
     for i, (u, v) in enumerate(uv):
         cu, cv_ = int(round(u)), int(round(v))
         x0, x1 = max(cu - half_px, 0), min(cu + half_px + 1, w)
@@ -90,15 +92,32 @@ def local_homography(u_p: np.ndarray, v_p: np.ndarray, uv: np.ndarray,
         if H is None:
             continue
         out[i] = H[:2, 2] / H[2, 2] + c
-    return out
+        maps[i] = np.array([[1, 0, c[0]], [0, 1, c[1]], [0, 0, 1.0]]) @ H @ \
+            np.array([[1, 0, -u], [0, 1, -v], [0, 0, 1.0]])
+    return (out, maps) if return_maps else out
+
+
+def apply_maps(maps: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Points uv (n, 2) through their homographies (n, 3, 3)."""
+    p = np.einsum("nij,nj->ni", maps, np.concatenate([uv, np.ones((len(uv), 1))], axis=1))
+    return p[:, :2] / p[:, 2:]
 
 
 def projector_features(u_p: np.ndarray, v_p: np.ndarray, uv: np.ndarray,
-                       method: Method = "homography") -> np.ndarray:
+                       method: Method = "homography") -> tuple[np.ndarray, np.ndarray]:
     """Projector pixels (n, 2) of board features at camera pixels uv (n, 2), NaN where the
-    phase around a feature is not usable."""
+    phase around a feature is not usable, and the local maps camera to projector (n, 3, 3)
+    (``"sample"``: the affine map of the phase maps' local gradient)."""
     if method == "sample":
-        return sample(u_p, v_p, uv)
+        p = sample(u_p, v_p, uv)
+        e = 0.5
+        gu = (sample(u_p, v_p, uv + [e, 0]) - sample(u_p, v_p, uv - [e, 0])) / (2 * e)
+        gv = (sample(u_p, v_p, uv + [0, e]) - sample(u_p, v_p, uv - [0, e])) / (2 * e)
+        maps = np.zeros((len(uv), 3, 3))
+        maps[:, :2, 0], maps[:, :2, 1] = gu, gv
+        maps[:, :2, 2] = p - gu * uv[:, :1] - gv * uv[:, 1:]
+        maps[:, 2, 2] = 1.0
+        return p, maps
     if method == "homography":
-        return local_homography(u_p, v_p, uv)
+        return local_homography(u_p, v_p, uv, return_maps=True)
     raise ValueError(f"projector feature method must be 'homography' or 'sample', got {method!r}")
