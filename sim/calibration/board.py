@@ -131,7 +131,10 @@ def detect(image: np.ndarray, board: CalibrationBoard) -> Features | None:
     corners, ids, _, _ = detector.detectBoard(gray)
     if ids is None or len(ids) < MIN_CHARUCO_CORNERS:
         return None
-    return Features(ids.ravel().astype(np.int64), corners.reshape(-1, 2).astype(np.float64))
+    ids = ids.ravel().astype(np.int64)
+    clear = (board.square_mm - board.marker_mm) / (2 * board.square_mm)
+    uv = refine_corners(image, corners.reshape(-1, 2).astype(np.float64), (nx, ny), ids, clear)
+    return Features(ids, uv)
 
 
 def refine_circles(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -174,14 +177,16 @@ EDGE_WINDOW_PX = 6  # half length of the scan across an edge
 EDGE_GAP_PX = 4.0  # edge samples start this far from the corner
 
 
-def _edge_points(im: np.ndarray, c: np.ndarray, d: np.ndarray, reach: float) -> np.ndarray:
+def _edge_points(im: np.ndarray, c: np.ndarray, d: np.ndarray, reach: float,
+                 half_window: int = EDGE_WINDOW_PX) -> np.ndarray:
     """Sub-pixel points (m, 2) of the straight edge through corner ``c`` along unit ``d``,
     from ``EDGE_GAP_PX`` to ``reach`` px on both sides. Each point comes from one pixel row
     or column across the edge: the edge sits where the normalised intensity's integral says
     (``first - 0.5 + sum(1 - n)`` from the dark side), exact for an area-sampled step under any
     symmetric blur narrower than the window."""
     h, w = im.shape
-    L = EDGE_WINDOW_PX
+    L = half_window
+    ends = max(1, min(3, L // 2))
     across_rows = abs(d[0]) >= abs(d[1])  # a near-horizontal edge: scan each column
     a = 0 if across_rows else 1  # the coordinate stepped along the edge
     pts = []
@@ -196,7 +201,7 @@ def _edge_points(im: np.ndarray, c: np.ndarray, d: np.ndarray, reach: float) -> 
                 continue
             prof = im[first : first + 2 * L + 1, k] if across_rows else \
                 im[k, first : first + 2 * L + 1]
-            top, bottom = prof[:3].mean(), prof[-3:].mean()
+            top, bottom = prof[:ends].mean(), prof[-ends:].mean()
             if abs(bottom - top) <= 0:
                 continue
             n = np.clip((prof - top) / (bottom - top), -0.5, 1.5)  # 0 at the start, 1 at the end
@@ -215,40 +220,50 @@ def _fit_line(p: np.ndarray) -> tuple[np.ndarray, float] | None:
     return n, float(n @ m)
 
 
-def refine_corners(image: np.ndarray, uv: np.ndarray, pattern_size: tuple[int, int]
-                   ) -> np.ndarray:
-    """Chessboard corners (n, 2) in grid order (``pattern_size`` = per row, rows) refined to
-    the intersection of the two edge lines through each: each line fitted to sub-pixel edge
-    points (``_edge_points``) within 0.6 squares of the corner. Corners whose edges cannot be
-    fitted keep their position."""
+def refine_corners(image: np.ndarray, uv: np.ndarray, pattern_size: tuple[int, int],
+                   ids: np.ndarray | None = None, clear_fraction: float = 0.5) -> np.ndarray:
+    """Chessboard corners (n, 2) refined to the intersection of the two edge lines through
+    each: each line fitted to sub-pixel edge points (``_edge_points``) within 0.6 squares of
+    the corner. ``ids``: the corners' indices in the grid (``pattern_size`` = per row, rows;
+    default: the whole grid in order); the edge directions come from neighbouring corners.
+    ``clear_fraction``: how far from an edge, as a fraction of the square, the print stays
+    plain (ChArUco: the margin around the markers); the scan across an edge stays inside it.
+    Corners whose edges cannot be fitted keep their position."""
     im = np.asarray(image, dtype=np.float64)
     nx, ny = pattern_size
-    g = uv.reshape(ny, nx, 2)
-    out = g.copy()
-    for i in range(ny):
-        for j in range(nx):
-            c = g[i, j]
-            lines = []
-            for di, dj in ((0, 1), (1, 0)):
-                i0, i1 = max(i - di, 0), min(i + di, ny - 1)
-                j0, j1 = max(j - dj, 0), min(j + dj, nx - 1)
-                v = g[i1, j1] - g[i0, j0]
-                steps = (i1 - i0) + (j1 - j0)
-                if steps == 0:
-                    break
-                side = np.linalg.norm(v) / steps
-                d = v / np.linalg.norm(v)
-                reach = 0.6 * side
-                if reach <= EDGE_GAP_PX + 2:
-                    break
-                line = _fit_line(_edge_points(im, c, d, reach))
-                if line is None:
-                    break
-                lines.append(line)
-            if len(lines) == 2:
-                A = np.array([lines[0][0], lines[1][0]])
-                if abs(np.linalg.det(A)) > 0.1:
-                    p = np.linalg.solve(A, [lines[0][1], lines[1][1]])
-                    if np.linalg.norm(p - c) < 2.0:
-                        out[i, j] = p
-    return out.reshape(-1, 2)
+    ids = np.arange(nx * ny) if ids is None else np.asarray(ids)
+    where = {int(k): i for i, k in enumerate(ids)}
+    out = np.asarray(uv, dtype=np.float64).copy()
+    for n, k in enumerate(ids):
+        i, j = divmod(int(k), nx)
+        c = out[n].copy()
+        lines = []
+        for di, dj in ((0, 1), (1, 0)):
+            ends = [(i + s * di, j + s * dj) for s in (-1, 1)]
+            ends = [(a, b) for a, b in ends if 0 <= a < ny and 0 <= b < nx
+                    and a * nx + b in where]
+            pts = [uv[where[a * nx + b]] for a, b in ends]
+            if len(pts) == 2:
+                v, steps = pts[1] - pts[0], 2
+            elif len(pts) == 1:
+                a, b = ends[0]
+                v, steps = (pts[0] - c) * (1 if (a - i) + (b - j) > 0 else -1), 1
+            else:
+                break
+            side = np.linalg.norm(v) / steps
+            d = v / np.linalg.norm(v)
+            reach = 0.6 * side
+            if reach <= EDGE_GAP_PX + 2:
+                break
+            half = int(min(EDGE_WINDOW_PX, np.floor(side * clear_fraction) - 1))
+            line = _fit_line(_edge_points(im, c, d, reach, half)) if half >= 2 else None
+            if line is None:
+                break
+            lines.append(line)
+        if len(lines) == 2:
+            A = np.array([lines[0][0], lines[1][0]])
+            if abs(np.linalg.det(A)) > 0.1:
+                p = np.linalg.solve(A, [lines[0][1], lines[1][1]])
+                if np.linalg.norm(p - c) < 2.0:
+                    out[n] = p
+    return out
