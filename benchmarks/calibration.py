@@ -58,7 +58,7 @@ def main() -> None:
                     f"{np.abs(a.K_array[:2, 2] - b.K_array[:2, 2]).max():.3f} | {ang:.5f} | "
                     f"{np.abs(a.T_array - b.T_array).max():.4f} |")
     ratio = t_cal / rc.render_s
-    when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    when = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     lines = [
         "# Calibration against rendering", "",
         f"`benchmarks/calibration.py`, {when}, {platform.machine()}, {os.cpu_count()} cores "

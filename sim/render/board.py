@@ -74,7 +74,8 @@ class CalibrationBoard(BaseModel):
             if self.marker_mm is None or self.marker_mm >= self.square_mm:
                 raise ValueError("a charuco board needs marker_mm smaller than square_mm")
             if not hasattr(cv2.aruco, self.dictionary):
-                raise ValueError(f"unknown ArUco dictionary {self.dictionary!r} (e.g. DICT_5X5_100)")
+                raise ValueError(f"unknown ArUco dictionary {self.dictionary!r} "
+                                 "(e.g. DICT_5X5_100)")
         if self.dark_albedo >= self.light_albedo:
             raise ValueError("dark_albedo must be below light_albedo")
         return self

@@ -43,9 +43,9 @@ def run(args: argparse.Namespace) -> dict:
     if args.report is not None:
         check_output(args.report, args.force, "--report")
     if not args.capture.is_dir():
-        raise UsageError(f"capture folder {args.capture} not found")
+        raise ValueError(f"capture folder {args.capture} not found")
     if not args.board.is_file():
-        raise UsageError(f"--board {args.board} not found")
+        raise ValueError(f"board file {args.board} not found")
     cam = args.camera_distortion
     result = calibrate(args.capture, args.board,
                        distortion=(cam, cam, args.projector_distortion),

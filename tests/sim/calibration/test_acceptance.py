@@ -49,12 +49,9 @@ def _errors(result, true_rig) -> dict:
     return out
 
 
-def _distortion_field_error_px(dev, true_dev) -> float:
-    """Largest difference (px) over the image of the two devices' distortion maps."""
-    w, h = dev.size
-    uv = np.stack(np.meshgrid(np.linspace(0, w - 1, 17), np.linspace(0, h - 1, 13)),
-                  -1).reshape(-1, 2)
-    # the same normalised points through both models
+def _distortion_field_error_px(dev, true_dev, uv: np.ndarray) -> float:
+    """Largest difference (px) of the two devices' distortion maps at pixels uv (n, 2): the
+    same normalised points through both models."""
     xy = true_dev.normalized(uv)
     X = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
     pa, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), dev.K_array, dev.dist_array)
@@ -79,7 +76,9 @@ def test_chessboard_noise_free_with_distortion(chess_run):
         dev, true = result.rig.cameras[c], rc.rig.cameras[c]
         assert dev.dist_array[0] == pytest.approx(-0.1, abs=0.002)
         assert dev.dist_array[2] == pytest.approx(0.001, abs=5e-5)
-        assert _distortion_field_error_px(dev, true) < 0.05
+        # over the part of the image the board covered (k3 is free beyond it)
+        seen = np.concatenate([r.uv for r in result.residuals if r.device == f"camera_{c}"])
+        assert _distortion_field_error_px(dev, true, seen) < 0.01
     assert len(result.poses) == POSES and len(result.residuals) == 3 * POSES
 
 

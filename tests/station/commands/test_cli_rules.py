@@ -38,13 +38,14 @@ MISSING = {
     "run": ["run", "{d}/none.toml", "--out", "{d}/seq"],
     "render": ["render", "{d}/none.toml", "--out", "{d}/render"],
     "scan": ["scan", "{d}/none", "--rig", "{d}/none.yaml", "--out", "{d}/c.ply"],
+    "calibrate": ["calibrate", "{d}/none", "--board", "{d}/none.toml", "--out", "{d}/rig.yaml"],
     "measure": ["measure", "{d}/none.ply", "--sphere"],
     "experiment": ["experiment", "{d}/none.toml", "--out", "{d}/exp"],
     "demo": ["demo", "--config", "{d}/none.toml", "--out", "{d}/demo"],
 }
 
 
-NO_INPUT = {"cameras"}  # reads no file and writes none: only the usage and --help rules apply
+NO_INPUT = {"cameras", "patterns"}  # read no file: only the usage, --help (and output) rules apply
 
 
 def test_every_command_is_covered_by_the_rule_tests():
@@ -68,6 +69,8 @@ OUTPUTS = {
     "lens": (["lens", "{d}/ltc.zarr", "--out", "{o}"], "--force"),
     "render": (["render", "{d}/scene.toml", "--out", "{o}"], "--force"),
     "scan": (["scan", "{d}/images", "--rig", "{d}/rig.yaml", "--out", "{o}"], "--force"),
+    "calibrate": (["calibrate", "{d}/cap", "--board", "{d}/b.toml", "--out", "{o}"], "--force"),
+    "patterns": (["patterns", "--calibration", "--out", "{od}"], "--force"),
     "measure": (["measure", "{d}/c.ply", "--against", "{d}/c2.ply", "--png", "{o}"], "--force"),
     "check": (["check", "--fake", "--out", "{od}"], "--force"),
     "run": (["run", "{cfg}", "--out", "{od}"], "--out"),
