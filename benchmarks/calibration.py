@@ -6,10 +6,10 @@ run on the same machine; the ratio calibrate / render (render = tracing and gath
 PNG writing) must stay below 1. The calibrated rig's errors against the true rig are reported
 too.
 
-    .venv/bin/python benchmarks/calibration.py            # about 5 minutes on 2 cores
-    .venv/bin/python benchmarks/calibration.py --poses 4  # smoke run
+    .venv/bin/python benchmarks/calibration.py --write-results   # about 5-10 minutes, 2 cores
+    .venv/bin/python benchmarks/calibration.py --poses 4          # smoke run
 
-Writes benchmarks/results/calibration.md (rewritten whole).
+``--write-results`` rewrites benchmarks/results/calibration.md whole.
 """
 
 from __future__ import annotations
@@ -26,18 +26,20 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from sim.calibration.calibrate import calibrate  # noqa: E402
+from _results import command_line, write_results  # noqa: E402
+
+from sim.calibration.calibrator import calibrate  # noqa: E402
 from sim.calibration.virtual import calibration_rig, default_poses, render_capture  # noqa: E402
 from sim.optics.rig import relative_to_camera_0  # noqa: E402
 from sim.render.board import CalibrationBoard  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results" / "calibration.md"
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--poses", type=int, default=15)
+    ap.add_argument("--write-results", action="store_true",
+                    help="rewrite benchmarks/results/calibration.md")
     args = ap.parse_args()
     board = CalibrationBoard(kind="chessboard", rows=7, columns=10, square_mm=20.0)
     rig = calibration_rig(camera_dist=(-0.1, 0.0, 0.001, 0.0, 0.0))
@@ -60,7 +62,6 @@ def main() -> None:
     ratio = t_cal / rc.render_s
     when = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     lines = [
-        "# Calibration against rendering", "",
         f"`benchmarks/calibration.py`, {when}, {platform.machine()}, {os.cpu_count()} cores "
         f"(shared: compare the ratio, not absolute times).", "",
         f"{args.poses} chessboard poses (7 x 10 squares of 20 mm), two 1280 x 1024 cameras "
@@ -78,9 +79,10 @@ def main() -> None:
         "Calibrated against the true rig:", "",
         "| device | RMS px | focal error % | principal point error px | rotation error deg "
         "| translation error mm |", "|---|---|---|---|---|---|", *rows, ""]
-    RESULTS.parent.mkdir(exist_ok=True)
-    RESULTS.write_text("\n".join(lines))
     print("\n".join(lines))
+    if args.write_results:
+        write_results(__file__, "Calibration against rendering", "\n".join(lines),
+                      command=command_line())
 
 
 if __name__ == "__main__":

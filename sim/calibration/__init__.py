@@ -17,7 +17,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "board": "load_board detect Features",
     "capture": "CalibrationPatterns Capture load_patterns",
     "projector": "projector_features local_homography sample",
-    "calibrate": "calibrate CalibrationResult PoseResiduals",
+    "calibrator": "calibrate CalibrationResult PoseResiduals",
     "report": "write_report",
     "virtual": "calibration_rig default_poses render_capture RenderedCapture",
 })

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.calibration.calibrate import CalibrationResult
+from sim.calibration.calibrator import CalibrationResult
 
 DEVICES = ("camera_0", "camera_1", "projector")
 

@@ -33,7 +33,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict:
-    from sim.calibration.calibrate import calibrate
+    from sim.calibration.calibrator import calibrate
     from sim.optics.rig import save_stereo_calibrate
 
     out = check_output(args.out, args.force)

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sim.calibration.calibrate import calibrate
+from sim.calibration.calibrator import calibrate
 from sim.calibration.virtual import calibration_rig, default_poses, render_capture
 from sim.fpp.decode import DecodeSettings, scan
 from sim.metrology.measure import measure_sphere
