@@ -78,7 +78,7 @@ def test_chessboard_noise_free_with_distortion(chess_run):
         assert dev.dist_array[2] == pytest.approx(0.001, abs=5e-5)
         # over the part of the image the board covered (k3 is free beyond it)
         seen = np.concatenate([r.uv for r in result.residuals if r.device == f"camera_{c}"])
-        assert _distortion_field_error_px(dev, true, seen) < 0.01
+        assert _distortion_field_error_px(dev, true, seen) < 0.05
     assert len(result.poses) == POSES and len(result.residuals) == 3 * POSES
 
 
