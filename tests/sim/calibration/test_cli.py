@@ -120,3 +120,24 @@ def test_refuses_a_capture_out_of_sync_with_the_projector(small_capture, board, 
     err = _refused(capsys, d, board, tmp_path)
     assert "projector's reprojection error" in err and "out of sync" in err
     assert "gamma" in err and ", camera 0 and camera 1:" in err
+
+
+def test_render_calibration_writes_a_capture_with_the_scene_s_rig_and_response(
+        board, tmp_path, capsys):
+    from sim.calibration.virtual import calibration_rig
+
+    calibration_rig(scale=0.25).save(tmp_path / "rig.yaml")
+    (tmp_path / "scene.toml").write_text(
+        'rig = "rig.yaml"\n[[lenses]]\nkind = "pinhole"\n[[lenses]]\nkind = "pinhole"\n'
+        '[[objects]]\nkind = "sphere"\n[patterns]\nkind = "phase_shift"\nperiods_px = [16.0]\n'
+        '[render.camera]\nbit_depth = 12\n[render.projector]\ngamma = 1.0\n')
+    code, out, err = _run(capsys, "render", tmp_path / "scene.toml", "--calibration", board,
+                          "--poses", "3", "--out", tmp_path / "cap")
+    assert code == 0, err
+    assert sorted(p.name for p in (tmp_path / "cap").glob("pose_*")) == \
+        ["pose_000", "pose_001", "pose_002"]
+    files = sorted((tmp_path / "cap" / "pose_001" / "camera_1").glob("*.png"))
+    pats = CalibrationPatterns.model_validate_json((tmp_path / "cap" / "capture.json").read_text())
+    assert len(files) == pats.count == 25 and pats.projector_size == (480, 270)
+    white = cv2.imread(str(files[0]), cv2.IMREAD_UNCHANGED)
+    assert white.dtype == np.uint16 and white.shape == (256, 320) and 0 < white.max() <= 4095
