@@ -32,6 +32,11 @@ BOUNDS = {"cam_rms": 0.02, "proj_rms": 0.04, "f_pct": 0.05, "pp_px": 0.3, "rot_d
           "t_mm": 0.05}
 
 
+def _report(name: str, err: dict) -> None:
+    """The measured errors, printed (seen with ``pytest -s``)."""
+    print(f"\n{name}: " + ", ".join(f"{k} {float(v):.5g}" for k, v in err.items()))
+
+
 def _errors(result, true_rig) -> dict:
     true = relative_to_camera_0(true_rig)
     out = {"cam_rms": max(result.rms_px["camera_0"], result.rms_px["camera_1"]),
@@ -70,6 +75,7 @@ def chess_run(tmp_path_factory):
 def test_chessboard_noise_free_with_distortion(chess_run):
     rc, result = chess_run
     err = _errors(result, rc.rig)
+    _report("chessboard, noise-free, distortion", err)
     for k, bound in BOUNDS.items():
         assert err[k] <= bound, (k, err)
     for c in range(2):
@@ -88,6 +94,7 @@ def test_circle_grid_noise_free(tmp_path_factory):
                         default_poses(CIRCLES, POSES))
     result = calibrate(rc.directory, CIRCLES, distortion=("k1k2", "k1k2", "k1k2"))
     err = _errors(result, rig)
+    _report("asymmetric circle grid, noise-free", err)
     for k, bound in BOUNDS.items():
         assert err[k] <= bound, (k, err)
 
@@ -103,6 +110,7 @@ def test_twelve_bit_noise_and_thin_lens_within_twice_the_bounds(tmp_path_factory
                         seed=3)
     result = calibrate(rc.directory, CHESS, distortion=("k1k2", "k1k2", "k1k2"))
     err = _errors(result, rig)
+    _report("chessboard, 12-bit noise, thin lens", err)
     for k, bound in BOUNDS.items():
         assert err[k] <= 2 * bound, (k, err)
 
@@ -121,4 +129,5 @@ def test_sphere_scanned_with_the_calibrated_rig(chess_run):
     for name, rig in (("true", true), ("calibrated", result.rig)):
         cloud = scan(stacks, pats, rig, DecodeSettings())
         d[name] = measure_sphere(cloud.points, 50.8007)[0]["diameter_mm"]
+    _report("sphere diameter, mm", d)
     assert abs(d["calibrated"] - d["true"]) < 0.002, d
