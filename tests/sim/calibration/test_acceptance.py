@@ -34,7 +34,7 @@ BOUNDS = {"cam_rms": 0.02, "proj_rms": 0.04, "f_pct": 0.05, "pp_px": 0.3, "rot_d
 
 def _report(name: str, err: dict) -> None:
     """The measured errors, printed (seen with ``pytest -s``)."""
-    print(f"\n{name}: " + ", ".join(f"{k} {float(v):.5g}" for k, v in err.items()))
+    print(f"\n{name}: " + ", ".join(f"{k} {float(v):.7g}" for k, v in err.items()))
 
 
 def _errors(result, true_rig) -> dict:
@@ -133,5 +133,5 @@ def test_sphere_scanned_with_the_calibrated_rig(chess_run):
     for name, rig in (("true", true), ("calibrated", result.rig)):
         cloud = scan(stacks, pats, rig, DecodeSettings())
         d[name] = measure_sphere(cloud.points, 50.8007)[0]["diameter_mm"]
-    _report("sphere diameter, mm", d)
+    _report("sphere diameter, mm", {**d, "difference_um": 1000 * (d["calibrated"] - d["true"])})
     assert abs(d["calibrated"] - d["true"]) < 0.002, d
