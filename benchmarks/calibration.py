@@ -35,6 +35,7 @@ from sim.calibration.virtual import calibration_rig, default_poses, render_captu
 from sim.optics.rig import relative_to_camera_0  # noqa: E402
 from sim.render.board import CalibrationBoard  # noqa: E402
 
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--poses", type=int, default=15)
