@@ -33,4 +33,6 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "fpp.scan_input": "load_scan_input",
     "metrology.spheres": "fit_sphere find_spheres measure_ball_bar",
     "metrology.compare": "compare_clouds",
+    "calibration.calibrator": "calibrate CalibrationResult",
+    "calibration.errors": "CalibrationError",
 })

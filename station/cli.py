@@ -59,6 +59,8 @@ COMMAND_MODULES = (
     "render",
     "dataset",
     "scan",
+    "patterns",
+    "calibrate",
     "measure",
     "experiment",
     "demo",
