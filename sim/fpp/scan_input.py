@@ -165,7 +165,6 @@ def scan_files(images: str | Path, rig_path: str | Path, out: str | Path, *,
     """``ltc scan``: read a scan input and a rig file, decode, triangulate, write the PLY
     ``out``; returns the summary. ``pixel_variance_px2`` None: 0 for our renderer's output
     (pixel centres), 1/12 for camera images (square pixels average their area)."""
-    import time
 
     from sim.fpp.cloud import write_ply
     from sim.fpp.decode import DecodeSettings, scan

@@ -39,7 +39,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from station.acquisition.lock import StoreLock
+from sim.storage.durable import durable_file, write_json
+from sim.storage.lock import StoreLock
 from station.errors import StationError
 from station.experiment.acceptance import acceptance, position_line, public_row, size_vs_real_um
 from station.experiment.bench import (
@@ -94,7 +95,6 @@ from station.experiment.sizes import (
     size_error_mm,
     size_fit,
 )
-from station.sequence import durable_file, write_json
 
 __all__ = [
     "BALLBAR_BALL_MM", "BALLBAR_LENGTH_MM", "BENCH_SUBPIXELS", "FOCAL_MM", "MIN_BALL_COVERAGE",
