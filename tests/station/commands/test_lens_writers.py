@@ -8,11 +8,11 @@ import subprocess
 import sys
 
 import pytest
-from ltc_stores import write_true_ltc_store
 
 from fakes.bench import BenchConfig, FakeBench
 from sim.optics import measured_lens
 from station.cli import main
+from tests.support.ltc_stores import write_true_ltc_store
 
 HOLD = ("import sys, time; from sim.storage.lock import StoreLock\n"
         "with StoreLock.for_file(sys.argv[1]):\n    print('held', flush=True); time.sleep(60)\n")

@@ -10,12 +10,12 @@ import shutil
 import numpy as np
 import pytest
 import zarr
-from ltc_stores import write_true_ltc_store
 
 from fakes.bench import BenchConfig, FakeBench
 from station.cli import main
 from station.ltc.checked import LtcChunkError
 from station.ltc.store import open_ltc_volume
+from tests.support.ltc_stores import write_true_ltc_store
 
 DEPTHS = [0.0, 30.0, 60.0, 250.0, 290.0]
 
