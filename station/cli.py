@@ -36,6 +36,7 @@ COMMAND_MODULES = (
     "render",
     "scan",
     "measure",
+    "validate",
     "experiment",
     "demo",
 )
