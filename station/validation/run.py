@@ -34,7 +34,7 @@ from station.validation.folder import (
 )
 
 Log = Callable[[str], None]
-DEFAULT_PIXEL_SAMPLES = 3  # subpixels per axis of a twin of area-integrating camera pixels
+DEFAULT_PIXEL_SAMPLES = 4  # subpixels per axis of a twin of area-integrating camera pixels
 POSITIONS = "positions"
 
 
