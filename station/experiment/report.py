@@ -10,8 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from station.experiment.run import (BALLBAR_LENGTH_MM, MODELS, SPHERE_DIAMETER_MM, VIRTUAL,
-                                    ExperimentConfig, size_vs_real_um)
+from station.experiment.acceptance import size_vs_real_um
+from station.experiment.config import (BALLBAR_LENGTH_MM, MODELS, SPHERE_DIAMETER_MM, VIRTUAL,
+                                       ExperimentConfig)
 
 LABELS = {"real": "real", "ltc": "measured LTC", "gaussian": "Gaussian", "pinhole": "pinhole"}
 

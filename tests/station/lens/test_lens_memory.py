@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 from scipy import ndimage
 
-from station.lens import derive
+from station.lens import derive, result
 from station.lens.centroids import STATUS_NO_SIGNAL, STATUS_OK
 from station.lens.rays import FLAG_BAD_FIT, PrincipalRays
 
@@ -22,7 +22,7 @@ def _rays(rng, d: int, n: int) -> PrincipalRays:
 
 
 def test_residual_stats_are_numpys_mean_and_std(monkeypatch):
-    monkeypatch.setattr(derive, "RESIDUAL_PIXELS", 1000)  # several blocks
+    monkeypatch.setattr(result, "RESIDUAL_PIXELS", 1000)  # several blocks
     rng = np.random.default_rng(3)
     for d, n in ((6, 4321), (2, 999), (3, 1)):
         rays = _rays(rng, d, n)
@@ -32,14 +32,14 @@ def test_residual_stats_are_numpys_mean_and_std(monkeypatch):
             parts.append(x[rays.used[:, a0:a0 + 1000] & rays.usable[None, a0:a0 + 1000]
                            & np.isfinite(x)])
         x = np.concatenate(parts)
-        mean, std, count = derive._residual_stats(rays)
+        mean, std, count = result._residual_stats(rays)
         assert count == x.size
         if count:
             assert mean == float(x.mean(dtype=np.float64))
             assert std == float(x.std(dtype=np.float64))
     none = _rays(rng, 2, 5)
     none.used[:] = False
-    assert derive._residual_stats(none) == (None, None, 0)
+    assert result._residual_stats(none) == (None, None, 0)
 
 
 def test_transmittance_in_row_blocks_equals_the_sensor_wide_filter(monkeypatch):
