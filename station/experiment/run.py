@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 from station.acquisition.lock import StoreLock
-from station.errors import StationError
+from station.errors import StationError, UsageError
 from station.experiment.acceptance import acceptance, position_line, public_row, size_vs_real_um
 from station.experiment.bench import (RENDER, build_rig, lcd_size, measure_cameras, scanner_lenses,
                                       station_config, truth_lens)
@@ -56,7 +56,9 @@ from station.experiment.resume import (POSITIONS, check_lenses, image_position, 
 from station.experiment.scan import Scan, compare_position, scan_position, world_cad_mesh
 from station.experiment.sizes import (SizeFit, check_coverage, on_ball, shared_size_mm,
                                       size_error_mm, size_fit)
+from station.experiment.validated import scan_position_validated, start_real_folder
 from station.sequence import durable_file, write_json
+from station.validation.folder import SCAN_FILE
 
 __all__ = [
     "BALLBAR_BALL_MM", "BALLBAR_LENGTH_MM", "BENCH_SUBPIXELS", "FOCAL_MM", "MIN_BALL_COVERAGE",
@@ -73,7 +75,7 @@ __all__ = [
 
 def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = True,
                    log: Log = print, lenses: list[str | Path] | None = None,
-                   force: bool = False) -> dict:
+                   force: bool = False, real_out: str | Path | None = None) -> dict:
     """The whole experiment into the folder ``out`` (see the module docstring); returns the
     results (also ``out/results.json``). ``lenses``: two measured-lens files made with this
     config, used instead of running the station.
@@ -83,7 +85,11 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
     redone; a different config or different lenses are refused. One run writes the folder
     at a time (``writer.lock``, as the stores'). ``force`` takes over the writer locks a
     killed run left (the folder's, the stations', their run stores'; never a live
-    writer's)."""
+    writer's).
+
+    The real scanner's images go into a real-scan folder (``real_out``, default
+    ``out/real``), and the virtual scanners are validated against it by ``ltc validate``'s
+    code (``station.experiment.validated``), the path a lab's real scanner takes."""
     from sim.optics.measured_lens import load_lens
 
     out = Path(out)
@@ -113,6 +119,11 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
             if not cad_path.exists():
                 with durable_file(cad_path, "wb") as f:
                     cad_mesh.export(f, file_type="ply")
+        real_dir = Path(real_out) if real_out is not None else out / "real"
+        if real_dir.exists() and any(real_dir.iterdir()) and not (real_dir / SCAN_FILE).exists():
+            raise UsageError(f"--real-out {real_dir} exists and is not a real-scan folder; "
+                             "choose a new folder")
+        start_real_folder(real_dir, cfg, rig, cad_path)
         rows, maps, images = [], {}, {}
         poss = positions(cfg, rig)
         shown = image_position(poss)
@@ -122,8 +133,10 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
             t0 = time.perf_counter()
             done = load_position(folder, pos.name)
             if done is None:
-                scans = scan_position(pos, cfg, rig, models, cad_path)
+                scans, checks = scan_position_validated(pos, cfg, rig, models, cad_path,
+                                                        real_dir)
                 row, mp = compare_position(pos, cfg, rig, scans, cad_path, cad_mesh)
+                row["validation"] = checks
                 pics = {n: scans[n].images for n in MODELS} if pos.name == shown else None
                 save_position(folder, pos.name, row, mp, pics)
                 took = f"{time.perf_counter() - t0:.0f} s"
@@ -144,6 +157,7 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
         render_s = {n: float(sum(r["models"][n]["render_s"] for r in rows)) for n in MODELS}
         results = {
             "report": str(out / "report.md"),
+            "real_scan_folder": str(real_dir),
             "positions": [public_row(r) for r in rows],
             "rows": rows,
             "station": station,

@@ -133,11 +133,14 @@ def _decode(pixel_variance_px2: float):
 
 def validate_position(scan: RealScan, pos: RealPosition, twins: dict[str, tuple], *,
                       dark: list[np.ndarray] | None = None, noise: bool = False,
-                      pixel_samples: int | None = None
+                      pixel_samples: int | None = None, keep: dict | None = None
                       ) -> tuple[PositionResult, dict[str, np.ndarray]]:
     """Validate every twin at one position (see the module docstring); returns its result
     and its maps (per twin ``NAME.by_pixel_mm`` with ``.points_mm``; per twin and camera 0
-    ``NAME.image_diff_dn`` and ``NAME.phase_diff_rad``; ``real.image``)."""
+    ``NAME.image_diff_dn`` and ``NAME.phase_diff_rad``; ``real.image``). ``keep``: filled
+    with the real cloud (``real``), the real stacks (``real_images``), each twin's
+    ``TwinScan`` (by name), its camera 0 images in counts (``images.NAME``) and the
+    ``response``."""
     from sim.fpp.decode import scan_with_report
     from station.validation.compare import compare_twin, image_differences
     from station.validation.locate import fit_near, locate, pose_offset_um, refine_pose
@@ -224,6 +227,11 @@ def validate_position(scan: RealScan, pos: RealPosition, twins: dict[str, tuple]
         maps[f"{n}.image_diff_dn"] = imgs[0][1].astype(np.float32)
         maps[f"{n}.phase_diff_rad"] = imgs[0][2].astype(np.float32)
         maps[f"{n}.image"] = response.apply(s.radiance[0][-1:], 0, None)[0].astype(np.float32)
+        if keep is not None:
+            keep[n] = s
+            keep[f"images.{n}"] = response.apply(s.radiance[0], 0, None)
+    if keep is not None:
+        keep.update(real=real, real_images=stacks, response=response)
     true = None
     if pos.spec.true_pose is not None:
         true = {"real_fit": pose_offset_um(real_fit.pose, pos.spec.true_pose, art),

@@ -156,3 +156,9 @@ def test_an_artefact_not_in_the_scan(tmp_path, capsys):
     assert line.startswith("ltc validate: error: position B1: artefact not found")
     assert "38.1 mm" in line
     assert json.loads((tmp_path / "o" / "validation.json").read_text())["positions"] == ["B1"]
+    # each position folder is what ltc scan reads; it says what each check rejected
+    code = main(["scan", str(real / "positions" / "B1"), "--rig", str(real / "rig.json"),
+                 "--patterns", str(real / "patterns.json"), "--out", str(tmp_path / "b.ply")])
+    out = capsys.readouterr().out.splitlines()
+    assert code == 0 and out[1].startswith("camera 0: ") and "pixels decoded; rejected: " \
+        "modulation" in out[1] and out[2].startswith("camera 1: ")
