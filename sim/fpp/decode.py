@@ -343,7 +343,7 @@ def scan(
 def _report(views: list[DecodedView], stereo: list[dict[str, int]], cloud: PointCloud,
             settings: DecodeSettings) -> ScanReport:
     pixels, decoded, rejected = [], [], []
-    for v, r in zip(views, stereo):
+    for v, r in zip(views, stereo, strict=True):
         c = next(iter(v.coord.values()))
         pixels.append(int(c.size))
         decoded.append(int(np.isfinite(c).sum()))

@@ -56,7 +56,8 @@ from station.experiment.resume import (POSITIONS, check_lenses, image_position, 
 from station.experiment.scan import Scan, compare_position, scan_position, world_cad_mesh
 from station.experiment.sizes import (SizeFit, check_coverage, on_ball, shared_size_mm,
                                       size_error_mm, size_fit)
-from station.experiment.validated import scan_position_validated, start_real_folder
+from station.experiment.validated import (pose_summary, scan_position_validated,
+                                          start_real_folder)
 from station.sequence import durable_file, write_json
 from station.validation.folder import SCAN_FILE
 
@@ -167,6 +168,7 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
             "render_s": render_s,
             "render_vs_pinhole": {n: render_s[n] / render_s["pinhole"] for n in MODELS},
             "acceptance": acceptance(rows),
+            "pose_refinement": pose_summary(rows),
             "seconds": {"total": time.perf_counter() - t_start, "scan": scan_s},
             "resumed": {"resumed": resumed, "positions_from_earlier_runs": earlier},
             "config": cfg.model_dump(mode="json"),

@@ -17,8 +17,12 @@ from pathlib import Path
 import numpy as np
 
 from station.experiment.bench import RENDER
-from station.experiment.config import (BALLBAR_BALL_MM, BALLBAR_LENGTH_MM, SPHERE_DIAMETER_MM,
-                                       ExperimentConfig)
+from station.experiment.config import (
+    BALLBAR_BALL_MM,
+    BALLBAR_LENGTH_MM,
+    SPHERE_DIAMETER_MM,
+    ExperimentConfig,
+)
 from station.experiment.objects import Position, scene_of
 from station.experiment.scan import Scan
 from station.validation.folder import (
@@ -106,3 +110,20 @@ def scan_position_validated(pos: Position, cfg: ExperimentConfig, rig,
                "images": {n: result.twins[n]["images"] for n in TWINS},
                "seconds": result.seconds}
     return scans, figures
+
+
+def pose_summary(rows: list[dict], limit_um: float = 3.0) -> dict:
+    """The pose refinement at the large-defocus sphere and ball-bar positions: the worst
+    offset of the ltc-refined pose from the true pose and whether it is within ``limit_um``;
+    the real fit's and the Gaussian's one-step offsets there (um)."""
+    sel = [r for r in rows if r["kind"] != "cad" and r["defocus"] == "large"
+           and r.get("validation", {}).get("true_offsets_um")]
+    t = [r["validation"]["true_offsets_um"] for r in sel]
+    worst = max((x["refined"] for x in t), default=0.0)
+    return {"positions": [r["name"] for r in sel], "limit_um": limit_um,
+            "ltc_refined_worst_um": worst, "ltc_within_limit": bool(sel) and worst <= limit_um,
+            "real_fit_um": {r["name"]: x["real_fit"] for r, x in zip(sel, t, strict=True)},
+            "ltc_refined_um": {r["name"]: x["refined"] for r, x in zip(sel, t, strict=True)},
+            "gaussian_one_step_um": {r["name"]: x.get("refined_gaussian") for r, x in
+                                     zip(sel, t, strict=True)},
+            "converged": all(r["validation"]["refine_converged"] for r in sel)}

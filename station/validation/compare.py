@@ -106,7 +106,7 @@ def shared_sizes(cloud, own: ArtefactFit, real, real_own: ArtefactFit, artefact,
     fits_v, fits_r, count = [], [], 0
     pv, kv = np.asarray(cloud.points, np.float64), pixel_keys(cloud)
     pr, kr = np.asarray(real.points, np.float64), pixel_keys(real)
-    for a, b in zip(own.kept, real_own.kept):
+    for a, b in zip(own.kept, real_own.kept, strict=True):
         both = np.intersect1d(a, b)
         if both.size < 20:
             raise RealScanError(f"position {name}: the twin and real clouds share only "

@@ -72,7 +72,8 @@ def build_twins(rig, lens_paths: list[str | Path], gaussian_sigma_mm: float | No
     if len(lens_paths) != len(rig.cameras):
         raise RealScanError(f"--lenses: {len(lens_paths)} lens(es) for the rig's "
                             f"{len(rig.cameras)} cameras; give one per camera")
-    lenses = [load_lens_arg(p, c, i) for i, (p, c) in enumerate(zip(lens_paths, rig.cameras))]
+    lenses = [load_lens_arg(p, c, i)
+              for i, (p, c) in enumerate(zip(lens_paths, rig.cameras, strict=True))]
     measured = [isinstance(x, MeasuredLens) for x in lenses]
     if any(measured) and not all(measured):
         raise RealScanError("--lenses: give measured lenses for both cameras or specs for both")
@@ -180,7 +181,7 @@ def estimate_response(real: list[np.ndarray], rendered_radiance: list[np.ndarray
     ``B_real = g B_rad``; noise from the ``dark`` frames (offset-free read noise) or from the
     real images' phase-shift residual variance regressed on the signal (read^2 + shot * A)."""
     gains, offsets, reads, shots = [], [], [], []
-    for i, (r, v) in enumerate(zip(real, rendered_radiance)):
+    for i, (r, v) in enumerate(zip(real, rendered_radiance, strict=True)):
         Ar, Br, var = _ab(r, patterns, projector_size)
         Av, Bv, _ = _ab(v, patterns, projector_size)
         top = np.percentile(Bv, 99)

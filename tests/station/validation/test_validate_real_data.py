@@ -1,8 +1,9 @@
 """Real data from outside the project: scans rendered at another sampling than the twins'
 (each pixel integrating 5 x 5 subpixels, binned, saved as 16-bit PNGs, through an f/1 thin
-lens; the twins integrate 4 x 4) go through ``ltc validate`` with a thin-lens and a pinhole twin. The twin whose lens
-model matches agrees within |mean| 2 um and RMSE 5 um and refines the pose to within 3 um of
-the true pose; the pinhole twin is reported worse at large defocus."""
+lens; the twins integrate 4 x 4) go through ``ltc validate`` with a thin-lens and a pinhole
+twin. The twin whose lens model matches agrees within |mean| 2 um and RMSE 5 um and refines
+the pose to within 3 um of the true pose; the pinhole twin is reported worse at large
+defocus."""
 
 from __future__ import annotations
 
