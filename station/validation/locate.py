@@ -33,7 +33,9 @@ class ArtefactFit:
     """What one cloud says of the artefact: ``centres`` (k, 3) mm (a sphere's, a ball bar's
     two, or a CAD part's origin), ``radii`` (k,) mm, ``pose`` (world from object), ``size_mm``
     (diameter, centre distance; NaN for a CAD part), ``rms_mm`` (fit RMS), ``kept`` per ball
-    the pixel keys of the points the fit kept."""
+    the pixel keys of the points the fit kept, ``pose_centres`` (k, 3) the centres with each
+    ball's radius held at its nominal value (what the pose refinement compares: a cap seen
+    from one side trades centre depth for radius when both are free)."""
 
     centres: np.ndarray
     radii: np.ndarray
@@ -41,6 +43,7 @@ class ArtefactFit:
     size_mm: float
     rms_mm: float
     kept: tuple = field(default=())
+    pose_centres: np.ndarray | None = None
 
 
 def pixel_keys(cloud) -> np.ndarray:
@@ -79,7 +82,7 @@ def _fit_balls(cloud, artefact, centres: np.ndarray, name: str) -> ArtefactFit:
     keys = pixel_keys(cloud)
     r = (artefact.diameter_mm if isinstance(artefact, SphereArtefact)
          else artefact.ball_diameter_mm) / 2
-    fits, kept = [], []
+    fits, kept, fixed = [], [], []
     for k, c in enumerate(centres):
         near = np.abs(np.linalg.norm(pts - c, axis=1) - r) < SHELL_MM
         if near.sum() < MIN_BALL_POINTS:
@@ -88,13 +91,32 @@ def _fit_balls(cloud, artefact, centres: np.ndarray, name: str) -> ArtefactFit:
         f = fit_sphere(pts[near])
         fits.append(f)
         kept.append(keys[near][f.inliers])
+        fixed.append(fixed_radius_centre(pts[near][f.inliers], f.centre, r))
     cs = np.stack([f.centre for f in fits])
+    fc = np.stack(fixed)
     if isinstance(artefact, SphereArtefact):
-        pose, size = Pose(t=tuple(cs[0].tolist())), float(fits[0].diameter)
+        pose, size = Pose(t=tuple(fc[0].tolist())), float(fits[0].diameter)
     else:
-        pose, size = bar_pose(cs[0], cs[1]), float(np.linalg.norm(cs[1] - cs[0]))
+        pose, size = bar_pose(fc[0], fc[1]), float(np.linalg.norm(cs[1] - cs[0]))
     return ArtefactFit(cs, np.array([f.radius for f in fits]), pose, size,
-                       float(max(f.rms for f in fits)), tuple(kept))
+                       float(max(f.rms for f in fits)), tuple(kept), fc)
+
+
+def fixed_radius_centre(points: np.ndarray, start: np.ndarray, radius_mm: float,
+                        iterations: int = 20) -> np.ndarray:
+    """The centre (3,) mm of the sphere of radius ``radius_mm`` nearest the points (n, 3) in
+    the least-squares sense (Gauss-Newton from ``start``)."""
+    c = np.asarray(start, np.float64).copy()
+    p = np.asarray(points, np.float64)
+    for _ in range(iterations):
+        d = p - c
+        n = np.linalg.norm(d, axis=1)
+        res = n - radius_mm
+        step, *_ = np.linalg.lstsq(-d / n[:, None], -res, rcond=None)  # d(res)/dc = -u
+        c = c + step
+        if np.linalg.norm(step) < 1e-9:
+            break
+    return c
 
 
 def locate(cloud, artefact, name: str, mesh=None) -> ArtefactFit:
@@ -161,7 +183,10 @@ def fit_near(cloud, artefact, pose: Pose, name: str, mesh=None) -> ArtefactFit:
 
 
 def pose_correction(real: ArtefactFit, virtual: ArtefactFit) -> np.ndarray:
-    """``fit(real) - fit(virtual)`` per centre (k, 3) mm."""
+    """``fit(real) - fit(virtual)`` per centre (k, 3) mm (the nominal-radius centres of
+    balls)."""
+    if real.pose_centres is not None and virtual.pose_centres is not None:
+        return real.pose_centres - virtual.pose_centres
     return real.centres - virtual.centres
 
 
