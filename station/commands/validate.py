@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from station.commands import positive_float
+from station.commands import at_least, positive_float
 
 OPTIONS = {"out": "folder for report.md, figures and results.json",
            "force": "validate again into an --out that holds a validation (of other inputs, "
@@ -35,6 +35,10 @@ def arguments(p: argparse.ArgumentParser) -> None:
                         "each measured lens's equivalent)")
     p.add_argument("--smoothing", type=float, default=0.0, metavar="NODES",
                    help="measured lenses smoothed over this many nodes (default 0: as measured)")
+    p.add_argument("--pixel-samples", type=at_least(1), metavar="N",
+                   help="render each twin pixel on N x N subpixels (default: 4 for camera "
+                        "images, whose pixels average their area; 1 where the folder's "
+                        "pixel_variance_px2 is 0)")
     p.add_argument("--noise", action="store_true",
                    help="add the estimated camera noise to the twins' images")
 
@@ -48,7 +52,8 @@ def run(args: argparse.Namespace) -> dict:
     log = (lambda s: None) if args.json else (lambda s: print(s, file=sys.stderr))
     return validate(args.real_dir, args.lenses, args.out, positions=args.positions,
                     gaussian_sigma_mm=args.gaussian_sigma, smoothing_nodes=args.smoothing,
-                    noise=args.noise, force=args.force, log=log).to_json()
+                    noise=args.noise, pixel_samples=args.pixel_samples, force=args.force,
+                    log=log).to_json()
 
 
 def text(r: dict) -> str:

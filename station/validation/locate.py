@@ -25,7 +25,7 @@ from station.validation.folder import (
 SHELL_MM = 2.0  # points this close to a located ball go to its fit
 MIN_BALL_POINTS = 20
 CONVERGED_MM = 1e-3  # the refinement stops when its correction is below 1 um
-MAX_REFINE = 6
+MAX_REFINE = 8
 
 
 @dataclass(frozen=True)
@@ -215,21 +215,28 @@ def refine_pose(artefact, real: ArtefactFit, start: Pose,
                 max_steps: int = MAX_REFINE) -> Refinement:
     """Analysis by synthesis: scan the artefact with the twin at ``start`` (``scan_at(pose)``
     returns an object with ``.cloud``), fit it, move the pose by ``fit(real) - fit(virtual)``;
-    until the correction is below ``CONVERGED_MM``. The returned scan is the one at the
-    returned pose (the last whose correction was below 1 um was taken at it)."""
+    until the correction is below ``CONVERGED_MM``. A correction that does not shrink (the
+    fit jumps as limb pixels come and go) is halved from the best pose so far, as often as
+    needed. Returns the pose with the smallest correction and the twin's scan there."""
     pose, steps = start, []
-    last = None
+    best: tuple[float, Pose, object, np.ndarray] | None = None
+    damping = 1.0
     for _ in range(max_steps):
         last = scan_at(pose)
         virt = fit_near(last.cloud, artefact, pose, name, mesh)
         delta = pose_correction(real, virt)
         size = float(np.max(np.linalg.norm(delta, axis=1)))
         steps.append(size * 1e3)
+        if best is None or size < best[0]:
+            if best is not None and size > 0.5 * best[0]:
+                damping *= 0.5  # slow progress: a jumpy fit, step shorter
+            best = (size, pose, last, delta)
+        else:
+            damping *= 0.5
         if size < CONVERGED_MM:
             return Refinement(pose, steps, True, last)
-        pose = corrected_pose(artefact, pose, delta)
-    last = scan_at(pose)
-    return Refinement(pose, steps, False, last)
+        pose = corrected_pose(artefact, best[1], damping * best[3])
+    return Refinement(best[1], steps, False, best[2])
 
 
 def pose_offset_um(a: Pose, b: Pose, artefact) -> float:

@@ -319,6 +319,10 @@ def validate(real_dir: str | Path, lenses: list[str | Path], out: str | Path, *,
 
     t0 = time.perf_counter()
     out = Path(out)
+    if out.exists() and not (out / "validation.json").exists() and any(
+            p.name != "writer.lock" for p in out.iterdir()):
+        raise UsageError(f"--out {out} exists and is not a validation's folder; choose a new "
+                         "--out")
     scan = load_real_scan(real_dir, positions)
     twins = build_twins(scan.rig, lenses, gaussian_sigma_mm, gaussian_samples, smoothing_nodes)
     dark = None

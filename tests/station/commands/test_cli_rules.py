@@ -39,6 +39,8 @@ MISSING = {
     "render": ["render", "{d}/none.toml", "--out", "{d}/render"],
     "scan": ["scan", "{d}/none", "--rig", "{d}/none.yaml", "--out", "{d}/c.ply"],
     "measure": ["measure", "{d}/none.ply", "--sphere"],
+    "validate": ["validate", "{d}/none", "--lenses", "{d}/a.toml", "{d}/b.toml", "--out",
+                 "{d}/v"],
     "experiment": ["experiment", "{d}/none.toml", "--out", "{d}/exp"],
     "demo": ["demo", "--config", "{d}/none.toml", "--out", "{d}/demo"],
 }
@@ -72,6 +74,8 @@ OUTPUTS = {
     "check": (["check", "--fake", "--out", "{od}"], "--force"),
     "run": (["run", "{cfg}", "--out", "{od}"], "--out"),
     "experiment": (["experiment", "--out", "{od}"], "--out"),
+    "validate": (["validate", "{d}/none", "--lenses", "{d}/a.toml", "{d}/b.toml", "--out",
+                  "{od}"], "--out"),
     "demo": (["demo", "--out", "{od}"], "--out"),
 }
 

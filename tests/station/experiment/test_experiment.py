@@ -201,3 +201,23 @@ def test_a_second_experiment_on_one_folder_is_refused_naming_the_holder(tmp_path
         with pytest.raises(StoreLockedError, match=f"locked by another writer .*PID {os.getpid()}"):
             run_experiment(ExperimentConfig(**REDUCED), out, progress=False, log=lambda s: None)
     assert not (out / "station").exists() and not (out / "positions").exists()
+
+
+def test_the_experiment_goes_through_the_real_scan_path(reduced, tmp_path):
+    """The real scanner's images are a real-scan folder that ltc validate reads as a lab's;
+    the virtual scanners were validated against it with the pose refined by the measured-LTC
+    scanner: within 3 um of the true pose at the large-defocus positions, where the real
+    fit's own offset is larger."""
+    from station.validation.folder import load_real_scan
+
+    out, res = reduced
+    real = load_real_scan(out / "real")
+    assert [p.name for p in real.positions] == sorted(r["name"] for r in res["rows"])
+    assert res["real_scan_folder"] == str(out / "real")
+    pose = res["pose_refinement"]
+    assert pose["positions"] == ["S2", "B1"] and pose["converged"], pose
+    assert pose["ltc_within_limit"], pose
+    for name in pose["positions"]:
+        assert pose["real_fit_um"][name] > pose["ltc_refined_um"][name]
+        assert pose["gaussian_one_step_um"][name] > pose["ltc_refined_um"][name]
+    assert "refined by analysis by synthesis" in (out / "report.md").read_text()

@@ -43,8 +43,9 @@ def test_the_matching_twin_agrees(validated):
         # the refined pose is the true pose; the real fit is not (its own bias)
         assert p["true_offsets_um"]["refined"] <= 3.0, p["true_offsets_um"]
         assert p["refine_converged"] and p["refine_steps_um"][-1] < 1.0
-    s2 = next(p for p in r["positions"] if p["name"] == "S3")
-    assert s2["true_offsets_um"]["real_fit"] > 30.0  # hundreds of um of bias are possible
+    for p in r["positions"]:
+        if p["defocus"] == "large":  # the real fit carries the real scanner's own bias
+            assert p["true_offsets_um"]["real_fit"] > 10 * p["true_offsets_um"]["refined"]
 
 
 def test_the_mismatched_twin_is_worse_at_large_defocus(validated):
