@@ -162,7 +162,9 @@ def _locate_cad(pts: np.ndarray, artefact: CadArtefact, name: str, mesh) -> Arte
     tf, it = icp(local[inside], ref, mesh.face_normals[face], max_iterations=60)
     d = mesh_signed_distance(tf.apply(local[inside]), mesh)
     rms = float(np.sqrt(np.mean(d * d)))
-    if it >= 60 or rms > 0.02 * float(np.linalg.norm(hi - lo)):
+    # ICP can creep along a part's free directions for its whole budget with the fit already
+    # good (the plate with steps: RMS 0.048 mm after 60 iterations): the fit decides
+    if rms > 0.02 * float(np.linalg.norm(hi - lo)):
         raise RealScanError(f"position {name}: artefact not found: ICP onto the CAD part did "
                             f"not converge (RMS {rms:.3g} mm after {it} iterations)")
     # object -> world: x_w = R0 (tf^-1 x_o) + t0 with tf^-1 x = R^T (x - t)
