@@ -107,8 +107,7 @@ def scan_position_validated(pos: Position, cfg: ExperimentConfig, rig,
                "refine_converged": result.refine_converged,
                "twin_pose_offset_um": result.twin_pose_offset_um,
                "response": result.response,
-               "images": {n: result.twins[n]["images"] for n in TWINS},
-               "seconds": result.seconds}
+               "images": {n: result.twins[n]["images"] for n in TWINS}}
     return scans, figures
 
 
