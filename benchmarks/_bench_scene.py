@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import os
 import platform
-from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -166,22 +165,3 @@ def machine() -> str:
         except ImportError:
             pass
     return base() + ("; " + ", ".join(vers) if vers else "")
-
-
-def replace_subsection(path: Path, section: str, heading: str, text: str) -> None:
-    """In the markdown file ``path``, replace what stands under the line ``heading`` (up to the
-    next heading) with ``text``; ``heading`` must lie inside the section whose heading line is
-    ``section`` (which ends at the next ``## `` heading). Nothing else changes."""
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} not found: it holds the '{section}' section the results go into")
-    lines = path.read_text().splitlines()
-    if section not in lines:
-        raise ValueError(f"{path}: no line '{section}'")
-    start = lines.index(section)
-    end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")), len(lines))
-    if heading not in lines[start:end]:
-        raise ValueError(f"{path}: section '{section}' has no line '{heading}'")
-    at = lines.index(heading, start)
-    stop = next((i for i in range(at + 1, end) if lines[i].startswith("#")), end)
-    lines[at + 1:stop] = ["", text.strip(), ""]
-    path.write_text("\n".join(lines) + "\n")

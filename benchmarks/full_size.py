@@ -1,9 +1,12 @@
-"""The paper's configuration on the synthetic full-size bench (issue 13): 4096 x 2168 camera,
+"""The paper's configuration on the synthetic full-size bench: 4096 x 2168 camera,
 3840 x 2160 LCD, P = 24, 4-step (1,177 frames per depth).
 
     python benchmarks/full_size.py --out /tmp/full            # full size (hours on 2 cores)
     python benchmarks/full_size.py --out /tmp/crop --rows 32  # full width, 32 rows: minutes
     python benchmarks/full_size.py --out /tmp/crops --rows 64 256 --cold --skip-lens
+
+``--write-results`` also rewrites ``benchmarks/results/full_size.md`` (``full_size-lens.md``
+with ``--lens-only``) with the printed figures.
 
 Stages, each in its own process so its peak memory (ru_maxrss, workers included) is its own:
 capture without storage (show + capture of every pattern of one depth), ``acquire`` of one
@@ -34,6 +37,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _results import captured, command_line, text_block, write_results  # noqa: E402
 
 FULL_H = 2168
 LENS_DEPTHS = (60.0, 260.0, 100.0, 140.0, 180.0, 220.0)  # the first --lens-depths are used
@@ -282,7 +288,22 @@ def main() -> None:
                     help="crop heights of the lens stage (memory flat in sensor size: compare)")
     ap.add_argument("--lens-depths", type=int, default=2, choices=range(2, 7),
                     help="depths of the lens stage's LTC store")
+    ap.add_argument("--write-results", action="store_true",
+                    help="rewrite benchmarks/results/full_size.md with the printed figures")
     a = ap.parse_args()
+    if a.write_results and not a.stage:
+        with captured() as out:
+            run(a)
+        write_results(__file__, "Full size on the synthetic bench",
+                      text_block(out.getvalue(), "Figures in seconds, bytes and hours as named; "
+                                 "per-pixel times in seconds."),
+                      command=command_line(), variant="lens" if a.lens_only else None)
+        return
+    run(a)
+
+
+def run(a: argparse.Namespace) -> None:
+    """The stages that ``a`` asks for; prints the figures as JSON."""
     if a.stage:
         print(json.dumps(stage(a.stage, a.out, a.rows[0], a.workers, a.lens_depths)))
         return

@@ -1,4 +1,4 @@
-"""GenICam capture throughput (issue 14): our GenICamCamera against a minimal raw Aravis loop.
+"""GenICam capture throughput: our GenICamCamera against a minimal raw Aravis loop.
 
 Both read the same free-running stream from Aravis's fake GigE Vision camera on loopback
 (tests/gv_fake.py, in a child process), with the same ROI, pixel format, frame rate setting,
@@ -25,9 +25,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]
 
 from drivers.genicam import CameraFrameError, GenICamCamera, _aravis  # noqa: E402
+from _results import captured, command_line, text_block, write_results  # noqa: E402
 from gv_fake import running_fake_camera  # noqa: E402
 
 
@@ -94,7 +95,20 @@ def main() -> None:
     parser.add_argument("--rates", type=float, nargs="+", default=[1000.0, 200.0],
                         help="fake camera frame rates, Hz (its maximum is 1000)")
     parser.add_argument("--buffers", type=int, default=16)
+    parser.add_argument("--write-results", action="store_true",
+                        help="rewrite benchmarks/results/genicam_throughput.md with this run")
     args = parser.parse_args()
+    if args.write_results:
+        with captured() as out:
+            run(args)
+        write_results(__file__, "GenICam capture throughput: ours against a raw Aravis loop",
+                      text_block(out.getvalue()), command=command_line())
+        return
+    run(args)
+
+
+def run(args: argparse.Namespace) -> None:
+    """Every rate and case, printed."""
     cases = [((0, 0, 512, 512), "Mono8"), ((0, 0, 1024, 1024), "Mono16")]
     print(f"# {datetime.date.today()} {platform.node()} {platform.processor() or platform.machine()}"
           f", Python {platform.python_version()}, {args.frames} frames, {args.repeats} repeats, "

@@ -1,5 +1,5 @@
 """Benchmark: LTC reconstruction against the time to merely read the run store, and its peak
-memory, at two sensor sizes 4x apart (BENCHMARKS.md "Station").
+memory, at two sensor sizes 4x apart.
 
 Synthetic run stores are written into a temporary directory: every camera pixel sees a
 Gaussian LTC (sigma ``--blur`` LCD pixels) at an LCD point that moves 1.3 LCD pixels per camera
@@ -9,18 +9,17 @@ pixel, with vignetting, shot and read noise, 12-bit frames. Measured per size, m
 traced memory (tracemalloc: numpy and Python allocations) of one more reconstruction.
 
     .venv/bin/python benchmarks/reconstruct.py [--period 24] [--sizes 128x96 256x192]
-        [--repeats 3] [--tile 64] [--no-readme]
+        [--repeats 3] [--tile 64] [--write-results]
 
-Results go to ``benchmarks/README.md`` under the heading "Reconstruction" (only that section
-is replaced).
+``--write-results`` rewrites ``benchmarks/results/reconstruct.md`` with the run's table.
 """
 
 from __future__ import annotations
 
 import argparse
 import platform
-import re
 import statistics
+import sys
 import tempfile
 import time
 import tracemalloc
@@ -33,8 +32,11 @@ from station.acquisition.patterns import StationPatternPlan
 from station.acquisition.run_store import FrameMeta, RunStore
 from station.ltc.spi import reconstruct
 
-README = Path(__file__).with_name("README.md")
-HEADING = "## Reconstruction"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _results import command_line, write_results  # noqa: E402
+
+TITLE = "Reconstruction against reading the run store"
 
 
 def write_run(path: Path, size: tuple[int, int], lcd: tuple[int, int], period: int, tile: int,
@@ -105,7 +107,6 @@ def run_size(root: Path, size: tuple[int, int], lcd: tuple[int, int],
 
 def report(rows: list[dict], args: argparse.Namespace) -> str:
     lines = [
-        HEADING, "",
         (f"`benchmarks/reconstruct.py --period {args.period} --sizes {' '.join(args.sizes)} "
          f"--repeats {args.repeats} --tile {args.tile}` on {platform.machine()}, "
          f"Python {platform.python_version()}, {time.strftime('%Y-%m-%d')}. One depth, "
@@ -144,17 +145,6 @@ def report(rows: list[dict], args: argparse.Namespace) -> str:
     return "\n".join(lines)
 
 
-def update_readme(section: str) -> None:
-    """Replace (or append) the "Reconstruction" section of benchmarks/README.md."""
-    text = README.read_text() if README.exists() else "# Benchmarks\n\n"
-    pattern = re.compile(rf"^{re.escape(HEADING)}\n.*?(?=^## |\Z)", re.DOTALL | re.MULTILINE)
-    if pattern.search(text):
-        text = pattern.sub(lambda _: section + "\n", text, count=1)
-    else:
-        text = text.rstrip("\n") + "\n\n" + section + "\n"
-    README.write_text(text)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--period", type=int, default=24, help="Fourier period P, LCD pixels")
@@ -163,7 +153,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--tile", type=int, default=64, help="tile edge, camera pixels")
     ap.add_argument("--blur", type=float, default=1.5, help="LTC sigma, LCD pixels")
-    ap.add_argument("--no-readme", action="store_true", help="print only")
+    ap.add_argument("--write-results", action="store_true",
+                    help="rewrite benchmarks/results/reconstruct.md with this run")
     args = ap.parse_args()
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes]
     # one LCD (and so one pattern plan) for both sizes, large enough for the larger
@@ -179,8 +170,8 @@ def main() -> None:
                   f"{r['peak_mib']:.1f} MiB", flush=True)
     section = report(rows, args)
     print(section)
-    if not args.no_readme:
-        update_readme(section)
+    if args.write_results:
+        write_results(__file__, TITLE, section, command=command_line())
 
 
 if __name__ == "__main__":

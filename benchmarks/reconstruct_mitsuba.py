@@ -1,4 +1,4 @@
-"""Reconstruction benchmark (issue 6): fringe images of the sphere rendered by an independent
+"""Reconstruction benchmark: fringe images of the sphere rendered by an independent
 renderer (Mitsuba 3), decoded and triangulated by our scanner pipeline, and the sphere measured.
 
 Same scene as ``render_vs_mitsuba.py`` (``_bench_scene.py``): the 50.8007 mm sphere at 760 mm, a
@@ -15,7 +15,7 @@ pixel alike, and the phase ignores it.
 Run::
 
     DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-19.so \\
-        .venv/bin/python benchmarks/reconstruct_mitsuba.py [--images DIR] [--thin] [--write-readme]
+        .venv/bin/python benchmarks/reconstruct_mitsuba.py [--images DIR] [--thin] [--write-results]
 
 ``--images DIR`` reuses the images that ``render_vs_mitsuba.py --save DIR`` kept.
 """
@@ -35,9 +35,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _bench_scene import (  # noqa: E402
     SPHERE_DIAMETER_MM, BenchConfig, bench_lens, bench_patterns, bench_rig, bench_scene, machine,
-    replace_subsection,
 )
 from _mitsuba_scene import MitsubaFringeRenderer, irradiance_scale_at, unavailable_reason  # noqa: E402
+from _results import command_line, write_results  # noqa: E402
 
 from sim.metrology.spheres import find_spheres  # noqa: E402
 from sim.fpp.decode import DecodeSettings, scan  # noqa: E402
@@ -45,9 +45,7 @@ from sim.render.images import (  # noqa: E402
     CameraResponse, ProjectorResponse, project_patterns, render_camera,
 )
 
-README = Path(__file__).resolve().parent / "README.md"
-SECTION = "## Rendering"
-HEADING = "### Reconstruction of Mitsuba's images"
+TITLE = "Reconstruction of Mitsuba's images (one camera against the projector)"
 SPHERE_CENTRE_MM = np.zeros(3)
 # radiance is in [0, 1]-ish units, not DN: keep pixels by relative modulation only
 DECODE = DecodeSettings(min_modulation=0.0, min_modulation_fraction=0.05)
@@ -95,7 +93,7 @@ def load_or_render(cfg: BenchConfig, images_dir: Path | None, case: str) -> np.n
 
 
 def report_markdown(rows: dict, cfg: BenchConfig, date: str, host: str) -> str:
-    L = ["`benchmarks/reconstruct_mitsuba.py` (issue 6): the 12 images of the scene above, rendered "
+    L = ["`benchmarks/reconstruct_mitsuba.py`: the 12 images of the render benchmark's scene (`_bench_scene.py`), rendered "
          "by Mitsuba (and, for reference, by ours), go through our scanner pipeline "
          "(`sim.fpp.decode.scan`: `sim.fpp.phase` wrapped phase and hierarchical unwrapping, "
          "`sim.fpp.stereo.camera_projector_cloud` triangulation of the camera against the projector); "
@@ -125,7 +123,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pinhole-spp", type=int, default=16, help="Mitsuba pinhole samples per pixel")
     ap.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant")
     ap.add_argument("--json", type=Path, help="write the results as JSON")
-    ap.add_argument("--write-readme", action="store_true", help="put the results into benchmarks/README.md")
+    ap.add_argument("--write-results", action="store_true",
+                    help="rewrite benchmarks/results/reconstruct_mitsuba.md with this run")
     args = ap.parse_args(argv)
     cfg = BenchConfig(scale=args.scale, pinhole_spp=args.pinhole_spp, variant=args.variant)
     if args.images is None and (why := unavailable_reason(cfg.variant)):
@@ -144,8 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     print("\n" + text)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))
-    if args.write_readme:
-        replace_subsection(README, SECTION, HEADING, text)
+    if args.write_results:
+        write_results(__file__, TITLE, text, command=command_line())
     return 0
 
 

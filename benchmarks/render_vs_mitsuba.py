@@ -1,8 +1,8 @@
-"""Render benchmark (issue 5): our Embree renderer against Mitsuba 3 and against raw embreex.
+"""Render benchmark: our Embree renderer against Mitsuba 3 and against raw embreex.
 
 The scene, devices and patterns are in ``_bench_scene.py``; the Mitsuba side and how its
-conventions are matched to ours in ``_mitsuba_scene.py``; results and how to read them in
-``benchmarks/README.md``, section "Rendering".
+conventions are matched to ours in ``_mitsuba_scene.py``; its latest results in
+``benchmarks/results/render_vs_mitsuba.md``; how to read them in ``benchmarks/README.md``.
 
 Every case runs in its own worker process (so each has its own peak memory), and the cases
 compared with each other take turns repeat by repeat (so load from other processes on the
@@ -17,7 +17,7 @@ against 1.
 Run (``scripts/bench_setup.sh`` installs Mitsuba and prints the LLVM path)::
 
     DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-19.so \\
-        .venv/bin/python benchmarks/render_vs_mitsuba.py --write-readme
+        .venv/bin/python benchmarks/render_vs_mitsuba.py --write-results
     .venv/bin/python benchmarks/render_vs_mitsuba.py --scale 0.25 --repeats 1   # smoke run
 """
 
@@ -39,10 +39,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _bench_scene import (  # noqa: E402
     BenchConfig, band_pixels, bench_lens, bench_patterns, bench_rig, bench_scene,
-    replace_subsection,
 )
 from _mitsuba_scene import irradiance_scale_at, unavailable_reason  # noqa: E402
 from _render_report import compare, report_markdown, summarise  # noqa: E402
+from _results import command_line, write_results  # noqa: E402
 
 from sim.render.images import (  # noqa: E402
     CameraResponse, ProjectorResponse, RenderSettings, camera_response, project_patterns, render,
@@ -53,9 +53,7 @@ from trace_throughput import record_queries, replay, summarise_queries  # noqa: 
 from sim.render.trace import trace_camera  # noqa: E402
 
 REPLY = "@@bench "
-README = Path(__file__).resolve().parent / "README.md"
-SECTION = "## Rendering"
-RESULTS = "### Results"
+TITLE = "Rendering: ours against Mitsuba 3 and raw embreex"
 RESULTS_JSON = "results.json"
 SETTINGS = RenderSettings(projector=ProjectorResponse(input_bits=None),
                           camera=CameraResponse(quantize=False))
@@ -276,7 +274,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reanalyse", type=Path, help="no rendering: redo the comparison and the report "
                     "of the run saved in this folder")
     ap.add_argument("--json", type=Path, help="write the results as JSON")
-    ap.add_argument("--write-readme", action="store_true", help="put the results into benchmarks/README.md")
+    ap.add_argument("--write-results", action="store_true",
+                    help="rewrite benchmarks/results/render_vs_mitsuba.md with this run")
     args = ap.parse_args(argv)
     if args.worker:
         worker_main(args.worker, BenchConfig.model_validate_json(args.config))
@@ -300,8 +299,8 @@ def main(argv: list[str] | None = None) -> int:
     print("\n" + text)
     if args.json:
         args.json.write_text(json.dumps(s, indent=2))
-    if args.write_readme:
-        replace_subsection(README, SECTION, RESULTS, text)
+    if args.write_results:
+        write_results(__file__, TITLE, text, command=command_line())
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Run-store layout and compressor, measured at full size (issue 13).
+"""Run-store layout and compressor, measured at full size.
 
 Writes a few full-size camera frames (4096 x 2168, 12-bit in uint16 and 8-bit in uint8, a
 blurred fringe with shot and read noise) in each candidate layout, with a raw sequential file
@@ -31,7 +31,9 @@ ratio to raw (the target: at least 0.7).
 Run: ``python benchmarks/run_store_io.py [--frames 6] [--dir /tmp] [--zarr] [--capture]
 [--throughput]``. ``--zarr``
 adds the zarr candidates (slow: seconds per frame); without it only ``raw`` and ``store`` run.
-Prints a table; the numbers and the decision are in benchmarks/README.md.
+Prints a table; ``--write-results`` also rewrites ``benchmarks/results/run_store_io.md``
+(``run_store_io-capture.md``, ``run_store_io-throughput.md`` for those modes). The decision
+it informed: ``docs/decisions/``.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ import argparse
 import os
 import shutil
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -50,6 +53,10 @@ from zarr.codecs import BloscCodec, BytesCodec, ZstdCodec
 
 from station.acquisition.patterns import StationPatternPlan
 from station.acquisition.run_store import FrameMeta, RunStore
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _results import captured, command_line, text_block, write_results  # noqa: E402
 
 W, H, T = 4096, 2168, 64
 
@@ -313,7 +320,21 @@ def main() -> None:
                          "write_frame in series, and raw appends with fsync per frame")
     ap.add_argument("--frame-ms", type=float, default=0.0, help="camera wait per frame, ms")
     ap.add_argument("--gil-ms", type=float, default=0.0, help="GIL-holding work per frame, ms")
+    ap.add_argument("--write-results", action="store_true",
+                    help="rewrite benchmarks/results/run_store_io[-MODE].md with this run")
     args = ap.parse_args()
+    if args.write_results:
+        variant = "capture" if args.capture else "throughput" if args.throughput else None
+        with captured() as out:
+            run(args)
+        write_results(__file__, "Run-store layout, writer throughput and capture loop",
+                      text_block(out.getvalue()), command=command_line(), variant=variant)
+        return
+    run(args)
+
+
+def run(args: argparse.Namespace) -> None:
+    """The mode that ``args`` asks for, printed."""
     if args.capture:
         capture_main(args)
         return

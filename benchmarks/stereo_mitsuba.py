@@ -1,4 +1,4 @@
-"""Two-camera benchmark against Mitsuba 3 (issue 15): stereo and camera-projector
+"""Two-camera benchmark against Mitsuba 3: stereo and camera-projector
 reconstruction of the sphere from an independent renderer's images.
 
 Scene: the 50.8007 mm sphere at the world origin and a plane 100 mm behind it
@@ -20,7 +20,7 @@ points more than 20 um off the true surface; and the scan time (decode, match, t
 Run::
 
     DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-19.so \\
-        .venv/bin/python benchmarks/stereo_mitsuba.py [--spp 64] [--scale 1] [--write-readme]
+        .venv/bin/python benchmarks/stereo_mitsuba.py [--spp 64] [--scale 1] [--write-results]
 """
 
 from __future__ import annotations
@@ -36,8 +36,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _bench_scene import SPHERE_DIAMETER_MM, bench_scene, machine, replace_subsection  # noqa: E402
+from _bench_scene import SPHERE_DIAMETER_MM, bench_scene, machine  # noqa: E402
 from _mitsuba_scene import MitsubaFringeRenderer, irradiance_scale_at, unavailable_reason  # noqa: E402
+from _results import command_line, write_results  # noqa: E402
 
 from sim.fpp.decode import DecodeSettings, scan  # noqa: E402
 from sim.metrology.spheres import fit_sphere  # noqa: E402
@@ -48,9 +49,7 @@ from sim.render.images import (  # noqa: E402
     CameraResponse, ProjectorResponse, RenderSettings, render_views,
 )
 
-README = Path(__file__).resolve().parent / "README.md"
-SECTION = "## Rendering"
-HEADING = "### Stereo reconstruction of Mitsuba's images (two cameras)"
+TITLE = "Stereo reconstruction of Mitsuba's images (two cameras)"
 CAMERA_SIZE = (1280, 1024)
 CAMERA_F_PX = 16.0 / 0.0048
 PROJECTOR_SIZE = (1280, 800)
@@ -123,7 +122,7 @@ def run_case(rig, ps, images, who: str) -> dict:
 
 def report(rows: dict, spp: int, scale: float, date: str, host: str) -> str:
     rig = stereo_rig(scale)
-    L = [f"`benchmarks/stereo_mitsuba.py` (issue 15): two {rig.cameras[0].width} x "
+    L = [f"`benchmarks/stereo_mitsuba.py`: two {rig.cameras[0].width} x "
          f"{rig.cameras[0].height} cameras {BASELINE_MM:g} mm apart at {DISTANCE_MM:g} mm, a "
          f"{rig.projector.width} x {rig.projector.height} projector between them, the sphere and "
          "a plane 100 mm behind it; 4-step phase shift at 1, 8 and 64 fringes. Each camera rendered "
@@ -164,7 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", default="mitsuba-pinhole,mitsuba-thin,ours-pinhole,ours-thin")
     ap.add_argument("--save", type=Path, help="keep the rendered images here (.npz per case)")
     ap.add_argument("--json", type=Path, help="write the results as JSON")
-    ap.add_argument("--write-readme", action="store_true", help="put the results into benchmarks/README.md")
+    ap.add_argument("--write-results", action="store_true",
+                    help="rewrite benchmarks/results/stereo_mitsuba.md with this run")
     args = ap.parse_args(argv)
     cases = args.cases.split(",")
     if any(c.startswith("mitsuba") for c in cases) and (why := unavailable_reason(args.variant)):
@@ -194,8 +194,8 @@ def main(argv: list[str] | None = None) -> int:
     print("\n" + text)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))
-    if args.write_readme:
-        replace_subsection(README, SECTION, HEADING, text)
+    if args.write_results:
+        write_results(__file__, TITLE, text, command=command_line())
     return 0
 
 

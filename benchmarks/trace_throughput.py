@@ -1,4 +1,4 @@
-"""Tracing throughput (issue 5): our whole ``trace_camera`` against raw embreex on the same rays.
+"""Tracing throughput: our whole ``trace_camera`` against raw embreex on the same rays.
 
 "Raw embreex on the same rays" is the Embree work the job inherently needs, and nothing else:
 the same primary rays cast with ``scene.run(o, d, output=1)`` (first hit with distance,
@@ -20,7 +20,7 @@ repeat; medians of ``--repeats`` are reported.
 
     .venv/bin/python benchmarks/trace_throughput.py                # about 3 minutes on 2 cores
     .venv/bin/python benchmarks/trace_throughput.py --scale 0.25 --repeats 1   # smoke run
-    .venv/bin/python benchmarks/trace_throughput.py --write-readme
+    .venv/bin/python benchmarks/trace_throughput.py --write-results
 """
 
 from __future__ import annotations
@@ -43,11 +43,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _bench_scene import (  # noqa: E402
     BenchConfig, band_pixels, bench_lens, bench_rig, bench_scene, machine,
 )
+from _results import command_line, write_results  # noqa: E402
 
 from sim.render.trace import TraceGeometry, camera_rays, trace_camera  # noqa: E402
 
-README = Path(__file__).resolve().parent / "README.md"
-SECTION = "## Tracing throughput"
+TITLE = "Tracing throughput: our trace_camera against raw embreex on the same rays"
 TARGET = 0.8
 
 
@@ -168,22 +168,6 @@ def report_markdown(s: dict) -> str:
     return "\n".join(lines)
 
 
-def write_readme(text: str, path: Path = README) -> None:
-    """Replace what follows ``### Results`` in section "Tracing throughput" (up to the next
-    heading of level 1 to 3) with ``text``; the rest of the file stays as it is."""
-    lines = path.read_text().splitlines()
-    try:
-        start = lines.index(SECTION)
-        res = lines.index("### Results", start)
-    except ValueError as exc:
-        raise ValueError(f"{path}: needs a '{SECTION}' section with a '### Results' "
-                         "heading") from exc
-    end = next((i for i in range(res + 1, len(lines))
-                if lines[i].startswith(("# ", "## ", "### "))), len(lines))
-    lines[res + 1:end] = ["", text.rstrip(), ""]
-    path.write_text("\n".join(lines) + "\n")
-
-
 def main(argv: list[str] | None = None) -> dict:
     """Run the benchmark; returns the results (also printed, and written where asked)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -197,8 +181,8 @@ def main(argv: list[str] | None = None) -> dict:
                     "sphere)")
     ap.add_argument("--cases", default="pinhole,thin", help="comma-separated: pinhole, thin")
     ap.add_argument("--json", type=Path, help="write the results as JSON")
-    ap.add_argument("--write-readme", action="store_true",
-                    help="put the results into benchmarks/README.md")
+    ap.add_argument("--write-results", action="store_true",
+                    help="rewrite benchmarks/results/trace_throughput.md with this run")
     args = ap.parse_args(argv)
     names = args.cases.split(",")
     if unknown := sorted(set(names) - {"pinhole", "thin"}):
@@ -224,8 +208,9 @@ def main(argv: list[str] | None = None) -> dict:
     print("\n" + text)
     if args.json:
         args.json.write_text(json.dumps(s, indent=2))
-    if args.write_readme:
-        write_readme(text)
+    if args.write_results:
+        write_results(__file__, TITLE, text, command=command_line(["trace_throughput.py", *(
+            argv if argv is not None else sys.argv[1:])]))
     return s
 
 

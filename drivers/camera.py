@@ -13,6 +13,7 @@ settings the backend accepted.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import threading
@@ -26,20 +27,15 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from drivers.interfaces import Camera, DeviceError, Frame
+from drivers.errors import CameraError, CameraTimeout, DeviceSettingError
+from drivers.interfaces import Camera, Frame
 
 __all__ = ["Camera", "CameraError", "CameraTimeout", "Frame", "OpenCVCamera", "VideoDevice",
            "list_video_devices"]
 
+log = logging.getLogger(__name__)
+
 SYSFS_VIDEO = "/sys/class/video4linux"
-
-
-class CameraError(DeviceError):
-    """The camera could not be opened, refused a setting, or delivered no frame."""
-
-
-class CameraTimeout(DeviceError):
-    """No frame arrived before the deadline."""
 
 
 @dataclass(frozen=True)
@@ -175,7 +171,8 @@ class OpenCVCamera(Camera):
 
     def _check_exposure(self, exposure_ms: float) -> None:
         if not exposure_ms > 0:
-            raise ValueError(f"camera {self._name}: exposure must be > 0 ms, got {exposure_ms}")
+            raise DeviceSettingError(f"camera {self._name}: exposure must be > 0 ms, "
+                                     f"got {exposure_ms}")
 
     def _set_exposure(self, exposure_ms: float) -> bool:
         """Turn auto-exposure off and set the exposure; True when the backend accepted both."""
@@ -188,6 +185,9 @@ class OpenCVCamera(Camera):
         self._accepted["auto_exposure_off"], self._accepted["exposure"] = auto_off, accepted
         if accepted:
             self._exposure_ms = self._units.from_device(self._cap.get(cv2.CAP_PROP_EXPOSURE))
+        log.debug("camera %s: exposure %g ms set (auto-exposure off accepted: %s, exposure "
+                  "accepted: %s, read back %g ms)", self._name, exposure_ms, auto_off, accepted,
+                  self._exposure_ms)
         return auto_off and accepted
 
     @property
@@ -255,6 +255,8 @@ class OpenCVCamera(Camera):
         self._size = (image.shape[1], image.shape[0])
         frame = Frame(image=image, timestamp=stamp, exposure_ms=self._exposure_ms,
                       frame_id=self._frame_id, meta={"backend": self._backend})
+        log.debug("camera %s: frame %d captured (%d x %d %s)", self._name, self._frame_id,
+                  image.shape[1], image.shape[0], image.dtype)
         self._frame_id += 1
         return frame
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import abc
 import contextlib
+import logging
 import os
 import time
 from collections.abc import Iterator
@@ -16,6 +17,7 @@ import glfw
 import moderngl
 import numpy as np
 
+from drivers.errors import DeviceSettingError, DisplayError
 from drivers.frame_code import (
     FrameCodeLayout,
     decode_frame_code,
@@ -24,7 +26,7 @@ from drivers.frame_code import (
     stamp_frame_code,
 )
 from drivers.gl_pattern import PatternRenderer
-from drivers.interfaces import DeviceError, PatternDisplay, ShownFrame
+from drivers.interfaces import PatternDisplay, ShownFrame
 
 __all__ = [
     "DisplayError",
@@ -37,11 +39,9 @@ __all__ = [
     "stamp_frame_code",
 ]
 
+log = logging.getLogger(__name__)
+
 _glfw_users = 0  # open GlfwDisplays; GLFW is terminated when the last one closes
-
-
-class DisplayError(DeviceError):
-    """The display could not be opened or used."""
 
 
 def _layout(frame_code: bool | FrameCodeLayout) -> FrameCodeLayout | None:
@@ -102,7 +102,7 @@ class _RendererDisplay(PatternDisplay):
         code = None
         if self._layout is None:
             if frame_code is not None:
-                raise ValueError(
+                raise DeviceSettingError(
                     f"frame_code={frame_code} given but {type(self).__name__} draws no frame code; "
                     "open it with frame_code=True or a FrameCodeLayout"
                 )
@@ -115,6 +115,8 @@ class _RendererDisplay(PatternDisplay):
             self._renderer.draw(image, code, xy)
             self._present()
             shown = ShownFrame(index=self._index, swap_time=time.monotonic(), frame_code=frame_code)
+        log.debug("%s: frame %d shown (swap at %.6f s, frame code %s)", type(self).__name__,
+                  shown.index, shown.swap_time, frame_code)
         self._after_present()
         self._index += 1
         return shown
@@ -140,7 +142,7 @@ class OffscreenDisplay(_RendererDisplay):
                  frame_code: bool | FrameCodeLayout = False) -> None:
         width, height = int(size[0]), int(size[1])
         if width < 1 or height < 1:
-            raise ValueError(f"display size must be positive (width, height), got {size}")
+            raise DeviceSettingError(f"display size must be positive (width, height), got {size}")
         self._ctx = moderngl.create_standalone_context(backend="egl")
         self._closed = False
         self._renderer = None

@@ -31,6 +31,8 @@ from typing import Literal
 
 import numpy as np
 
+from drivers.errors import DeviceError, DeviceSettingError
+
 Corner = Literal["top-left", "top-right", "bottom-left", "bottom-right"]
 CORNERS: tuple[Corner, ...] = ("top-left", "top-right", "bottom-left", "bottom-right")
 Style = Literal["strip", "blocks"]
@@ -39,7 +41,7 @@ _GUARD_BLOCKS = 4  # white + black at the start, black + white at the end
 _QUIET_BLOCKS = 1  # black margin around the strip, on every side
 
 
-class FrameCodeError(ValueError):
+class FrameCodeError(DeviceError, ValueError):
     """A frame code could not be read from an image region."""
 
 
@@ -56,17 +58,19 @@ class FrameCodeLayout:
 
     def __post_init__(self) -> None:
         if not 1 <= self.bits <= 32:
-            raise ValueError(f"frame code bits must be 1..32, got {self.bits}")
+            raise DeviceSettingError(f"frame code bits must be 1..32, got {self.bits}")
         if self.block_px < 1:
-            raise ValueError(f"frame code block_px must be >= 1, got {self.block_px}")
+            raise DeviceSettingError(f"frame code block_px must be >= 1, got {self.block_px}")
         if self.corner not in CORNERS:
-            raise ValueError(f"frame code corner must be one of {CORNERS}, got {self.corner!r}")
+            raise DeviceSettingError(f"frame code corner must be one of {CORNERS}, "
+                                     f"got {self.corner!r}")
         if self.style not in STYLES:
-            raise ValueError(f"frame code style must be one of {STYLES}, got {self.style!r}")
+            raise DeviceSettingError(f"frame code style must be one of {STYLES}, "
+                                     f"got {self.style!r}")
         if self.columns < 0:
-            raise ValueError(f"frame code columns must be >= 0, got {self.columns}")
+            raise DeviceSettingError(f"frame code columns must be >= 0, got {self.columns}")
         if self.origin is not None and (len(self.origin) != 2 or min(self.origin) < 0):
-            raise ValueError(f"frame code origin must be (x, y) >= 0 display pixels, "
+            raise DeviceSettingError(f"frame code origin must be (x, y) >= 0 display pixels, "
                              f"got {self.origin}")
 
     @property
@@ -93,7 +97,8 @@ class FrameCodeLayout:
 def code_blocks(value: int, bits: int) -> np.ndarray:
     """The strip as ``(bits + 5,)`` bool, True = white: guards, data MSB first, parity."""
     if not 0 <= value < 2**bits:
-        raise ValueError(f"frame code {value} out of range 0..{2**bits - 1} for {bits} bits")
+        raise DeviceSettingError(f"frame code {value} out of range 0..{2**bits - 1} for {bits} "
+                                 "bits")
     data = [(value >> (bits - 1 - i)) & 1 for i in range(bits)]
     return np.array([1, 0, *data, sum(data) % 2, 0, 1], dtype=bool)
 
@@ -105,7 +110,7 @@ def render_frame_code(value: int, layout: FrameCodeLayout) -> np.ndarray:
     blocks = np.zeros((rows, cols), dtype=np.uint8)
     if layout.style == "blocks":
         if not 0 <= value < 2**layout.bits:
-            raise ValueError(f"frame code {value} out of range 0..{2**layout.bits - 1} "
+            raise DeviceSettingError(f"frame code {value} out of range 0..{2**layout.bits - 1} "
                              f"for {layout.bits} bits")
         bits = [(value >> (layout.bits - 1 - i)) & 1 for i in range(layout.bits)]
         blocks.ravel()[: layout.bits] = np.array(bits, dtype=np.uint8) * np.uint8(255)
@@ -121,13 +126,13 @@ def frame_code_rect(layout: FrameCodeLayout, display_size: tuple[int, int]) -> t
     if layout.origin is not None:
         x, y = (int(v) for v in layout.origin)
         if x + cols > width or y + rows > height:
-            raise ValueError(
+            raise DeviceSettingError(
                 f"frame code of {cols}x{rows} px at origin ({x}, {y}) reaches ({x + cols}, "
                 f"{y + rows}), outside the {width}x{height} display"
             )
         return x, y, cols, rows
     if cols > width or rows > height:
-        raise ValueError(
+        raise DeviceSettingError(
             f"frame code of {cols}x{rows} px ({layout.bits} bits, {layout.block_px} px blocks) "
             f"does not fit the {width}x{height} display"
         )

@@ -9,7 +9,7 @@ discards frames queued so far).
 Every frame is checked: an Aravis buffer whose status is not ``SUCCESS`` (missing packets,
 timeout, size mismatch...) raises :class:`CameraFrameError`, a gap in the device's frame ids
 raises :class:`CameraFrameDropped`, no frame by the deadline raises
-:class:`~drivers.camera.CameraTimeout`, and a camera that stopped answering raises
+:class:`~drivers.errors.CameraTimeout`, and a camera that stopped answering raises
 :class:`CameraLost`. A bad frame is never returned. Frames carry the device's frame id and
 timestamp (seconds on the device's clock; the host's ``time.monotonic()`` at arrival is in
 ``meta``). Frame images are read-only views of the copy PyGObject makes of each buffer.
@@ -30,16 +30,32 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
-import socket
-import struct
+import logging
 import threading
 import time
-from dataclasses import dataclass
 from typing import Any, Callable, TypeVar
 
 import numpy as np
 
-from drivers.camera import CameraError, CameraTimeout
+from drivers.aravis import (
+    PROBE_TIMEOUT_S,
+    CameraInfo,
+    _aravis,
+    _glib_error,
+    _gvcp_answers,
+    list_cameras,
+)
+from drivers.errors import (
+    AravisUnavailable,
+    CameraError,
+    CameraFrameDropped,
+    CameraFrameError,
+    CameraLost,
+    CameraNotFound,
+    CameraSettingError,
+    CameraTimeout,
+    DeviceSettingError,
+)
 from drivers.interfaces import Camera, Frame
 
 __all__ = [
@@ -47,13 +63,9 @@ __all__ = [
     "CameraNotFound", "CameraSettingError", "GenICamCamera", "PIXEL_FORMATS", "list_cameras",
 ]
 
-T = TypeVar("T")
+log = logging.getLogger(__name__)
 
-INSTALL_HINT = (
-    "install Debian's gir1.2-aravis-0.8 (Aravis 0.8 and its typelib) and, to build PyGObject "
-    "from PyPI, libgirepository1.0-dev libcairo2-dev pkg-config gcc (and python3-dev for "
-    "Debian's python3); then `pip install -e '.[genicam]'` (or run scripts/setup.sh)"
-)
+T = TypeVar("T")
 
 # Mono formats we deliver: GenICam name -> (numpy dtype, bits per pixel in the frame).
 PIXEL_FORMATS: dict[str, tuple[np.dtype, int]] = {
@@ -62,110 +74,6 @@ PIXEL_FORMATS: dict[str, tuple[np.dtype, int]] = {
     "Mono12": (np.dtype("<u2"), 12),
     "Mono16": (np.dtype("<u2"), 16),
 }
-
-GVCP_PORT = 3956
-PROBE_TIMEOUT_S = 0.2  # a live GigE Vision device answers a register read within this
-
-
-class AravisUnavailable(CameraError):
-    """Aravis 0.8 or PyGObject is not installed; the message names the packages."""
-
-
-class CameraNotFound(CameraError):
-    """No camera with the requested id or serial number answered."""
-
-
-class CameraSettingError(CameraError, ValueError):
-    """The camera refused a setting, or the value is outside what the device allows."""
-
-
-class CameraFrameError(CameraError):
-    """A frame arrived incomplete or damaged (Aravis buffer status other than SUCCESS)."""
-
-    def __init__(self, message: str, status: str = "", frame_id: int | None = None) -> None:
-        super().__init__(message)
-        self.status = status
-        self.frame_id = frame_id
-
-
-class CameraFrameDropped(CameraFrameError):
-    """The device's frame ids skipped: frames were produced and lost."""
-
-    def __init__(self, message: str, expected: int, got: int) -> None:
-        super().__init__(message, "DROPPED", got)
-        self.expected = expected
-
-
-class CameraLost(CameraError):
-    """The camera stopped answering (unplugged, powered off, or its control was lost)."""
-
-
-@dataclass(frozen=True)
-class CameraInfo:
-    """One device found by :func:`list_cameras`."""
-
-    device_id: str
-    vendor: str
-    model: str
-    serial: str
-    protocol: str  # "GigEVision", "USB3Vision", ...
-    address: str  # IP address for GigE Vision, else ""
-
-
-def _aravis() -> Any:
-    """The ``Aravis`` module (0.8), or :class:`AravisUnavailable` naming what to install."""
-    try:
-        import gi
-    except ImportError as exc:
-        raise AravisUnavailable(f"GenICam cameras need PyGObject (module 'gi'): {INSTALL_HINT}") \
-            from exc
-    try:
-        gi.require_version("Aravis", "0.8")
-        from gi.repository import Aravis
-    except (ValueError, ImportError) as exc:
-        raise AravisUnavailable(f"GenICam cameras need Aravis 0.8 ({exc}): {INSTALL_HINT}") \
-            from exc
-    return Aravis
-
-
-def _glib_error() -> type[BaseException]:
-    from gi.repository import GLib
-
-    return GLib.Error
-
-
-def list_cameras() -> list[CameraInfo]:
-    """Discover GenICam devices on every Aravis interface (GigE Vision discovery takes ~1 s)."""
-    arv = _aravis()
-    arv.update_device_list()
-    found = []
-    for i in range(arv.get_n_devices()):
-        found.append(CameraInfo(
-            device_id=arv.get_device_id(i) or "", vendor=arv.get_device_vendor(i) or "",
-            model=arv.get_device_model(i) or "", serial=arv.get_device_serial_nbr(i) or "",
-            protocol=arv.get_device_protocol(i) or "", address=arv.get_device_address(i) or "",
-        ))
-    return found
-
-
-def _gvcp_answers(address: str, timeout_s: float) -> bool:
-    """True when a GigE Vision device at ``address`` answers a register read (the Version
-    register, which any host may read) within ``timeout_s`` seconds."""
-    request_id = 0x7A01
-    packet = struct.pack(">BBHHHI", 0x42, 0x01, 0x0080, 4, request_id, 0x0000)  # READREG_CMD
-    deadline = time.monotonic() + timeout_s
-    try:
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-            sock.connect((address, GVCP_PORT))
-            sock.send(packet)
-            while (remaining := deadline - time.monotonic()) > 0:
-                sock.settimeout(remaining)
-                reply = sock.recv(64)
-                if len(reply) >= 8 and struct.unpack(">HHHH", reply[:8])[1::2] == (0x0081, request_id):
-                    return True
-    except OSError:  # refused (nothing listens), unreachable, or timed out
-        return False
-    return False
 
 
 class GenICamCamera(Camera):
@@ -204,7 +112,7 @@ class GenICamCamera(Camera):
                  timeout_s: float = 2.0, control_timeout_s: float = 3.0,
                  n_buffers: int = 8) -> None:
         if (device_id is None) == (serial is None):
-            raise ValueError("GenICamCamera: give exactly one of device_id and serial")
+            raise DeviceSettingError("GenICamCamera: give exactly one of device_id and serial")
         self._arv = _aravis()
         self._gerror = _glib_error()
         self.timeout_s = timeout_s
@@ -496,7 +404,11 @@ class GenICamCamera(Camera):
                 self._raise_no_frame(f"no frame within {timeout:g} s")
             arrived = time.monotonic()
             try:
-                return self._to_frame(buffer, arrived)
+                frame = self._to_frame(buffer, arrived)
+                log.debug("camera %s: frame %d captured (%d x %d %s)", self._name,
+                          frame.frame_id, frame.image.shape[1], frame.image.shape[0],
+                          self._format)
+                return frame
             finally:
                 self._stream.push_buffer(buffer)
 
@@ -553,6 +465,7 @@ class GenICamCamera(Camera):
             raise CameraLost(f"camera {self._name}: {what}: the camera was lost earlier")
         if deadline is None:
             deadline = time.monotonic() + self.control_timeout_s
+        log.debug("camera %s: %s", self._name, what)
         future = self._executor.submit(call)
         try:
             return future.result(timeout=max(0.0, deadline - time.monotonic()))

@@ -13,6 +13,8 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
+from drivers.errors import DeviceSettingError
+
 _GL_DITHER = 0x0BD0
 
 _VERTEX_SHADER = """
@@ -56,9 +58,10 @@ def as_lut(lut: np.ndarray | None) -> np.ndarray:
         return np.arange(256, dtype=np.uint8)
     arr = np.asarray(lut)
     if arr.shape != (256,) or not np.issubdtype(arr.dtype, np.integer):
-        raise ValueError(f"LUT must be 256 integers, got shape {arr.shape} dtype {arr.dtype}")
+        raise DeviceSettingError(f"LUT must be 256 integers, "
+                                 f"got shape {arr.shape} dtype {arr.dtype}")
     if arr.min() < 0 or arr.max() > 255:
-        raise ValueError(f"LUT values must be in 0..255, got {arr.min()}..{arr.max()}")
+        raise DeviceSettingError(f"LUT values must be in 0..255, got {arr.min()}..{arr.max()}")
     return arr.astype(np.uint8)
 
 
@@ -68,7 +71,7 @@ def check_image(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     shape = getattr(image, "shape", None)
     dtype = getattr(image, "dtype", type(image).__name__)
     if dtype != np.uint8 or shape not in ((height, width), (height, width, 3)):
-        raise ValueError(
+        raise DeviceSettingError(
             f"pattern must be uint8 of shape ({height}, {width}) or ({height}, {width}, 3) "
             f"to match the {width}x{height} display, got {shape} {dtype}"
         )

@@ -11,9 +11,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drivers.errors import DeviceError
 
-class DeviceError(RuntimeError):
-    """Base class of every hardware error; the message names the device."""
+__all__ = ["Camera", "DeviceError", "Frame", "PatternDisplay", "ShownFrame", "Stage"]
 
 
 class Stage(abc.ABC):

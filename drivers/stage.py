@@ -1,4 +1,5 @@
-"""Zaber ASCII stage driver for one axis on a serial port (errors in ``drivers.stage_errors``).
+"""Zaber ASCII stage driver for one axis on a serial port (errors in ``drivers.stage_errors``;
+the line exchange with the device in ``drivers.zaber_link``).
 
 Millimetres in the API; microsteps exist only inside this module (``microstep_um`` from config).
 Every error message names the port, the command sent and the reply received (or
@@ -16,16 +17,14 @@ complete, ``position_known`` is False until the next completed ``move_to`` or ``
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
-import re
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from typing import Any
 
-import serial
-
+from drivers.errors import DeviceSettingError
 from drivers.interfaces import Stage
 from drivers.serial_lines import LineReader, SerialLike
 from drivers.stage_errors import (
@@ -41,15 +40,8 @@ from drivers.stage_errors import (
     StageStopped,
     StageTimeout,
 )
-from drivers.zaber_protocol import (
-    ACCEL_UNIT,
-    SPEED_UNIT,
-    Reply,
-    ZaberChecksumError,
-    ZaberFormatError,
-    format_command,
-    parse_reply,
-)
+from drivers.zaber_link import READ_SLICE_S, ZaberLink, _Exchange, _ReplyLost
+from drivers.zaber_protocol import ACCEL_UNIT, SPEED_UNIT
 
 __all__ = [
     "Stage",
@@ -67,32 +59,14 @@ __all__ = [
     "ZaberStage",
 ]
 
-READ_SLICE_S = 0.01  # port read timeout; the line reader loops until its own deadline
+log = logging.getLogger(__name__)
+
 NOT_HOMED = ("WR", "WH")
-INTEGER = re.compile(r"-?[0-9]+")  # a reply's integer data: no '+', '_', spaces or other digits
 FAULT_NAMES = {"FS": "stalled", "FE": "limit error", "FD": "driver disabled",
                "FQ": "encoder error", "FF": "critical fault"}
 
 
-class _ReplyLost(Exception):
-    """Internal: no reply came (``reason`` says why); ``port_ok`` when the port can be used."""
-
-    def __init__(self, reason: str, port_ok: bool) -> None:
-        super().__init__(reason)
-        self.reason = reason
-        self.port_ok = port_ok
-
-
-@dataclass(frozen=True)
-class _Exchange:
-    """One command line sent and the reply line that answered it."""
-
-    sent: str
-    text: str
-    reply: Reply
-
-
-class ZaberStage(Stage):
+class ZaberStage(ZaberLink, Stage):
     """One axis of a Zaber device speaking the ASCII protocol.
 
     ``port`` is a device path or any URL ``serial.serial_for_url`` opens, or an open serial-like
@@ -159,7 +133,7 @@ class ZaberStage(Stage):
         }
         for message, ok in checks.items():
             if not ok:
-                raise ValueError(f"ZaberStage: {message}")
+                raise DeviceSettingError(f"ZaberStage: {message}")
         self.address, self.axis, self.baudrate = address, axis, baudrate
         self.microstep_um, self.tolerance_um = microstep_um, tolerance_um
         self.travel_mm = (float(travel_mm[0]), float(travel_mm[1]))
@@ -186,15 +160,6 @@ class ZaberStage(Stage):
             if not ready:
                 self.close()
 
-    # ----- opening -------------------------------------------------------------------------
-    def _open(self) -> SerialLike:
-        try:
-            port = serial.serial_for_url(self._url, baudrate=self.baudrate, timeout=READ_SLICE_S)
-            port.reset_input_buffer()
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise StageConnectionLost(f"{self.port_name}: cannot open the port: {exc}") from exc
-        return port
-
     def _identify(self) -> None:
         """Check the port speaks Zaber; read identity, limits, speed and acceleration."""
         self.device_id = self._get_int("deviceid", axis=0)
@@ -220,101 +185,6 @@ class ZaberStage(Stage):
             )
 
     # ----- transport -----------------------------------------------------------------------
-    def _reopen(self) -> None:
-        """Re-open a port given by name; raise StageConnectionLost when that is impossible."""
-        if self._url is None:
-            raise StageConnectionLost(
-                f"{self.port_name}: a port object passed in cannot be re-opened")
-        try:
-            self._port.close()
-        except (serial.SerialException, OSError):
-            pass  # the old port is dead either way; opening a new one is what matters
-        self._port = self._open()
-        self._reader = LineReader(self._port)
-
-    def _send(self, line: str) -> None:
-        """Write ``line``; if the write fails, re-open and write it once more."""
-        data = (line + "\n").encode("ascii")
-        try:
-            self._port.write(data)
-            return
-        except (serial.SerialException, OSError) as exc:
-            first = exc
-        try:
-            self._reopen()
-        except StageConnectionLost as exc:
-            raise StageConnectionLost(
-                f"{self.port_name}: sent {line!r}: write failed ({first}); re-open failed: {exc}"
-            ) from first
-        try:
-            self._port.write(data)
-        except (serial.SerialException, OSError) as exc:
-            raise StageConnectionLost(
-                f"{self.port_name}: sent {line!r}: write failed ({first}), and again after "
-                f"re-opening ({exc})"
-            ) from exc
-
-    def _receive(self, line: str, msg_id: int, axis: int) -> _Exchange:
-        """Read lines until the reply to ``line`` (matching message id) or the deadline."""
-        deadline = time.monotonic() + self.timeout_s
-        while True:
-            try:
-                raw = self._reader.read_line(deadline)
-            except (serial.SerialException, OSError) as exc:
-                try:
-                    self._reopen()
-                except StageConnectionLost as reopen_error:
-                    raise _ReplyLost(f"port failed while waiting for the reply ({exc}); "
-                                     f"re-open failed: {reopen_error}", port_ok=False) from exc
-                raise _ReplyLost(f"port failed while waiting for the reply ({exc}); re-opened",
-                                 port_ok=True) from exc
-            if raw is None:
-                raise _ReplyLost(f"no reply within {self.timeout_s:g} s", port_ok=True)
-            try:
-                text = raw.decode("ascii").strip()
-            except UnicodeDecodeError:
-                raise self._protocol_error(line, raw, "garbled reply (not ASCII)") from None
-            if not text or text[0] in "#!":
-                continue  # blank, info or alert line: not a reply
-            try:
-                reply = parse_reply(text)
-            except ZaberChecksumError:
-                raise self._protocol_error(line, text, "reply fails its checksum") from None
-            except ZaberFormatError:
-                what = ("garbled reply" if text[0] == "@"
-                        else "not a Zaber ASCII reply (wrong port or baud rate?)")
-                raise self._protocol_error(line, text, what) from None
-            if reply.msg_id is None:
-                raise self._protocol_error(line, text, "reply carries no message id")
-            if reply.msg_id != msg_id:
-                continue  # a late reply to an earlier command
-            if (reply.address, reply.axis) != (self.address, axis):
-                raise self._protocol_error(
-                    line, text, f"reply from device {reply.address} axis {reply.axis}, "
-                    f"expected device {self.address} axis {axis}")
-            return _Exchange(line, text, reply)
-
-    def _protocol_error(self, line: str, got: str | bytes, what: str) -> StageProtocolError:
-        return StageProtocolError(f"{self.port_name}: sent {line!r}, got {got!r}: {what}")
-
-    def _transact(self, text: str, axis: int | None = None, motion: bool = False) -> _Exchange:
-        """Send one command and return its reply, under the lock (write plus read)."""
-        axis = self.axis if axis is None else axis
-        with self._lock:
-            self._msg_id = (self._msg_id + 1) % 100
-            line = format_command(text, address=self.address, axis=axis, msg_id=self._msg_id,
-                                  checksum=self.checksum)
-            if self._closed:
-                raise StageConnectionLost(f"{self.port_name}: stage is closed; not sent: {line!r}")
-            self._send(line)
-            try:
-                return self._receive(line, self._msg_id, axis)
-            except _ReplyLost as lost:
-                if not motion:
-                    raise StageConnectionLost(
-                        f"{self.port_name}: sent {line!r}: {lost.reason}") from None
-                raise self._reply_lost_after_motion(line, lost) from None
-
     def _reply_lost_after_motion(self, line: str, lost: _ReplyLost) -> StageConnectionLost:
         position = busy = None
         state = "device state unknown"
@@ -346,11 +216,6 @@ class ZaberStage(Stage):
         if motion:
             self._raise_if_fault(ex)
         return ex
-
-    def _int_data(self, ex: _Exchange) -> int:
-        if not INTEGER.fullmatch(ex.reply.data):
-            raise self._protocol_error(ex.sent, ex.text, "expected an integer")
-        return int(ex.reply.data)
 
     def _get_int(self, setting: str, axis: int | None = None) -> int:
         return self._int_data(self._command(f"get {setting}", axis))
@@ -491,6 +356,7 @@ class ZaberStage(Stage):
                 raise StageNotHomed(f"{self.port_name}: homing ended but sent {check.sent!r}, "
                                     f"got {check.text!r}: no reference position")
             self._rest_steps = final
+            log.debug("%s: homed at %.6g mm", self.port_name, self._mm(final))
             time.sleep(self.settle_s)
 
     def move_to(self, z_mm: float, timeout: float | None = None) -> float:
@@ -510,6 +376,7 @@ class ZaberStage(Stage):
             duration = self._motion_time(target - pos) if timeout is None else timeout
             final = self._wait(target, duration, ex.sent)
             self._rest_steps = final
+            log.debug("%s: %s: done at %.6g mm", self.port_name, what, self._mm(final))
             time.sleep(self.settle_s)
             return self._mm(final)
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from drivers.interfaces import DeviceError
+from drivers.errors import DeviceError
 
 
 class StageError(DeviceError):

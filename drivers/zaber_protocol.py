@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from drivers.errors import DeviceError, DeviceSettingError
+
 SPEED_UNIT = 1.6384  # device ``maxspeed`` value per µstep/s: µsteps/s = value / SPEED_UNIT
 ACCEL_UNIT = 1.6384 / 10000  # device ``accel`` value per µstep/s²: µsteps/s² = value / ACCEL_UNIT
 NO_WARNING = "--"
@@ -15,7 +17,7 @@ FLAGS = ("OK", "RJ")
 STATUSES = ("BUSY", "IDLE")
 
 
-class ZaberFormatError(ValueError):
+class ZaberFormatError(DeviceError, ValueError):
     """A line that is not a well-formed Zaber ASCII message."""
 
 
@@ -69,11 +71,11 @@ def format_command(
 ) -> str:
     """Format ``/address axis [id] text[:CC]`` (no terminator)."""
     if not 0 <= address <= 99:
-        raise ValueError(f"Zaber address must be 0-99, got {address}")
+        raise DeviceSettingError(f"Zaber address must be 0-99, got {address}")
     if not 0 <= axis <= 9:
-        raise ValueError(f"Zaber axis must be 0-9, got {axis}")
+        raise DeviceSettingError(f"Zaber axis must be 0-9, got {axis}")
     if msg_id is not None and not 0 <= msg_id <= 99:
-        raise ValueError(f"Zaber message id must be 0-99, got {msg_id}")
+        raise DeviceSettingError(f"Zaber message id must be 0-99, got {msg_id}")
     parts = [f"/{address}", str(axis)]
     if msg_id is not None:
         parts.append(f"{msg_id:02d}")

@@ -6,7 +6,7 @@ LENS.npz is a lens model from the station (``ltc lens``, ``ltc run``). The scrip
 stereo rig of two such cameras (their camera matrix and size from the lens file) converging
 at +-12 degrees on a sphere, with a projector between them; scans the sphere in focus and
 at large defocus with the measured lens on both cameras, then with its Gaussian equivalent
-(OPTICS.md section 7: the same focus distance, Gaussian aperture weights with the measured
+(docs/optics.md, section 4: the same focus distance, Gaussian aperture weights with the measured
 LTC's second moment at the optical centre), and prints the sphere diameters and how far the
 Gaussian scanner's cloud lies from the measured one's. OUT_DIR (default out/measured_vs_gaussian)
 receives the clouds (PLY) and summary.json.

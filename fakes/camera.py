@@ -32,7 +32,7 @@ class NoiseModel(BaseModel):
     enabled: bool = Field(True, description="False: noise-free, unquantised-in-electrons camera")
     full_well_e: float = Field(10000.0, gt=0, description="full-well capacity, electrons")
     read_noise_e: float = Field(5.0, ge=0, description="read noise std, electrons")
-    bit_depth: int = Field(12, description="ADC bits: 8, 10, 12 or 16")
+    bit_depth: int = Field(12, ge=1, le=16, description="ADC bits, 1..16 (8, 10, 12 or 16)")
     black_level_adu: float = Field(16.0, ge=0, description="offset added to every pixel, ADU")
     white_fraction: float = Field(
         0.85, gt=0, description="full white at the reference exposure fills this fraction of "

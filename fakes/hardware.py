@@ -25,7 +25,8 @@ class FakeSettings(BaseModel):
     """The ``[fake]`` section of a station config."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    seed: int | None = Field(0, description="camera noise seed; None for a fresh one each run")
+    seed: int | None = Field(0, ge=0, description="camera noise seed (>= 0); None for a fresh "
+                             "one each run")
     stage_maxspeed_mm_s: float = Field(200.0, gt=0, description="fake stage top speed, mm/s")
     stage_accel_mm_s2: float = Field(2000.0, gt=0, description="fake stage acceleration, mm/s^2")
     start_mm: float = Field(0.0, description="where the carriage is at power-up, mm")

@@ -3,8 +3,9 @@
 Stages, earliest first: ``sim.optics`` (projection, lens models, the measured lens, rig,
 sensor) -> ``sim.render`` (scene, Embree tracing, fringe patterns, rendering) -> ``sim.fpp``
 (phase, unwrapping, stereo, triangulation, scanning) -> ``sim.metrology`` (spheres, ball
-bars, cloud comparison) -> ``sim.scanner`` (the :class:`Scanner` facade). Names load lazily,
-so ``import sim`` is cheap::
+bars, cloud comparison) -> ``sim.scanner`` (the :class:`Scanner` facade). Every error raised
+on purpose derives from :class:`SimError` (``sim.errors``). Names load lazily, so ``import sim``
+is cheap::
 
     import sim
     scanner = sim.Scanner.from_scene_file("examples/sphere_scene.toml")
@@ -17,6 +18,7 @@ from __future__ import annotations
 from sim._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
+    "errors": "SimError SimInputError",
     "scanner": "Scanner",
     "optics.rig": "Rig DeviceCalibration",
     "optics.lens": "PinholeLens GaussianLens AberratedLens LensModel",

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.errors import SimInputError
 from sim.fpp.cloud import PointCloud
 from sim.fpp.decode import DecodeSettings, scan as _scan
 from sim.metrology import measure as _measure
@@ -53,7 +54,7 @@ class Scanner:
 
     def __post_init__(self) -> None:
         if len(self.lenses) != len(self.rig.cameras):
-            raise ValueError(f"{self.where}: {len(self.lenses)} lenses for "
+            raise SimInputError(f"{self.where}: {len(self.lenses)} lenses for "
                              f"{len(self.rig.cameras)} rig cameras; give one per camera")
         object.__setattr__(self, "lenses", tuple(self.lenses))
         object.__setattr__(self, "_geometry", None)
@@ -62,7 +63,7 @@ class Scanner:
         for i, (lens, cam) in enumerate(zip(self.lenses, self.rig.cameras)):
             why = lens_camera_mismatch(lens, cam)
             if why is not None:
-                raise ValueError(f"{self.where}: camera {i}: {why}")
+                raise SimInputError(f"{self.where}: camera {i}: {why}")
 
     @classmethod
     def from_scene_file(cls, path: str | Path) -> Scanner:
@@ -121,4 +122,4 @@ class Scanner:
             return _measure.measure_against_cloud(pts, reference, align)[0]
         if reference is not None:
             return _measure.measure_against_mesh(pts, reference, align)[0]
-        raise ValueError("measure: give sphere_mm, ballbar_mm or reference")
+        raise SimInputError("measure: give sphere_mm, ballbar_mm or reference")

@@ -20,10 +20,10 @@ def field_path(loc: tuple[int | str, ...], prefix: tuple[int | str, ...] = ()) -
 def format_validation_error(
     source: str, exc: ValidationError, prefix: tuple[int | str, ...] = ()
 ) -> str:
-    """One line per error of ``exc``: ``source: field 'prefix.loc': message``.
+    """Every error of ``exc`` as ``source: field 'prefix.loc': message``, joined by "; ".
 
     source : the file (and, where useful, the node in it) the data came from.
     prefix : the path of the validated section inside that file, e.g. ``('fake', 'bench')``.
     """
-    return "\n".join(f"{source}: field '{field_path(e['loc'], prefix)}': {e['msg']}"
-                     for e in exc.errors())
+    return "; ".join(f"{source}: field '{field_path(e['loc'], prefix)}': "
+                     f"{e['msg'].removeprefix('Value error, ')}" for e in exc.errors())

@@ -14,6 +14,7 @@ The Python API for lab scripts (``station.api``, ``station.sequence``; names loa
     station.run_sequence(config, "night/")
     station.run_experiment(station.ExperimentConfig(), "exp/")   # the paper's experiment
     station.run_demo()                                          # ltc demo
+    station.generate_dataset("dataset.toml", "fringes.zarr", 1000)   # ltc dataset
 
 Stages, earliest first: ``station.acquisition`` -> ``station.ltc`` -> ``station.lens``.
 """
@@ -29,5 +30,6 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "experiment.demo": "run_demo",
     "acquisition.config": "StationConfig ConfigError",
     "lens.derive": "LensResult",
-    "errors": "StationError UsageError",
+    "errors": "StationError StationInputError UsageError",
+    "dataset": "DatasetReport generate_dataset",
 })

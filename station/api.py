@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from station.errors import UsageError
+from station.errors import StationInputError, UsageError
 
 if TYPE_CHECKING:
     from drivers.interfaces import Camera, PatternDisplay, Stage
@@ -173,8 +173,8 @@ def _rig_camera(rig: str | Path | None, name: str | None,
     cams = {c.name: c for c in r.cameras}
     name = name or r.cameras[0].name
     if name not in cams:
-        raise ValueError(f"{rig}: no camera named {name!r}; cameras are {list(cams)}")
+        raise StationInputError(f"{rig}: no camera named {name!r}; cameras are {list(cams)}")
     if tuple(cams[name].size) != tuple(size):
-        raise ValueError(f"{rig}: camera {name!r} is {tuple(cams[name].size)} pixels but the "
+        raise StationInputError(f"{rig}: camera {name!r} is {tuple(cams[name].size)} pixels but the "
                          f"LTC store's camera is {tuple(size)}")
     return cams[name].K_array, cams[name].dist_array

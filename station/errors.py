@@ -1,10 +1,13 @@
-"""Error kinds the ``ltc`` command line turns into one line and an exit code.
+"""The station's errors, and the kinds of failure the ``ltc`` command line turns into one line.
 
+- :class:`StationError`: the root of every error the station raises on purpose (a device
+  step, the data, a store, a lock); exit code 1. :class:`StationInputError` is an input the
+  station refuses (a file, a field, a value) and is a ``ValueError`` too.
 - :class:`UsageError`: what was typed is wrong (an option value, a missing option, an output
   that exists without ``--force``): exit code 2.
-- :class:`StationError`: a run failed for a reason its message names (a device, the data, the
-  disk): exit code 1. ``ValueError`` (bad data in a file, a corrupt store), ``OSError`` (disk
-  full, permission denied, path missing) and ``drivers.DeviceError`` are exit code 1 too.
+- ``drivers.DeviceError`` and ``sim.SimError`` (the other packages' roots), ``OSError`` (disk
+  full, permission denied, path missing) and pydantic's validation errors are exit code 1 too.
+- Anything else is a bug: exit code 3, see ``station.cli``.
 
 Kept free of heavy imports: ``ltc --help`` loads it.
 """
@@ -16,12 +19,17 @@ import os
 from pathlib import Path
 
 
-class UsageError(ValueError):
-    """The command line is wrong; the message names the option and what to type (exit 2)."""
-
-
 class StationError(RuntimeError):
-    """A station step failed; the message names the device, file or step and what to do."""
+    """Root of the station's errors: a step failed; the message names the device, file or step
+    and what to do."""
+
+
+class StationInputError(StationError, ValueError):
+    """An input the station refuses: a file, a field or a value; the message names it."""
+
+
+class UsageError(StationError, ValueError):
+    """The command line is wrong; the message names the option and what to type (exit 2)."""
 
 
 _HINTS = {
@@ -53,13 +61,11 @@ def describe_os_error(exc: OSError) -> str:
 
 
 def check_output(path: str | os.PathLike, force: bool, option: str = "--out") -> Path:
-    """``path`` as a Path, refused (UsageError) when it exists and ``force`` is not set.
-
-    The one overwrite rule of every command: an output that exists is never replaced without
-    ``--force``.
+    """``path`` as a Path, refused (UsageError) when it exists and ``force`` is not set, or
+    when ``force`` would replace something that is not a plain file (a folder, a device file,
+    the working directory): the rules of :func:`station.outputs.check_output`, which commands
+    writing a store, a folder or a file of a known kind call with that kind and their inputs.
     """
-    path = Path(path)
-    if (path.exists() or path.is_symlink()) and not force:
-        raise UsageError(f"{option} {path} exists; pass --force to overwrite it, or choose "
-                         "another path")
-    return path
+    from station.outputs import check_output as _check  # light; avoids an import cycle
+
+    return _check(path, force, option)

@@ -156,9 +156,14 @@ class Sequence:
 
     def _run_steps(self) -> dict:
         handler = logging.FileHandler(self.out / "run.log", encoding="utf-8")
-        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s %(message)s"))
         log.addHandler(handler)
         log.setLevel(logging.INFO)
+        # every device exchange (stage commands and replies, swaps, captures) at DEBUG
+        devices = logging.getLogger("drivers")
+        devices_level = devices.level
+        devices.addHandler(handler)
+        devices.setLevel(logging.DEBUG)
         try:
             for note in self.notes:
                 log.info("%s", note)
@@ -178,6 +183,8 @@ class Sequence:
             return self.summary
         finally:
             log.removeHandler(handler)
+            devices.removeHandler(handler)
+            devices.setLevel(devices_level)
             handler.close()
 
     def _step(self, step: str) -> None:

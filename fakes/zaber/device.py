@@ -44,12 +44,23 @@ SETTINGS: dict[str, tuple[str, int | str]] = {
 }
 
 
+MAX_LINE_BYTES = 256  # a command line longer than this is dropped, as a controller's buffer
+MAX_PENDING_REPLIES = 1024  # replies the host has not read; more are dropped
+RECEIVED_LOG_BYTES = 1 << 20  # ``received_bytes`` keeps the last this many bytes
+
+
 class FakeZaberDevice:
     """A single-axis Zaber controller model. Feed it host bytes, read back its reply bytes.
 
     Thread-safe: a transport thread may feed and read while a test flips ``faults`` or reads
-    ``position``. ``received`` logs every complete line the host sent, ``received_bytes`` every
-    byte, so tests can assert that nothing reached the device.
+    ``position``. ``received`` logs every complete line the host sent, ``received_bytes`` the
+    last ``RECEIVED_LOG_BYTES`` bytes (``received_count`` counts them all), so tests can
+    assert that nothing reached the device.
+
+    Bounded like a real controller: a line longer than ``MAX_LINE_BYTES`` is dropped up to its
+    newline (``dropped_lines`` counts them), and replies beyond ``MAX_PENDING_REPLIES`` unread
+    ones are dropped (``dropped_replies``), so a host that writes without reading cannot
+    make it grow without limit.
     """
 
     def __init__(
@@ -75,8 +86,12 @@ class FakeZaberDevice:
             self.settings[zaber_name] = settings.get(name, default)
         self.received: list[str] = []
         self.received_bytes = bytearray()
+        self.received_count = 0
+        self.dropped_lines = 0
+        self.dropped_replies = 0
         self._lock = threading.RLock()
         self._inbuf = bytearray()
+        self._discarding = False  # dropping the rest of an overlong line
         self._out: list[tuple[float, int, bytes]] = []  # (release time, sequence, bytes)
         self._seq = 0
         self._pos = float(position)
@@ -120,12 +135,27 @@ class FakeZaberDevice:
     def feed(self, data: bytes) -> None:
         """Receive bytes from the host; complete lines are executed at once."""
         with self._lock:
-            self.received_bytes += data
-            self._inbuf += data
-            while b"\n" in self._inbuf:
-                raw, _, rest = bytes(self._inbuf).partition(b"\n")
-                self._inbuf = bytearray(rest)
-                line = raw.decode("ascii", errors="replace").strip()
+            self.received_count += len(data)
+            self.received_bytes += data[-RECEIVED_LOG_BYTES:]
+            del self.received_bytes[:-RECEIVED_LOG_BYTES]
+            start = 0
+            while start < len(data):
+                end = data.find(b"\n", start)
+                piece = data[start:] if end < 0 else data[start:end]
+                start = len(data) if end < 0 else end + 1
+                if not self._discarding:
+                    self._inbuf += piece[:MAX_LINE_BYTES + 1 - len(self._inbuf)]
+                    if len(self._inbuf) > MAX_LINE_BYTES:
+                        self._inbuf.clear()
+                        self._discarding = True
+                        self.dropped_lines += 1
+                if end < 0:
+                    break
+                if self._discarding:
+                    self._discarding = False
+                    continue
+                line = self._inbuf.decode("ascii", errors="replace").strip()
+                self._inbuf.clear()
                 self.received.append(line)
                 if line:
                     self._handle_line(line)
@@ -291,6 +321,9 @@ class FakeZaberDevice:
             self._emit(f"#{self.address:02d} {cmd.axis}{id_part} info from the fake", due)
 
     def _emit(self, line: str, due: float) -> None:
+        if len(self._out) >= MAX_PENDING_REPLIES:
+            self.dropped_replies += 1
+            return
         self._out.append((due, self._seq, line.encode("latin-1") + b"\r\n"))
         self._seq += 1
 

@@ -68,7 +68,7 @@ class Profile:
         direction = 1.0 if self.end >= self.start else -1.0
         return self.start + direction * s, max(v, 0.0)
 
-    def stopping(self, t: float) -> "Profile":
+    def stopping(self, t: float) -> Profile:
         """The deceleration to rest that a stop at time ``t`` starts."""
         pos, v = self.state(t)
         if self.no_ramp:

@@ -10,10 +10,15 @@ import tty
 from fakes.zaber.device import FakeZaberDevice
 
 POLL_S = 0.002  # how often the server looks for due output (s)
+MAX_UNSENT_BYTES = 64 << 10  # output the host has not read from the pty; more is dropped
 
 
 class FakeZaberPty:
     """A pty whose far end is ``device``. Open ``.port`` with pyserial like a real port.
+
+    The server never blocks: output the host does not read waits in a buffer of
+    ``MAX_UNSENT_BYTES``, beyond which it is dropped (``dropped_bytes``), as a controller drops
+    replies it cannot send.
 
     The device stays silent until the host sends a command. Setting ``device.faults.vanish``
     closes the pty: the host then sees ``SerialException`` and the port cannot be re-opened.
@@ -25,6 +30,9 @@ class FakeZaberPty:
         tty.setraw(self._slave)
         self.port: str = os.ttyname(self._slave)
         self.vanished = False  # set once the ``vanish`` fault closed the pty
+        self.dropped_bytes = 0  # output dropped because the host did not read it
+        self._unsent = bytearray()
+        os.set_blocking(self._master, False)  # a host that never reads cannot block the server
         self._stop = threading.Event()
         self._thread = threading.Thread(
             target=self._serve, name=f"fake-zaber {self.port}", daemon=True)
@@ -39,10 +47,19 @@ class FakeZaberPty:
                 return
             readable, _, _ = select.select([self._master], [], [], POLL_S)
             if readable:  # the server holds the slave side open, so this never sees EIO
-                self.device.feed(os.read(self._master, 4096))
-            out = self.device.read_output()
-            if out:
-                os.write(self._master, out)
+                try:
+                    self.device.feed(os.read(self._master, 4096))
+                except BlockingIOError:
+                    pass
+            self._unsent += self.device.read_output()
+            if len(self._unsent) > MAX_UNSENT_BYTES:  # like a controller's full output buffer
+                self.dropped_bytes += len(self._unsent) - MAX_UNSENT_BYTES
+                del self._unsent[MAX_UNSENT_BYTES:]
+            if self._unsent:
+                try:
+                    del self._unsent[:os.write(self._master, self._unsent)]
+                except BlockingIOError:
+                    pass
 
     def _close_fds(self) -> None:
         for fd in (self._master, self._slave):
@@ -57,7 +74,7 @@ class FakeZaberPty:
             self._thread.join(timeout=2.0)
         self._close_fds()
 
-    def __enter__(self) -> "FakeZaberPty":
+    def __enter__(self) -> FakeZaberPty:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -12,7 +12,9 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
              "gray_to_index gray_bits beat",
     "decode": "DecodeSettings DecodedView decode_view scan",
     "scan_input": "ScanInputError load_scan_input",
-    "stereo": "PointCloud Rectification stereo_cloud camera_projector_cloud stereo_rectification "
-              "triangulate grid_normals relative_pose local_phase_model phase_noise_px",
-    "cloud": "read_ply write_ply",
+    "rectify": "Rectification stereo_rectification relative_pose",
+    "match": "local_phase_model phase_noise_px",
+    "triangulation": "triangulate grid_normals camera_projector_cloud",
+    "stereo": "stereo_cloud",
+    "cloud": "PointCloud read_ply write_ply",
 })

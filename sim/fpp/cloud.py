@@ -12,11 +12,12 @@ optionally ``nx ny nz``, ``quality`` or ``scalar_quality``, and any other ``scal
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from sim.fpp.stereo import PointCloud
+from sim.errors import SimInputError
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -28,18 +29,31 @@ MAX_HEADER_LINES = 10_000  # a header longer than this is not a PLY header
 FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 
 
+@dataclass(frozen=True)
+class PointCloud:
+    """Points (n, 3) mm in the world frame, with optional unit normals (n, 3), quality (n,) and
+    named per-point fields (n,) (e.g. ``camera``, ``u``, ``v``: the reference camera and its
+    pixel; ``modulation``; ``phase_error``; ``uncertainty_mm``)."""
+
+    points: np.ndarray
+    normals: np.ndarray | None = None
+    quality: np.ndarray | None = None
+    fields: dict[str, np.ndarray] = field(default_factory=dict)
+
+
 def write_ply(path: str | Path, cloud: PointCloud) -> None:
     """Write ``cloud`` (points (n, 3), optional normals (n, 3), quality (n,) and fields) as
     binary PLY (see the module docstring)."""
     pts = np.asarray(cloud.points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"write_ply {path}: points must be (n, 3), got shape {pts.shape}")
+        raise SimInputError(f"write_ply {path}: points must be (n, 3), got shape {pts.shape}")
     fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
     cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}
     if cloud.normals is not None:
         n = np.asarray(cloud.normals)
         if n.shape != pts.shape:
-            raise ValueError(f"write_ply {path}: normals have shape {n.shape}, points {pts.shape}")
+            raise SimInputError(f"write_ply {path}: normals have shape {n.shape}, points "
+                                f"{pts.shape}")
         fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
         cols.update(nx=n[:, 0], ny=n[:, 1], nz=n[:, 2])
     extras = dict(cloud.fields)
@@ -48,9 +62,10 @@ def write_ply(path: str | Path, cloud: PointCloud) -> None:
     for name, values in extras.items():
         q = np.asarray(values).ravel()
         if len(q) != len(pts):
-            raise ValueError(f"write_ply {path}: {len(q)} {name} values for {len(pts)} points")
+            raise SimInputError(f"write_ply {path}: {len(q)} {name} values for {len(pts)} points")
         if not name.replace("_", "").isalnum():
-            raise ValueError(f"write_ply {path}: field name '{name}' must be letters, digits and _")
+            raise SimInputError(f"write_ply {path}: field name '{name}' must be letters, digits "
+                                "and _")
         fields.append((f"scalar_{name}", "<f4"))
         cols[f"scalar_{name}"] = q
     rec = np.empty(len(pts), dtype=fields)
@@ -68,12 +83,12 @@ def write_ply(path: str | Path, cloud: PointCloud) -> None:
 
 def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
     if f.readline().strip() != b"ply":
-        raise ValueError(f"{path}: not a PLY file (no 'ply' magic line)")
+        raise SimInputError(f"{path}: not a PLY file (no 'ply' magic line)")
     fmt, count, props, element = None, None, [], None
     for number in range(2, MAX_HEADER_LINES):
         line = f.readline()
         if not line:
-            raise ValueError(f"{path}: PLY header has no end_header")
+            raise SimInputError(f"{path}: PLY header has no end_header")
         words = line.decode("ascii", errors="replace").split()
         if not words or words[0] in ("comment", "obj_info"):
             continue
@@ -83,33 +98,35 @@ def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
         if words[0] == "format":
             fmt = words[1] if len(words) > 1 else ""
             if fmt not in FORMATS:
-                raise ValueError(f"{path}: unknown PLY format '{fmt}'")
+                raise SimInputError(f"{path}: unknown PLY format '{fmt}'")
         elif words[0] == "element":
             if len(words) != 3:
-                raise ValueError(f"{where}: expected 'element NAME COUNT'")
+                raise SimInputError(f"{where}: expected 'element NAME COUNT'")
             if element is None and words[1] != "vertex":
-                raise ValueError(f"{path}: the first PLY element must be 'vertex', got '{words[1]}'")
+                raise SimInputError(f"{path}: the first PLY element must be 'vertex', got "
+                                    f"'{words[1]}'")
             element = words[1]
             if element == "vertex":
                 if not words[2].isdigit():
-                    raise ValueError(f"{where}: the vertex count must be an integer >= 0")
+                    raise SimInputError(f"{where}: the vertex count must be an integer >= 0")
                 count = int(words[2])
         elif words[0] == "property" and element == "vertex":
             if len(words) >= 2 and words[1] == "list":
-                raise ValueError(f"{path}: list property '{words[-1]}' in the vertex element")
+                raise SimInputError(f"{path}: list property '{words[-1]}' in the vertex element")
             if len(words) != 3:
-                raise ValueError(f"{where}: expected 'property TYPE NAME'")
+                raise SimInputError(f"{where}: expected 'property TYPE NAME'")
             if words[1] not in PLY_TYPES:
-                raise ValueError(f"{path}: unknown PLY type '{words[1]}' of property '{words[2]}'")
+                raise SimInputError(f"{path}: unknown PLY type '{words[1]}' of property "
+                                    f"'{words[2]}'")
             if words[2] in [n for n, _ in props]:
-                raise ValueError(f"{path}: vertex property '{words[2]}' appears twice")
+                raise SimInputError(f"{path}: vertex property '{words[2]}' appears twice")
             props.append((words[2], PLY_TYPES[words[1]]))
     else:
-        raise ValueError(f"{path}: PLY header has no end_header in {MAX_HEADER_LINES} lines")
+        raise SimInputError(f"{path}: PLY header has no end_header in {MAX_HEADER_LINES} lines")
     if fmt is None or count is None:
-        raise ValueError(f"{path}: PLY header lacks a format line or a vertex element")
+        raise SimInputError(f"{path}: PLY header lacks a format line or a vertex element")
     if count == 0:
-        raise ValueError(f"{path}: the PLY file has 0 vertices; a point cloud needs at least one "
+        raise SimInputError(f"{path}: the PLY file has 0 vertices; a point cloud needs at least one "
                          "point")
     return fmt, count, props
 
@@ -123,15 +140,15 @@ def _ascii_rows(f, path: Path, count: int, n: int) -> np.ndarray:
             break
         values = line.split()
         if len(values) != n:
-            raise ValueError(f"{path}: vertex row {len(rows)} has {len(values)} values, the "
+            raise SimInputError(f"{path}: vertex row {len(rows)} has {len(values)} values, the "
                              f"header declares {n} properties")
         rows.append(values)
     if len(rows) < count:
-        raise ValueError(f"{path}: file ends after {len(rows)} of {count} vertex rows")
+        raise SimInputError(f"{path}: file ends after {len(rows)} of {count} vertex rows")
     try:
         return np.array(rows, dtype=np.float64).reshape(count, n)
     except ValueError as exc:
-        raise ValueError(f"{path}: malformed ASCII vertex rows: {exc}") from exc
+        raise SimInputError(f"{path}: malformed ASCII vertex rows: {exc}") from exc
 
 
 def read_ply(path: str | Path) -> PointCloud:
@@ -143,7 +160,8 @@ def read_ply(path: str | Path) -> PointCloud:
         fmt, count, props = _parse_header(f, path)
         names = [n for n, _ in props]
         if not {"x", "y", "z"} <= set(names):
-            raise ValueError(f"{path}: the vertex element needs properties x, y and z, has {names}")
+            raise SimInputError(f"{path}: the vertex element needs properties x, y and z, has "
+                                f"{names}")
         if FORMATS[fmt] is None:
             data = _ascii_rows(f, path, count, len(props))
             col = {n: data[:, i] for i, n in enumerate(names)}
@@ -151,7 +169,8 @@ def read_ply(path: str | Path) -> PointCloud:
             dt = np.dtype([(n, FORMATS[fmt] + t) for n, t in props])
             raw = f.read(dt.itemsize * count)
             if len(raw) < dt.itemsize * count:
-                raise ValueError(f"{path}: file ends after {len(raw) // dt.itemsize} of {count} vertices")
+                raise SimInputError(f"{path}: file ends after {len(raw) // dt.itemsize} of {count} "
+                                    "vertices")
             rec = np.frombuffer(raw, dtype=dt)
             col = {n: rec[n].astype(np.float64) for n in names}
     pts = np.stack([col["x"], col["y"], col["z"]], axis=1)

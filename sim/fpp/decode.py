@@ -3,7 +3,7 @@
 ``decode_view`` turns one camera's image stack, taken with a ``sim.render.fringe_patterns`` set, into
 per-axis projector-coordinate maps (NaN where invalid) and a modulation map; ``scan``
 matches the two cameras of a rig (``sim.fpp.stereo.stereo_cloud``) or triangulates one camera
-against the projector (``sim.fpp.stereo.camera_projector_cloud``).
+against the projector (``sim.fpp.triangulation.camera_projector_cloud``).
 """
 
 from __future__ import annotations
@@ -15,7 +15,14 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from sim.render.fringe_patterns import GrayCodeSet, PatternDescriptor, PhaseShiftSet
+from sim.errors import SimInputError
+from sim.fpp.cloud import PointCloud
+from sim.fpp.match import (
+    local_phase_model,
+    phase_noise_px,
+    pixel_footprint_correction,
+    usable_pixels,
+)
 from sim.fpp.phase import (
     absolute_phase_to_projector,
     gray_bits,
@@ -26,17 +33,10 @@ from sim.fpp.phase import (
     unwrap_hierarchical,
     wrapped_phase,
 )
+from sim.fpp.stereo import stereo_cloud
+from sim.fpp.triangulation import camera_projector_cloud, grid_normals
 from sim.optics.rig import DeviceCalibration, Rig
-from sim.fpp.stereo import (
-    PointCloud,
-    camera_projector_cloud,
-    grid_normals,
-    local_phase_model,
-    phase_noise_px,
-    pixel_footprint_correction,
-    usable_pixels,
-    stereo_cloud,
-)
+from sim.render.fringe_patterns import GrayCodeSet, PatternDescriptor, PhaseShiftSet
 from sim.tolerances import EDGE_MARGIN_PX
 
 SENSITIVITY_PX = 1e-3
@@ -163,9 +163,9 @@ class ScanReport:
 def _check_stack(images: np.ndarray, descs: list[PatternDescriptor], where: str) -> np.ndarray:
     images = np.asarray(images)
     if images.ndim != 3:
-        raise ValueError(f"{where}: images must be a stack (n, H, W), got shape {images.shape}")
+        raise SimInputError(f"{where}: images must be a stack (n, H, W), got shape {images.shape}")
     if len(images) != len(descs):
-        raise ValueError(
+        raise SimInputError(
             f"{where}: {len(images)} images, but the pattern set has {len(descs)} patterns"
         )
     return images
@@ -175,7 +175,7 @@ def _threshold(mod: np.ndarray, settings: DecodeSettings, where: str) -> float:
     top = float(np.percentile(mod, 99))
     thr = max(settings.min_modulation, settings.min_modulation_fraction * top)
     if not np.any(mod >= thr) or top <= 0:
-        raise ValueError(
+        raise SimInputError(
             f"{where}: no pixel has a fringe modulation of {thr:g} or more (largest "
             f"{float(mod.max()):g}): the images are dark or show no fringes"
         )
@@ -213,7 +213,7 @@ def _decode_phase_shift(images, descs, ps: PhaseShiftSet, size, settings, where)
             method = "hierarchical" if max(periods) >= extent else "heterodyne"
         if method == "hierarchical":
             if max(periods) < extent:
-                raise ValueError(
+                raise SimInputError(
                     f"{where}: hierarchical unwrapping needs a period of at least {extent} px "
                     f"(1 fringe across the projector along '{axis}'); the longest is "
                     f"{max(periods):g} px ({extent / max(periods):.4g} fringes); periods are in "
@@ -222,15 +222,15 @@ def _decode_phase_shift(images, descs, ps: PhaseShiftSet, size, settings, where)
             absph, oerr = unwrap_hierarchical([w.phase for w in wps], periods, extent, True)
         else:
             if len(periods) not in (2, 3):
-                raise ValueError(
+                raise SimInputError(
                     f"{where}: {len(periods)} period(s) along '{axis}' cannot be unwrapped "
                     f"({_typed(periods, extent)}): use one period >= {extent} px (1 fringe) or "
                     "2-3 periods for heterodyne"
                 )
             try:
                 absph, oerr = unwrap_heterodyne([w.phase for w in wps], periods, extent, True)
-            except ValueError as exc:
-                raise ValueError(
+            except SimInputError as exc:
+                raise SimInputError(
                     f"{where}: the periods along '{axis}' ({_typed(periods, extent)}) cannot be "
                     f"unwrapped: the longest is {max(periods):g} px ({extent / max(periods):.4g} "
                     f"fringes), shorter than the {extent} px projector, and heterodyne failed "
@@ -318,7 +318,7 @@ def decode_view(
 def _check_camera(view_images: np.ndarray, cam: DeviceCalibration, where: str) -> None:
     h, w = np.shape(view_images)[1:]
     if (w, h) != tuple(cam.size):
-        raise ValueError(
+        raise SimInputError(
             f"{where}: images are {w} x {h} pixels but the rig's camera '{cam.name}' is "
             f"{cam.size[0]} x {cam.size[1]}; is the rig file for these images?"
         )
@@ -364,17 +364,17 @@ def scan_with_report(
     psize = tuple(rig.projector.size)
     if camera is None:
         if len(images) != 2:
-            raise ValueError(f"stereo needs the image stacks of 2 cameras, got {len(images)}")
+            raise SimInputError(f"stereo needs the image stacks of 2 cameras, got {len(images)}")
         for i in range(2):
             _check_camera(images[i], rig.cameras[i], f"camera {i}")
         if np.shape(images[0])[0] != np.shape(images[1])[0]:
-            raise ValueError(
+            raise SimInputError(
                 f"camera 0 has {np.shape(images[0])[0]} images, camera 1 has "
                 f"{np.shape(images[1])[0]}: the stacks must match"
             )
         views = [decode_view(images[i], patterns, psize, settings, f"camera {i}") for i in range(2)]
         if "u" not in views[0].coord:
-            raise ValueError("stereo matching needs fringes along 'u' (projector columns)")
+            raise SimInputError("stereo matching needs fringes along 'u' (projector columns)")
         stereo: list[dict[str, int]] = []
         cloud = stereo_cloud(
             views[0].coord["u"], views[1].coord["u"], rig.cameras[0], rig.cameras[1],
@@ -389,7 +389,7 @@ def scan_with_report(
         cloud = _relative_quality(cloud, top)
         return cloud, _report(views, stereo, cloud, settings)
     if not 0 <= camera < len(rig.cameras):
-        raise ValueError(f"camera must be 0 or 1, got {camera}")
+        raise SimInputError(f"camera must be 0 or 1, got {camera}")
     stack = images[camera] if len(images) == len(rig.cameras) else images[0]
     cam = rig.cameras[camera]
     _check_camera(stack, cam, f"camera {camera}")
@@ -403,7 +403,8 @@ def scan_with_report(
     dropped = int((np.isfinite(coord) & ~usable).sum())
     coord = np.where(usable, coord, np.nan)
     if not np.isfinite(coord).any():
-        raise ValueError(f"camera {camera}: no valid pixel with 8 valid neighbours to triangulate")
+        raise SimInputError(f"camera {camera}: no valid pixel with 8 valid neighbours to "
+                            "triangulate")
     pts, uv = camera_projector_cloud(coord, cam, rig.projector, axis)
     grid = np.full((cam.height, cam.width, 3), np.nan)
     iu, iv = uv[:, 0].astype(int), uv[:, 1].astype(int)

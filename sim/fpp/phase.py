@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sim.errors import SimInputError
+
 TWO_PI = 2.0 * np.pi
 
 
@@ -44,10 +46,10 @@ def wrapped_phase(images: np.ndarray) -> WrappedPhase:
     """
     images = np.asarray(images)
     if images.ndim != 3:
-        raise ValueError(f"images must be (N, H, W), got shape {images.shape}")
+        raise SimInputError(f"images must be (N, H, W), got shape {images.shape}")
     n = images.shape[0]
     if n < 3:
-        raise ValueError(f"N-step phase shifting needs at least 3 images, got {n}")
+        raise SimInputError(f"N-step phase shifting needs at least 3 images, got {n}")
     d = TWO_PI * np.arange(n) / n
     stack = images.astype(np.float64, copy=False)
     s = np.tensordot(np.sin(d), stack, axes=1)
@@ -72,7 +74,7 @@ def quality_mask(
         reaches ``saturation`` are dropped.
     """
     if min_modulation < 0 or min_contrast < 0:
-        raise ValueError(
+        raise SimInputError(
             f"min_modulation and min_contrast must be >= 0, got {min_modulation}, {min_contrast}"
         )
     ok = wp.modulation >= min_modulation
@@ -80,7 +82,7 @@ def quality_mask(
         ok &= wp.modulation >= min_contrast * np.maximum(wp.offset, 0.0)
     if saturation is not None:
         if max_intensity is None:
-            raise ValueError("quality_mask: saturation given without max_intensity")
+            raise SimInputError("quality_mask: saturation given without max_intensity")
         ok &= max_intensity < saturation
     return ok & np.isfinite(wp.phase)
 
@@ -115,7 +117,7 @@ def _single_period_coordinate(phase: np.ndarray, period_px: float, extent_px: in
     spare range, so ``period_px`` must be at least ``extent_px``.
     """
     if period_px < extent_px:
-        raise ValueError(
+        raise SimInputError(
             f"the coarsest period ({period_px:g} px) must be at least the projector extent "
             f"({extent_px} px) for the unwrapping to be unique"
         )
@@ -126,15 +128,15 @@ def _single_period_coordinate(phase: np.ndarray, period_px: float, extent_px: in
 
 def _check_levels(phases: Sequence[np.ndarray], periods_px: Sequence[float]) -> None:
     if len(phases) != len(periods_px) or len(phases) < 1:
-        raise ValueError(
+        raise SimInputError(
             f"need one wrapped phase per period, got {len(phases)} phases for "
             f"{len(periods_px)} periods"
         )
     shapes = {np.shape(p) for p in phases}
     if len(shapes) != 1:
-        raise ValueError(f"wrapped phases differ in shape: {sorted(shapes)}")
+        raise SimInputError(f"wrapped phases differ in shape: {sorted(shapes)}")
     if any(p <= 0 for p in periods_px):
-        raise ValueError(f"periods must be > 0 px, got {list(periods_px)}")
+        raise SimInputError(f"periods must be > 0 px, got {list(periods_px)}")
 
 
 def unwrap_hierarchical(
@@ -172,7 +174,7 @@ def beat(
     The beat of periods ``p_a < p_b`` is ``phi_a - phi_b`` with period ``p_a p_b / (p_b - p_a)``.
     """
     if period_a == period_b:
-        raise ValueError(f"heterodyne needs two different periods, got {period_a:g} twice")
+        raise SimInputError(f"heterodyne needs two different periods, got {period_a:g} twice")
     if period_a > period_b:
         phase_a, period_a, phase_b, period_b = phase_b, period_b, phase_a, period_a
     return np.mod(phase_a - phase_b, TWO_PI), period_a * period_b / (period_b - period_a)
@@ -194,7 +196,7 @@ def unwrap_heterodyne(
     """
     _check_levels(phases, periods_px)
     if len(phases) not in (2, 3):
-        raise ValueError(f"heterodyne unwrapping takes 2 or 3 periods, got {len(phases)}")
+        raise SimInputError(f"heterodyne unwrapping takes 2 or 3 periods, got {len(phases)}")
     order = np.argsort(periods_px)
     ph = [phases[k] for k in order]
     pp = [float(periods_px[k]) for k in order]
@@ -212,7 +214,7 @@ def gray_to_index(bits: np.ndarray) -> np.ndarray:
     """Stripe index from Gray-code bits (n_bits, H, W) bool, most significant bit first."""
     bits = np.asarray(bits, dtype=bool)
     if bits.ndim < 1 or bits.shape[0] < 1:
-        raise ValueError(f"Gray code needs at least one bit plane, got shape {bits.shape}")
+        raise SimInputError(f"Gray code needs at least one bit plane, got shape {bits.shape}")
     binary = np.logical_xor.accumulate(bits, axis=0)
     weights = 1 << np.arange(bits.shape[0] - 1, -1, -1, dtype=np.int64)
     return np.tensordot(weights, binary.astype(np.int64), axes=1)
@@ -229,15 +231,15 @@ def gray_bits(
     if inverse is not None:
         inverse = np.asarray(inverse, dtype=np.float64)
         if inverse.shape != images.shape:
-            raise ValueError(
+            raise SimInputError(
                 f"inverse Gray images have shape {inverse.shape}, expected {images.shape}"
             )
         return images > inverse
     if threshold is None:
-        raise ValueError("gray_bits needs either a threshold image or the inverse images")
+        raise SimInputError("gray_bits needs either a threshold image or the inverse images")
     threshold = np.asarray(threshold, dtype=np.float64)
     if threshold.shape != images.shape[1:]:
-        raise ValueError(
+        raise SimInputError(
             f"threshold image has shape {threshold.shape}, expected {images.shape[1:]}"
         )
     return images > threshold[None]
@@ -260,7 +262,7 @@ def unwrap_gray_code(
     ``return_order_error`` also ``|fringe_order_error|`` (up to ``w / (2 period)`` when right).
     """
     if stripe_width_px >= period_px:
-        raise ValueError(
+        raise SimInputError(
             f"Gray-code stripes ({stripe_width_px:g} px) must be narrower than the phase "
             f"period ({period_px:g} px) to unwrap robustly; add a Gray-code bit"
         )

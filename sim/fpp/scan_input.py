@@ -26,15 +26,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 import zarr
-from pydantic import TypeAdapter, ValidationError
+from pydantic import ValidationError
 
-from sim.render.fringe_patterns import PatternSet
+from sim.errors import SimInputError
+from sim.render.fringe_patterns import pattern_set_from
 from sim.validation import format_validation_error
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
 
 
-class ScanInputError(ValueError):
+class ScanInputError(SimInputError):
     """IMAGES cannot be read as a scan; the message names the path and what was expected."""
 
 
@@ -49,6 +50,10 @@ def _read_image(f: Path) -> np.ndarray:
             raise ScanInputError(f"{f}: .npy images must hold numbers, got dtype {im.dtype}")
         return im
     return cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+
+
+def _depth(im: np.ndarray) -> str:
+    return f"{8 * im.dtype.itemsize}-bit {'floats' if im.dtype.kind == 'f' else 'integers'}"
 
 
 def _read_stack(folder: Path) -> np.ndarray:
@@ -69,49 +74,18 @@ def _read_stack(folder: Path) -> np.ndarray:
                 f"{f}: image is {im.shape[1]} x {im.shape[0]} pixels, {files[0].name} is "
                 f"{images[0].shape[1]} x {images[0].shape[0]}: all images of a camera must match"
             )
+        if images and im.dtype != images[0].dtype:
+            raise ScanInputError(
+                f"{f}: image holds {_depth(im)}, {files[0].name} {_depth(images[0])}: all images "
+                "of a camera must have one bit depth"
+            )
         images.append(im)
     return np.stack(images)
 
 
-def _from_fringes(raw, projector_size: tuple[int, int] | None, where: str):
-    """A pattern-set mapping with ``fringes`` (counts across the projector) turned into periods
-    in projector pixels (``periods_px`` or ``period_px``)."""
-    if not isinstance(raw, dict) or "fringes" not in raw:
-        return raw
-    raw = dict(raw)
-    fringes = raw.pop("fringes")
-    kind = raw.get("kind")
-    key = {"phase_shift": "periods_px", "gray_code": "period_px"}.get(kind)
-    if key is None:
-        raise ScanInputError(f"{where}: 'fringes' needs 'kind' phase_shift or gray_code, got {kind!r}")
-    if key in raw:
-        raise ScanInputError(f"{where}: give 'fringes' or '{key}', not both")
-    if projector_size is None:
-        raise ScanInputError(f"{where}: 'fringes' needs the projector's size (the rig)")
-    direction = raw.get("direction", "u")
-    if direction not in ("u", "v"):
-        raise ScanInputError(f"{where}: 'fringes' with direction {direction!r}: the projector's "
-                             f"width and height differ, give '{key}' (projector pixels) instead")
-    extent = projector_size[0] if direction == "u" else projector_size[1]
-    counts = fringes if isinstance(fringes, list) else [fringes]
-    if kind == "gray_code" and isinstance(fringes, list):
-        raise ScanInputError(f"{where}: a gray_code set's 'fringes' is one count, got {fringes!r}")
-    try:
-        values = [float(c) for c in counts]
-    except (TypeError, ValueError):
-        raise ScanInputError(f"{where}: 'fringes' must be numbers (fringes across the projector), "
-                             f"got {fringes!r}") from None
-    if not values or any(not c > 0 for c in values):
-        raise ScanInputError(f"{where}: 'fringes' must be counts > 0, got {fringes!r}")
-    periods = [extent / c for c in values]
-    raw[key] = periods if kind == "phase_shift" else periods[0]
-    return raw
-
-
 def _pattern_set(raw, where: str, projector_size: tuple[int, int] | None = None):
-    raw = _from_fringes(raw, projector_size, where)
     try:
-        return TypeAdapter(PatternSet).validate_python(raw)
+        return pattern_set_from(raw, projector_size)
     except ValidationError as exc:
         raise ScanInputError(format_validation_error(where, exc)) from exc
 

@@ -13,9 +13,9 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from sim.errors import SimInputError
 from sim.metrology.spheres import finite_points
 from sim.tolerances import BALL_QUERY_SLACK_MM, ICP_RCOND, QUADRIC_RIDGE
-
 
 
 @dataclass(frozen=True)
@@ -111,7 +111,7 @@ def icp(
         d, j = tree.query(src)
         use = np.ones(len(src), bool) if max_distance_mm is None else d <= max_distance_mm
         if use.sum() < 6:
-            raise ValueError(
+            raise SimInputError(
                 f"ICP: only {int(use.sum())} pairs closer than {max_distance_mm} mm; "
                 "the clouds are not roughly aligned"
             )
@@ -140,7 +140,7 @@ def signed_distance_to_cloud(
     ref = np.asarray(reference, dtype=np.float64)
     nrm = np.asarray(reference_normals, dtype=np.float64)
     if nrm.shape != ref.shape:
-        raise ValueError(f"reference normals have shape {nrm.shape}, expected {ref.shape}")
+        raise SimInputError(f"reference normals have shape {nrm.shape}, expected {ref.shape}")
     k = min(k, len(ref))
     _, j = cKDTree(ref).query(points, k=k)
     n = nrm[j[:, 0]]
@@ -233,7 +233,7 @@ def compare_by_pixel(measured, reference, transform: RigidTransform | None = Non
         pm = transform.apply(pm)
     d = np.sum((pm - np.asarray(reference.points, dtype=np.float64)[ir]) * nrm[ir], axis=1)
     if d.size == 0:
-        raise ValueError("compare_by_pixel: the clouds share no reference pixel away from "
+        raise SimInputError("compare_by_pixel: the clouds share no reference pixel away from "
                          "the silhouettes")
     return PixelComparison(d, float(d.mean()), float(np.sqrt(np.mean(d * d))), im,
                            unmatched)
@@ -248,7 +248,7 @@ def mesh_signed_distance(points: np.ndarray, mesh: trimesh.Trimesh) -> np.ndarra
     """
     p = finite_points(points, "points", 1)
     if len(mesh.faces) == 0:
-        raise ValueError("reference mesh has no triangles")
+        raise SimInputError("reference mesh has no triangles")
     mesh = mesh.copy()
     edge = float(np.median(mesh.edges_unique_length))
     if mesh.edges_unique_length.max() > 4 * edge:  # bound the triangle size: same surface
@@ -293,7 +293,7 @@ def distance_colormap_png(
     p = np.asarray(points, dtype=np.float64)
     d = np.asarray(distances_mm, dtype=np.float64)
     if len(p) != len(d):
-        raise ValueError(f"{len(p)} points but {len(d)} distances")
+        raise SimInputError(f"{len(p)} points but {len(d)} distances")
     q = p - p.mean(axis=0)
     _, _, vt = np.linalg.svd(q, full_matrices=False)
     xy = q @ vt[:2].T

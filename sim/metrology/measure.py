@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.errors import SimInputError
 from sim.metrology.compare import (
     compare_by_pixel,
     compare_clouds,
@@ -27,7 +28,7 @@ def distance_stats(d: np.ndarray) -> dict:
             "std_mm": float(d.std()), "min_mm": float(d.min()), "max_mm": float(d.max())}
 
 
-class NotCredible(ValueError):
+class NotCredible(SimInputError):
     """A fit that does not match what the user said was measured (exit 1 in the CLI)."""
 
 
@@ -50,10 +51,10 @@ def measure_sphere(points: np.ndarray, diameter_mm: float | None = None,
     points near the sphere (m, 3) and their signed radial distances (m,) mm."""
     if diameter_mm is not None:
         if not diameter_mm > 0:
-            raise ValueError(f"nominal diameter must be > 0 mm, got {diameter_mm:g}")
+            raise SimInputError(f"nominal diameter must be > 0 mm, got {diameter_mm:g}")
         try:
             fit = find_spheres(points, 1, diameter_mm / 2)[0]
-        except ValueError as exc:
+        except SimInputError as exc:
             raise NotCredible(f"no sphere of nominal diameter {diameter_mm:g} mm in the points "
                               f"({exc}); is the nominal diameter right (not the radius)?") from exc
         _check_diameter("sphere", fit.diameter, diameter_mm, tolerance)
@@ -73,7 +74,7 @@ def measure_ballbar(points: np.ndarray, diameter_mm: float, length_mm: float | N
     ``NotCredible``. Returns the report, the points near the balls and their distances (mm)."""
     try:
         bar = measure_ball_bar(points, diameter_mm / 2)
-    except ValueError as exc:
+    except SimInputError as exc:
         raise NotCredible(f"no two balls of nominal diameter {diameter_mm:g} mm: {exc}") from exc
     for i, s in enumerate(bar.spheres):
         _check_diameter(f"ball {i + 1}", s.diameter, diameter_mm, tolerance)
@@ -93,7 +94,7 @@ def load_mesh(path: str | Path):
         raise FileNotFoundError(2, "not found", str(path))
     mesh = trimesh.load(path, force="mesh")
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ValueError(f"{path}: no triangles in the file")
+        raise SimInputError(f"{path}: no triangles in the file")
     return mesh
 
 
@@ -182,7 +183,7 @@ def measure_by_pixel(cloud, reference, align: bool = True) -> tuple[dict, np.nda
     for name, c in (("cloud", cloud), ("reference", reference)):
         missing = [k for k in ("camera", "u", "v") if k not in c.fields]
         if missing:
-            raise ValueError(f"{name}: no per-point {', '.join(missing)} fields (scalar_camera, "
+            raise SimInputError(f"{name}: no per-point {', '.join(missing)} fields (scalar_camera, "
                              "scalar_u, scalar_v): compare by pixel needs clouds written by ltc "
                              "scan")
     c = compare_by_pixel(cloud, reference)

@@ -14,6 +14,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from sim.errors import SimInputError
 from sim.tolerances import SPHERE_DEGENERATE_REL, SPHERE_REJECT_FLOOR_MM
 
 MAD_TO_SIGMA = 1.4826
@@ -53,10 +54,10 @@ def finite_points(points: np.ndarray, name: str, minimum: int = 6) -> np.ndarray
     """The finite rows of an (n, 3) point array (mm), float64; errors name ``name``."""
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"{name} must be an (n, 3) array of points, got shape {p.shape}")
+        raise SimInputError(f"{name} must be an (n, 3) array of points, got shape {p.shape}")
     p = p[np.all(np.isfinite(p), axis=1)]
     if len(p) < minimum:
-        raise ValueError(f"{name} has {len(p)} finite points, at least {minimum} are needed")
+        raise SimInputError(f"{name} has {len(p)} finite points, at least {minimum} are needed")
     return p
 
 
@@ -71,7 +72,7 @@ def fit_sphere_algebraic(points: np.ndarray) -> tuple[np.ndarray, float]:
     a = np.concatenate([2.0 * q, np.ones((len(q), 1))], axis=1)
     sol, _, rank, _ = np.linalg.lstsq(a, np.sum(q * q, axis=1), rcond=None)
     if rank < 4:
-        raise ValueError("points are degenerate (coplanar or collinear): no unique sphere")
+        raise SimInputError("points are degenerate (coplanar or collinear): no unique sphere")
     c = sol[:3]
     return c + m, float(np.sqrt(sol[3] + c @ c))
 
@@ -114,7 +115,7 @@ def fit_sphere(
         sigma = MAD_TO_SIGMA * np.median(np.abs(d[inl] - med))
         new = np.abs(d - med) <= max(reject_sigma * sigma, SPHERE_REJECT_FLOOR_MM)
         if new.sum() < 4:
-            raise ValueError("outlier rejection left fewer than 4 points: no sphere in the data")
+            raise SimInputError("outlier rejection left fewer than 4 points: no sphere in the data")
         if np.array_equal(new, inl):
             break
         inl = new
@@ -154,13 +155,13 @@ def find_spheres(
     """
     p = finite_points(points, "points", 4 * count)
     if radius_mm <= 0:
-        raise ValueError(f"radius_mm must be > 0, got {radius_mm}")
+        raise SimInputError(f"radius_mm must be > 0, got {radius_mm}")
     rng = np.random.default_rng(0) if rng is None else rng
     found: list[SphereFit] = []
     remaining = p
     for k in range(count):
         if len(remaining) < 4:
-            raise ValueError(f"only {len(found)} of {count} spheres found: points ran out")
+            raise SimInputError(f"only {len(found)} of {count} spheres found: points ran out")
         sub = remaining[rng.choice(len(remaining), size=min(len(remaining), RANSAC_POINTS), replace=False)]
         tree = cKDTree(sub)
         seeds = rng.integers(0, len(sub), size=iterations)
@@ -174,7 +175,7 @@ def find_spheres(
         good = np.abs(r - radius_mm) <= radius_tolerance * radius_mm
         c, r = c[good], r[good]
         if len(r) == 0:
-            raise ValueError(
+            raise SimInputError(
                 f"sphere {k + 1} of {count}: no candidate sphere of radius {radius_mm:g} mm "
                 f"(+-{100 * radius_tolerance:g}%) in the points"
             )
@@ -183,7 +184,7 @@ def find_spheres(
         fit = _best_fit(remaining, c, r, score, wide,
                         lambda f: abs(f.radius - radius_mm) <= radius_tolerance * radius_mm)
         if fit is None:
-            raise ValueError(
+            raise SimInputError(
                 f"sphere {k + 1} of {count}: no fit of radius {radius_mm:g} mm "
                 f"(+-{100 * radius_tolerance:g}%) to the best candidates' points"
             )
@@ -275,7 +276,7 @@ def find_sphere_unknown(
     sub = p[rng.choice(len(p), size=min(len(p), RANSAC_POINTS), replace=False)]
     extent = float(np.linalg.norm(np.ptp(sub, axis=0)))
     if extent <= 0:
-        raise ValueError("points: all at one place, no sphere")
+        raise SimInputError("points: all at one place, no sphere")
     tree = cKDTree(sub)
     seeds = rng.integers(0, len(sub), size=iterations)
     scales = extent * np.array([0.05, 0.1, 0.2, 0.4])
@@ -308,16 +309,16 @@ def _unknown_pass(p: np.ndarray, sub: np.ndarray, c: np.ndarray, r: np.ndarray,
     good = np.isfinite(r) & (r < largest) & (r > 5.0 * inlier_mm)
     c, r = c[good], r[good]
     if len(r) == 0:
-        raise ValueError(f"no sphere in the points: every candidate was flat or larger than "
-                         f"{what}")
+        raise SimInputError(f"no sphere in the points: every candidate was flat or larger "
+                            f"than {what}")
     score = _scores(sub, c, r, inlier_mm)
     if score.max() < MIN_SPHERE_SUPPORT:
-        raise ValueError(f"no sphere in the points: the best candidate has {score.max()} points "
+        raise SimInputError(f"no sphere in the points: the best candidate has {score.max()} points "
                          f"within {inlier_mm:g} mm of its surface")
     fit = _best_fit(p, c, r, score, None, lambda f: 5.0 * inlier_mm < f.radius < largest)
     if fit is None:
-        raise ValueError("no sphere in the points: the best candidates' fits are flat or larger "
-                         f"than {what}")
+        raise SimInputError("no sphere in the points: the best candidates' fits are flat or "
+                            f"larger than {what}")
     return fit
 
 

@@ -20,6 +20,8 @@ from typing import Literal, Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from sim.errors import SimInputError
+
 GOLDEN_ANGLE_RAD = np.pi * (3.0 - np.sqrt(5.0))
 
 
@@ -48,7 +50,7 @@ class LensModel(Protocol):
 def sunflower_disk(n: int) -> np.ndarray:
     """``n`` equal-area points covering the unit disk evenly (Vogel spiral), (n, 2) float64."""
     if n < 1:
-        raise ValueError(f"sunflower_disk needs n >= 1 samples, got {n}")
+        raise SimInputError(f"sunflower_disk needs n >= 1 samples, got {n}")
     return _sunflower(n).copy()
 
 

@@ -52,6 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.errors import SimInputError
 from sim.optics.lens import GaussianLens, RayBundle
 from sim.optics.projection import normalized_to_pixel
 from sim.tolerances import WEIGHT_SUM_TOL
@@ -65,7 +66,7 @@ REQUIRED = ("format", "format_version", "focus_distance_mm", "optical_centre_mm"
 OPTIONAL = ("camera_matrix", "dist_coeffs", "metadata_json", "focus_zones_mm", "aim_offset")
 
 
-class LensFileError(ValueError):
+class LensFileError(SimInputError):
     """A measured-lens file or model is invalid; the message names the file and the field."""
 
 
@@ -754,6 +755,9 @@ def load_lens(path: str | Path) -> MeasuredLens:
     path = Path(path)
     if not path.is_file():
         raise LensFileError(f"{path}: no such measured-lens file")
+    if not zipfile.is_zipfile(path):
+        raise LensFileError(f"{path}: not a readable measured-lens file: not a .npz archive "
+                            "as `ltc lens` writes it")
     try:
         with np.load(path, allow_pickle=False) as npz:
             data = {k: npz[k] for k in npz.files}

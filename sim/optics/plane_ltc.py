@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from sim.errors import SimInputError
 from sim.optics.lens import LensModel
 from sim.optics.projection import pixel_to_normalized
 
@@ -32,7 +33,7 @@ RAYS_PER_CHUNK = 1 << 21
 def subpixel_offsets(n: int) -> np.ndarray:
     """Centres of an n x n grid over a pixel's area, offsets in pixels, (n*n, 2)."""
     if n < 1:
-        raise ValueError(f"subpixel grid needs n >= 1, got {n}")
+        raise SimInputError(f"subpixel grid needs n >= 1, got {n}")
     g = (np.arange(n) + 0.5) / n - 0.5
     du, dv = np.meshgrid(g, g)
     return np.stack([du.ravel(), dv.ravel()], axis=1)
@@ -97,7 +98,7 @@ def plane_ltc(
                   np.ascontiguousarray(b.weights.reshape(n, r)), R, t, float(pitch_mm),
                   half_scale, xy, half, weight, box)
         if n and half.max() >= MAX_HALF_PX:
-            raise ValueError("plane_ltc: a subpixel's footprint spans more than 16 plane "
+            raise SimInputError("plane_ltc: a subpixel's footprint spans more than 16 plane "
                              "pixels; use more subpixels")
         weight /= s
         lo = box[:, :2]

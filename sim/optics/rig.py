@@ -43,6 +43,7 @@ from pydantic import (
     model_validator,
 )
 
+from sim.errors import SimInputError
 from sim.optics.projection import (
     camera_to_world,
     directions_to_world,
@@ -61,12 +62,14 @@ def _matrix(value, shape: tuple[int, ...], what: str) -> list:
     try:
         a = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
-        raise ValueError(f"{what} must be {math.prod(shape)} numbers {shape}, got {value!r}") from None
+        raise SimInputError(f"{what} must be {math.prod(shape)} numbers {shape}, got "
+                            f"{value!r}") from None
     if a.size != math.prod(shape):
-        raise ValueError(f"{what} must have {math.prod(shape)} values {shape}, got shape {a.shape}")
+        raise SimInputError(f"{what} must have {math.prod(shape)} values {shape}, got shape "
+                            f"{a.shape}")
     a = a.reshape(shape)
     if not np.all(np.isfinite(a)):
-        raise ValueError(f"{what} must be finite, got {a.tolist()}")
+        raise SimInputError(f"{what} must be finite, got {a.tolist()}")
     return a.tolist()
 
 
@@ -110,13 +113,14 @@ class DeviceCalibration(BaseModel):
     def _check(self) -> DeviceCalibration:
         K = self.K_array
         if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
-            raise ValueError(f"K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
+            raise SimInputError(f"K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
                              f"got {self.K}")
         R = self.R_array
         if not np.allclose(R @ R.T, np.eye(3), atol=ROTATION_TOL) or np.linalg.det(R) <= 0:
-            raise ValueError(f"R must be a proper rotation matrix (R R^T = I, det +1), got {self.R}")
+            raise SimInputError("R must be a proper rotation matrix (R R^T = I, det +1), got "
+                                f"{self.R}")
         if self.size[0] < 1 or self.size[1] < 1:
-            raise ValueError(f"size must be (width, height) >= 1 pixel, got {self.size}")
+            raise SimInputError(f"size must be (width, height) >= 1 pixel, got {self.size}")
         return self
 
     K_array = _Float64View()  # K, dist, R, T as float64 arrays
@@ -178,7 +182,7 @@ class Rig(BaseModel):
     def _unique_names(self) -> Rig:
         names = [c.name for c in self.cameras] + [self.projector.name]
         if len(set(names)) != len(names):
-            raise ValueError(f"device names must be unique, got {names}")
+            raise SimInputError(f"device names must be unique, got {names}")
         return self
 
     @classmethod
@@ -192,10 +196,10 @@ class Rig(BaseModel):
             try:
                 return cls.model_validate_json(path.read_bytes())
             except ValidationError as exc:
-                raise ValueError(format_validation_error(str(path), exc)) from exc
+                raise SimInputError(format_validation_error(str(path), exc)) from exc
         if suffix in YAML_SUFFIXES:
             return _read_filestorage(path)
-        raise ValueError(f"rig file {path}: unknown extension '{path.suffix}', "
+        raise SimInputError(f"rig file {path}: unknown extension '{path.suffix}', "
                          "expected .json, .yaml, .yml or .xml")
 
     def save(self, path: str | Path) -> None:
@@ -207,7 +211,7 @@ class Rig(BaseModel):
         elif suffix in YAML_SUFFIXES:
             _write_filestorage(self, path)
         else:
-            raise ValueError(f"rig file {path}: unknown extension '{path.suffix}', "
+            raise SimInputError(f"rig file {path}: unknown extension '{path.suffix}', "
                          "expected .json, .yaml, .yml or .xml")
 
 
@@ -235,7 +239,7 @@ def _path(where: str, key: str) -> str:
 def _node(parent: cv2.FileNode, key: str, path: Path, where: str) -> cv2.FileNode:
     node = parent.getNode(key)
     if node.empty() or node.isNone():
-        raise ValueError(f"rig file {path}: node '{_path(where, key)}' is missing")
+        raise SimInputError(f"rig file {path}: node '{_path(where, key)}' is missing")
     return node
 
 
@@ -251,35 +255,36 @@ def _node_matrix(parent: cv2.FileNode, key: str, path: Path, where: str, n: int)
         rows, cols = _node_int(node, "rows", path, at), _node_int(node, "cols", path, at)
         dt = node.getNode("dt")
         if not dt.isString() or dt.string() not in OPENCV_DTYPES:
-            raise ValueError(f"rig file {path}: node '{at}/dt' must be one of "
+            raise SimInputError(f"rig file {path}: node '{at}/dt' must be one of "
                              f"{', '.join(OPENCV_DTYPES)} (one channel)")
         m = _numbers(_node(node, "data", path, at), path, f"{at}/data")
         if rows < 0 or cols < 0 or rows * cols != m.size:
-            raise ValueError(f"rig file {path}: node '{at}' is not a valid opencv-matrix: rows "
+            raise SimInputError(f"rig file {path}: node '{at}' is not a valid opencv-matrix: rows "
                              f"{rows} x cols {cols} but "
                              f"{m.size} data values")
     else:
-        raise ValueError(f"rig file {path}: node '{_path(where, key)}' must be an opencv-matrix or a sequence")
+        raise SimInputError(f"rig file {path}: node '{_path(where, key)}' must be an opencv-matrix "
+                            "or a sequence")
     if m is None or m.size != n:
         shape = None if m is None else m.shape
-        raise ValueError(f"rig file {path}: node '{_path(where, key)}' must have {n} values, "
+        raise SimInputError(f"rig file {path}: node '{_path(where, key)}' must have {n} values, "
                          f"got shape {shape}")
     return m.astype(np.float64).ravel()
 
 
 def _numbers(node: cv2.FileNode, path: Path, where: str) -> np.ndarray:
     if not node.isSeq():
-        raise ValueError(f"rig file {path}: node '{where}' must be a sequence of numbers")
+        raise SimInputError(f"rig file {path}: node '{where}' must be a sequence of numbers")
     items = [node.at(i) for i in range(node.size())]
     if not all(it.isReal() or it.isInt() for it in items):
-        raise ValueError(f"rig file {path}: node '{where}' must hold numbers only")
+        raise SimInputError(f"rig file {path}: node '{where}' must hold numbers only")
     return np.array([it.real() for it in items], dtype=np.float64)
 
 
 def _node_int(parent: cv2.FileNode, key: str, path: Path, where: str) -> int:
     node = _node(parent, key, path, where)
     if not node.isInt():
-        raise ValueError(f"rig file {path}: node '{_path(where, key)}' must be an integer")
+        raise SimInputError(f"rig file {path}: node '{_path(where, key)}' must be an integer")
     return int(node.real())
 
 
@@ -300,11 +305,11 @@ def _node_dist(parent: cv2.FileNode, key: str, path: Path) -> np.ndarray:
         except ValueError:
             continue
         if np.any(d[5:] != 0):
-            raise ValueError(f"rig file {path}: node '{key}' has non-zero coefficients beyond k3 "
+            raise SimInputError(f"rig file {path}: node '{key}' has non-zero coefficients beyond k3 "
                              f"({d[5:].tolist()}): only k1 k2 p1 p2 k3 are supported")
         return np.concatenate([d, np.zeros(5)])[:5] if n == 4 else d[:5]
     shape = node.mat().shape if node.isMap() and node.mat() is not None else "?"
-    raise ValueError(f"rig file {path}: node '{key}' must have 4, 5, 8, 12 or 14 distortion "
+    raise SimInputError(f"rig file {path}: node '{key}' must have 4, 5, 8, 12 or 14 distortion "
                      f"coefficients, got shape {shape}")
 
 
@@ -316,7 +321,7 @@ def _node_size(fs: cv2.FileNode, names: tuple[str, str], joint: tuple[str, ...],
         if _present(fs, key):
             v = _node_matrix(fs, key, path, "", 2)
             return (int(v[0]), int(v[1]))
-    raise ValueError(f"rig file {path}: the {what} size is missing: give '{names[0]}' and "
+    raise SimInputError(f"rig file {path}: the {what} size is missing: give '{names[0]}' and "
                      f"'{names[1]}' (or '{joint[0]}' = [width, height])")
 
 
@@ -325,7 +330,7 @@ def _read_stereo_calibrate(fs: cv2.FileStorage, path: Path) -> Rig:
     root = fs.root()
     missing = [k for k in STEREO_CALIBRATE_NODES if not _present(root, k)]
     if missing:
-        raise ValueError(f"rig file {path}: stereoCalibrate naming (M1 D1 M2 D2 R T, projector "
+        raise SimInputError(f"rig file {path}: stereoCalibrate naming (M1 D1 M2 D2 R T, projector "
                          f"M3 D3 R3 T3) but node(s) {', '.join(missing)} missing")
     cam_size = _node_size(root, ("image_width", "image_height"), ("imageSize", "image_size"),
                           path, "camera")
@@ -344,7 +349,7 @@ def _read_stereo_calibrate(fs: cv2.FileStorage, path: Path) -> Rig:
                 name=name, K=_node_matrix(root, m, path, "", 9).reshape(3, 3),
                 dist=_node_dist(root, d, path), R=r, T=t, size=size))
         except ValidationError as exc:
-            raise ValueError(format_validation_error(f"rig file {path}: nodes {m} {d}", exc)) from exc
+            raise SimInputError(format_validation_error(f"rig file {path}: nodes {m} {d}", exc)) from exc
     fs.release()
     return Rig(cameras=devices[:2], projector=devices[2])
 
@@ -354,19 +359,21 @@ def _read_filestorage(path: Path) -> Rig:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:  # the binding wraps parse errors in SystemError
         cause = str(exc.__cause__ or exc).strip().splitlines()[-1]
-        raise ValueError(f"rig file {path}: not a readable OpenCV FileStorage file: {cause}") from exc
+        raise SimInputError(f"rig file {path}: not a readable OpenCV FileStorage file: "
+                            f"{cause}") from exc
     try:
         return _rig_from_filestorage(fs, path)
     except (cv2.error, UnicodeDecodeError) as exc:  # a string node that is not UTF-8
         cause = " ".join(str(exc).split())
-        raise ValueError(f"rig file {path}: not a readable OpenCV FileStorage rig: {cause}") from exc
+        raise SimInputError(f"rig file {path}: not a readable OpenCV FileStorage rig: "
+                            f"{cause}") from exc
     finally:
         fs.release()
 
 
 def _rig_from_filestorage(fs: cv2.FileStorage, path: Path) -> Rig:
     if not fs.root().isMap():
-        raise ValueError(f"rig file {path}: the top level must be a map of the nodes "
+        raise SimInputError(f"rig file {path}: the top level must be a map of the nodes "
                          f"{', '.join(DEVICE_NODES)}")
     if _present(fs.root(), "M1") and not _present(fs.root(), "camera_0"):
         return _read_stereo_calibrate(fs, path)
@@ -374,10 +381,10 @@ def _rig_from_filestorage(fs: cv2.FileStorage, path: Path) -> Rig:
     for where in DEVICE_NODES:
         dev = _node(fs.root(), where, path, "")
         if not dev.isMap():
-            raise ValueError(f"rig file {path}: node '{where}' must be a map")
+            raise SimInputError(f"rig file {path}: node '{where}' must be a map")
         name_node = dev.getNode("name")
         if not (name_node.empty() or name_node.isNone() or name_node.isString()):
-            raise ValueError(f"rig file {path}: node '{where}/name' must be a string")
+            raise SimInputError(f"rig file {path}: node '{where}/name' must be a string")
         fields = {
             "name": name_node.string() if name_node.isString() else where,
             "size": (_node_int(dev, "image_width", path, where),
@@ -390,11 +397,11 @@ def _rig_from_filestorage(fs: cv2.FileStorage, path: Path) -> Rig:
         try:
             devices.append(DeviceCalibration(**fields))
         except ValidationError as exc:
-            raise ValueError(format_validation_error(f"rig file {path}: node '{where}'", exc)) from exc
+            raise SimInputError(format_validation_error(f"rig file {path}: node '{where}'", exc)) from exc
     try:
         return Rig(cameras=devices[:2], projector=devices[2])
     except ValidationError as exc:
-        raise ValueError(format_validation_error(f"rig file {path}", exc)) from exc
+        raise SimInputError(format_validation_error(f"rig file {path}", exc)) from exc
 
 
 def look_at(centre_mm: np.ndarray, target_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -405,7 +412,8 @@ def look_at(centre_mm: np.ndarray, target_mm: np.ndarray) -> tuple[np.ndarray, n
     z /= np.linalg.norm(z)
     x = np.cross([0.0, 1.0, 0.0], z)
     if np.linalg.norm(x) < LOOK_AT_PARALLEL_TOL:
-        raise ValueError("look_at: the optical axis is parallel to world y; choose another target")
+        raise SimInputError("look_at: the optical axis is parallel to world y; choose another "
+                            "target")
     x /= np.linalg.norm(x)
     R = np.stack([x, np.cross(z, x), z])
     return R, -R @ c
@@ -455,7 +463,7 @@ def small_rig(scale: float = 0.04, distortion: bool = True) -> Rig:
     """``default_rig`` with every image size and focal length multiplied by ``scale``
     (0.04: cameras 164 x 87, projector 77 x 43): same poses, nearly the same fields of view."""
     if not 0 < scale <= 1:
-        raise ValueError(f"small_rig: scale must be in (0, 1], got {scale}")
+        raise SimInputError(f"small_rig: scale must be in (0, 1], got {scale}")
     cam = (max(1, round(4096 * scale)), max(1, round(2168 * scale)))
     proj = (max(1, round(1920 * scale)), max(1, round(1080 * scale)))
     return _scaled_rig(cam, proj, scale, distortion)

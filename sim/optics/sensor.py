@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sim.errors import SimInputError
+
 
 @dataclass(frozen=True)
 class Sensor:
@@ -42,7 +44,8 @@ class Sensor:
         """Electrons read out (same shape, ``dtype``) for expected ``electrons``: shot noise,
         full-well clipping, read noise. ``rng`` may be None only when not :attr:`noisy`."""
         if self.noisy and rng is None:
-            raise ValueError("Sensor.expose: rng is required when shot noise or read noise is on")
+            raise SimInputError("Sensor.expose: rng is required when shot noise or read noise is "
+                                "on")
         e = np.asarray(electrons)
         if self.shot_noise:
             e = rng.poisson(np.maximum(e, 0)).astype(dtype)
@@ -60,7 +63,7 @@ class Sensor:
         e = np.asarray(electrons, dtype=dtype)
         if self.noisy:
             if rng is None:
-                raise ValueError("Sensor.expose_gaussian: rng is required when noise is on")
+                raise SimInputError("Sensor.expose_gaussian: rng is required when noise is on")
             var = (np.maximum(e, 0) if self.shot_noise else 0) + dtype(self.read_noise_e**2)
             e = e + rng.standard_normal(e.shape, dtype=dtype) * np.sqrt(var).astype(dtype)
         return np.minimum(e, dtype(self.full_well_e))

@@ -14,5 +14,6 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "trace": "TraceGeometry Transport trace_camera camera_rays normalized_grid",
     "images": "ProjectorResponse CameraResponse RenderSettings CameraImages RenderResult "
               "project_patterns gather gather_into camera_response render render_camera "
-              "render_views write_png write_pngs write_zarr",
+              "render_views",
+    "image_files": "write_png write_pngs write_zarr",
 })

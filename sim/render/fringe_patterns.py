@@ -14,8 +14,9 @@ import math
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, model_validator
 
+from sim.errors import SimInputError
 from sim.tolerances import PATTERN_RANGE_TOL
 
 Direction = Literal["u", "v", "both"]
@@ -60,7 +61,7 @@ def _coordinate(axis: str, size: tuple[int, int]) -> np.ndarray:
 def _check_size(size: tuple[int, int]) -> tuple[int, int]:
     w, h = (int(x) for x in size)
     if w < 1 or h < 1:
-        raise ValueError(f"projector_size must be (width, height) >= 1 pixel, got {size}")
+        raise SimInputError(f"projector_size must be (width, height) >= 1 pixel, got {size}")
     return w, h
 
 
@@ -76,15 +77,27 @@ class Modulation(BaseModel):
     def _in_range(self):
         tol = PATTERN_RANGE_TOL
         if self.offset - self.amplitude < -tol or self.offset + self.amplitude > 1 + tol:
-            raise ValueError(
+            raise SimInputError(
                 f"offset A={self.offset} and amplitude B={self.amplitude} must keep A +- B in [0, 1]"
             )
         return self
 
 
 class _Fringes(Modulation):
+    """A fringe set. Where it is read from a file (a scene's ``[patterns]``, a ``--patterns``
+    JSON), ``fringes`` may replace the periods: counts across the projector, turned into
+    periods in projector pixels with the projector's (width, height) given as the validation
+    context ``{"projector_size": ...}`` (:func:`pattern_set_from`)."""
+
     steps: int = Field(4, ge=3, description="N, phase shifts per period")
     direction: Direction = Field("u", description="fringes vary along u (columns), v (rows) or both")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fringe_counts(cls, data, info: ValidationInfo):
+        if not isinstance(data, dict) or "fringes" not in data:
+            return data
+        return _periods_from_fringes(data, (info.context or {}).get("projector_size"))
 
     def _phase_images(self, axis: str, period: float, size) -> np.ndarray:
         phi = (2 * np.pi / period) * _coordinate(axis, size)
@@ -103,7 +116,7 @@ class PhaseShiftSet(_Fringes):
     @model_validator(mode="after")
     def _periods(self):
         if any(p <= 0 for p in self.periods_px):
-            raise ValueError(f"periods_px must all be > 0, got {self.periods_px}")
+            raise SimInputError(f"periods_px must all be > 0, got {self.periods_px}")
         return self
 
     def descriptors(self, projector_size: tuple[int, int]) -> list[PatternDescriptor]:
@@ -188,4 +201,44 @@ class GrayCodeSet(_Fringes):
 
 
 PatternSet = Annotated[PhaseShiftSet | GrayCodeSet, Field(discriminator="kind")]
+
+
+def _periods_from_fringes(raw: dict, projector_size: tuple[int, int] | None) -> dict:
+    """``raw`` with ``fringes`` (counts across the projector) turned into ``periods_px`` (a
+    phase-shift set) or ``period_px`` (a Gray-code set), projector pixels."""
+    raw = dict(raw)
+    fringes = raw.pop("fringes")
+    kind = raw.get("kind")
+    key = {"phase_shift": "periods_px", "gray_code": "period_px"}[kind]
+    if key in raw:
+        raise ValueError(f"give 'fringes' or '{key}', not both")
+    if projector_size is None:
+        raise ValueError("'fringes' needs the projector's size (the rig)")
+    direction = raw.get("direction", "u")
+    if direction not in ("u", "v"):
+        raise ValueError(f"'fringes' with direction {direction!r}: the projector's width and "
+                         f"height differ, give '{key}' (projector pixels) instead")
+    extent = projector_size[0] if direction == "u" else projector_size[1]
+    if kind == "gray_code" and isinstance(fringes, list):
+        raise ValueError(f"a gray_code set's 'fringes' is one count, got {fringes!r}")
+    counts = fringes if isinstance(fringes, list) else [fringes]
+    try:
+        values = [float(c) for c in counts]
+    except (TypeError, ValueError):
+        raise ValueError(f"'fringes' must be numbers (fringes across the projector), got "
+                         f"{fringes!r}") from None
+    if not values or any(not c > 0 for c in values):
+        raise ValueError(f"'fringes' must be counts > 0, got {fringes!r}")
+    periods = [extent / c for c in values]
+    raw[key] = periods if kind == "phase_shift" else periods[0]
+    return raw
+
+
+def pattern_set_from(raw: object, projector_size: tuple[int, int] | None = None):
+    """Validate a pattern-set mapping (as a scene's ``[patterns]`` or a ``--patterns`` file
+    holds it): the one model of both, ``fringes`` included. Raises pydantic's
+    ``ValidationError``."""
+    from pydantic import TypeAdapter
+
+    return TypeAdapter(PatternSet).validate_python(raw, context={"projector_size": projector_size})
 

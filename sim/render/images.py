@@ -1,4 +1,5 @@
-"""Fringe images from a light transport: projector response, gather, camera response, writers.
+"""Fringe images from a light transport: projector response, gather, camera response (the
+writers are in ``sim.render.image_files`` and re-exported here).
 
 Signal chain for pattern image ``P`` (values in [0, 1]) and camera pixel ``p``:
 
@@ -23,20 +24,22 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal, Sequence
 
 import cv2
 import numpy as np
-import zarr
 from pydantic import BaseModel, ConfigDict, Field
 from tqdm import tqdm
 
+from sim.errors import SimInputError
 from sim.optics.lens import LensModel, hit_plane
-from sim.render.pattern_stack import PatternStack
-from sim.render.image_kernels import BLOCK_RAYS, IDENTITY, digitise, gather_rows
 from sim.optics.rig import Rig
 from sim.optics.sensor import Sensor
+from sim.render.image_files import write_png as write_png  # re-exported
+from sim.render.image_files import write_pngs as write_pngs
+from sim.render.image_files import write_zarr as write_zarr
+from sim.render.image_kernels import BLOCK_RAYS, IDENTITY, digitise, gather_rows
+from sim.render.pattern_stack import PatternStack
 from sim.render.trace import TraceGeometry, Transport, trace_camera
 
 TILE_RAYS = 1 << 22  # rays traced per tile in render_views (about 50 MB of transport)
@@ -100,7 +103,7 @@ def project_patterns(patterns: np.ndarray | PatternStack,
     stack = as_stack(patterns)
     lo, hi = stack.value_range()
     if not (lo >= 0 and hi <= 1):
-        raise ValueError(f"pattern values must lie in [0, 1], got [{lo:g}, {hi:g}]")
+        raise SimInputError(f"pattern values must lie in [0, 1], got [{lo:g}, {hi:g}]")
     if projector.input_bits is not None:
         q = np.float32((1 << projector.input_bits) - 1)
         stack = stack.map(lambda p: np.round(p * q) / q)
@@ -144,7 +147,7 @@ def _check_patterns(tr: Transport, projected: np.ndarray | PatternStack) -> Patt
     stack = as_stack(projected)
     if stack.size != tuple(tr.projector_size):
         w, h = stack.size
-        raise ValueError(f"projected patterns are {w} x {h} px, expected the transport's "
+        raise SimInputError(f"projected patterns are {w} x {h} px, expected the transport's "
                          f"{tr.projector_size[0]} x {tr.projector_size[1]} projector")
     return stack
 
@@ -155,7 +158,7 @@ def _check_array(what: str, a: np.ndarray, shape: tuple, dtype: type) -> None:
     if not isinstance(a, np.ndarray) or a.shape != tuple(shape) or a.dtype != dtype \
             or not a.flags.c_contiguous:
         got = f"{a.dtype.name} {a.shape}" if isinstance(a, np.ndarray) else type(a).__name__
-        raise ValueError(f"{what}: expected a C-contiguous {want} array, got {got}")
+        raise SimInputError(f"{what}: expected a C-contiguous {want} array, got {got}")
 
 
 def gather_into(tr: Transport, projected: np.ndarray | PatternStack, out: np.ndarray,
@@ -212,7 +215,8 @@ def camera_response(radiance: np.ndarray, camera: CameraResponse,
     sensor = camera.sensor
     noisy = sensor.noisy
     if noisy and rng is None:
-        raise ValueError("camera_response: rng is required when shot_noise or read_noise_e is on")
+        raise SimInputError("camera_response: rng is required when shot_noise or read_noise_e is "
+                            "on")
     x = np.ascontiguousarray(radiance, dtype=np.float32)
     if noisy:
         e = np.maximum(x * np.float32(camera.exposure_e), np.float32(0.0))
@@ -330,7 +334,7 @@ def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
         bar.update(len(tr.pixels))
     bar.close()
     if not np.any(obj >= 0):
-        raise ValueError(f"{where}: camera {index} ('{cam.name}') sees none of the scene objects; "
+        raise SimInputError(f"{where}: camera {index} ('{cam.name}') sees none of the scene objects; "
                          "check the rig's R and T (field 'rig') and the objects' poses")
     t0 = time.perf_counter()
     camera_response(res.radiance, camera, rng, out=res.images)
@@ -450,12 +454,12 @@ def _transport_tiles(transport: Transport | Sequence[Transport] | None, name: st
     for tr in tiles:
         if tuple(tr.camera_size) != tuple(camera_size) or \
                 tuple(tr.projector_size) != tuple(projector_size):
-            raise ValueError(f"render_camera transport: it is of a {tr.camera_size} camera and "
+            raise SimInputError(f"render_camera transport: it is of a {tr.camera_size} camera and "
                              f"{tr.projector_size} projector, camera '{name}' is {camera_size} "
                              f"and the projector {projector_size}")
         np.add.at(seen, tr.pixels, 1)
     if not np.all(seen == 1):
-        raise ValueError(f"render_camera transport: its tiles must cover each pixel of camera "
+        raise SimInputError(f"render_camera transport: its tiles must cover each pixel of camera "
                          f"'{name}' once ({int(np.sum(seen == 0))} missing, "
                          f"{int(np.sum(seen > 1))} repeated)")
     return tiles
@@ -471,7 +475,7 @@ def _camera_outputs(out: CameraImages | None, name: str, n: int, w: int, h: int,
     if out is None:
         return CameraImages(name, **{key: np.empty(*sd) for key, sd in shapes.items()})
     if out.name != name:
-        raise ValueError(f"render_camera out: it holds camera '{out.name}', not '{name}'")
+        raise SimInputError(f"render_camera out: it holds camera '{out.name}', not '{name}'")
     for key, (shape, dt) in shapes.items():
         _check_array(f"render_camera out, field '{key}' of camera '{name}'", getattr(out, key),
                      shape, dt)
@@ -486,57 +490,13 @@ def render_views(geom: TraceGeometry, rig: Rig, lenses: list[LensModel], pattern
     camera ``trace_s``, ``gather_s``, ``response_s``). Errors name ``where``."""
     t0 = time.perf_counter()
     if len(lenses) != len(rig.cameras):
-        raise ValueError(f"{where}: {len(lenses)} lenses for {len(rig.cameras)} cameras")
+        raise SimInputError(f"{where}: {len(lenses)} lenses for {len(rig.cameras)} cameras")
     stack = as_stack(pattern_images)
     if stack.size != tuple(rig.projector.size):
-        raise ValueError(f"{where}: pattern images are {stack.size[0]} x {stack.size[1]} px, "
+        raise SimInputError(f"{where}: pattern images are {stack.size[0]} x {stack.size[1]} px, "
                          f"the projector is {rig.projector.size[0]} x {rig.projector.size[1]}")
     projected = project_patterns(stack, settings.projector)
     t_pat = time.perf_counter() - t0
     cams = [render_camera(geom, rig, i, lens, projected, settings.camera, rng, progress, where)
             for i, lens in enumerate(lenses)]
     return RenderResult(cams, {"patterns_s": t_pat, "total_s": time.perf_counter() - t0})
-
-
-def write_png(path: str | Path, image: np.ndarray, bit_depth: int) -> None:
-    """Write one image (H, W): 8 bits as 8-bit PNG; 12 and 16 bits as 16-bit PNG holding the
-    DN values unscaled (a 12-bit image keeps 0..4095, it is not shifted to the top bits)."""
-    image = np.asarray(image)
-    want = {8: np.uint8, 12: np.uint16, 16: np.uint16}.get(bit_depth)
-    if want is None:
-        raise ValueError(f"write_png: bit_depth must be 8, 12 or 16, got {bit_depth}")
-    if image.ndim != 2 or image.dtype != want or (bit_depth == 12 and image.max(initial=0) > 4095):
-        raise ValueError(f"write_png {path}: expected a 2-D {np.dtype(want).name} image with values "
-                         f"< 2^{bit_depth}, got {image.dtype} {image.shape}")
-    if not cv2.imwrite(str(path), image):
-        raise OSError(f"write_png: could not write {path}")
-
-
-def write_pngs(directory: str | Path, images: np.ndarray, bit_depth: int) -> list[Path]:
-    """Write images (n, H, W) as ``directory/pattern_000.png`` ...; returns the paths."""
-    d = Path(directory)
-    d.mkdir(parents=True, exist_ok=True)
-    paths = [d / f"pattern_{i:03d}.png" for i in range(len(images))]
-    for p, im in zip(paths, images):
-        write_png(p, im, bit_depth)
-    return paths
-
-
-def write_zarr(path: str | Path, result: RenderResult, attrs: dict | None = None,
-               radiance: bool = False) -> None:
-    """Write a zarr v3 stack: group ``camera_<i>`` per camera with ``images`` (n, H, W, one
-    chunk per image), ``depth`` (H, W) mm, ``projector_map`` (H, W, 2) projector px,
-    ``lit`` (H, W), ``object_id`` (H, W) and, if asked, ``radiance`` (n, H, W) float32;
-    ``attrs`` (JSON-able) go on the root group, the camera name and timings on each group."""
-    root = zarr.open_group(str(path), mode="w", attributes=attrs or {})
-    for i, c in enumerate(result.cameras):
-        g = root.create_group(f"camera_{i}", attributes={"name": c.name, "timings": c.timings,
-                                                             "rays": c.n_rays})
-        h, w = c.depth.shape
-        g.create_array("images", data=c.images, chunks=(1, h, w))
-        if radiance:
-            g.create_array("radiance", data=c.radiance, chunks=(1, h, w))
-        g.create_array("depth", data=c.depth, chunks=(h, w))
-        g.create_array("projector_map", data=c.projector_map, chunks=(h, w, 2))
-        g.create_array("lit", data=c.lit, chunks=(h, w))
-        g.create_array("object_id", data=c.object_id, chunks=(h, w))

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from sim.errors import SimInputError
+
 FULL, ALONG_U, ALONG_V = 0, 1, 2  # values of PatternStack.form
 
 
@@ -69,7 +71,7 @@ class PatternStack:
         """The stack of pattern images (n, Hp, Wp), each in its cheapest exact form."""
         p = np.ascontiguousarray(images, dtype=np.float32)
         if p.ndim != 3:
-            raise ValueError(f"pattern images must be (n, H, W), got shape {p.shape}")
+            raise SimInputError(f"pattern images must be (n, H, W), got shape {p.shape}")
         n, h, w = p.shape
         form = _forms(p) if p.size else np.full(n, FULL, np.int8)
         slot = np.zeros(n, np.int64)

@@ -41,6 +41,7 @@ from pydantic import (
     field_validator,
 )
 
+from sim.errors import SimInputError
 from sim.render.fringe_patterns import PatternSet
 from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens
 from sim.render.images import RenderResult, RenderSettings, render_views, write_pngs, write_zarr
@@ -64,7 +65,7 @@ class Pose(BaseModel):
     def _rot(cls, v):
         R = np.asarray(_matrix(v, (3, 3), "R"))
         if not np.allclose(R @ R.T, np.eye(3), atol=ROTATION_TOL) or np.linalg.det(R) <= 0:
-            raise ValueError(f"R must be a proper rotation matrix, got {R.tolist()}")
+            raise SimInputError(f"R must be a proper rotation matrix, got {R.tolist()}")
         return R.tolist()
 
     @field_validator("t", mode="before")
@@ -137,7 +138,7 @@ class PlaneObject(_Object):
     def _local(self) -> list[trimesh.Trimesh]:
         w, h = self.size_mm
         if w <= 0 or h <= 0:
-            raise ValueError(f"field 'size_mm' must be > 0, got {self.size_mm}")
+            raise SimInputError(f"field 'size_mm' must be > 0, got {self.size_mm}")
         v = np.array([[-w / 2, -h / 2, 0], [w / 2, -h / 2, 0], [w / 2, h / 2, 0], [-w / 2, h / 2, 0]])
         return [trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False)]
 
@@ -156,7 +157,7 @@ class MeshObject(_Object):
 
     def _local(self) -> list[trimesh.Trimesh]:
         if self.path.suffix.lower() not in MESH_SUFFIXES:
-            raise ValueError(f"field 'path': mesh file {self.path} must be PLY, STL or OBJ")
+            raise SimInputError(f"field 'path': mesh file {self.path} must be PLY, STL or OBJ")
         if not self.path.is_file():
             raise FileNotFoundError(f"field 'path': mesh file {self.path} not found")
         mesh = load_mesh(self.path, where="field 'path': ")
@@ -174,17 +175,18 @@ def load_mesh(path: Path, where: str = "") -> trimesh.Trimesh:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # noqa: BLE001 - the parsers raise anything on a bad file
         detail = " ".join(str(exc).split())[:200] or type(exc).__name__
-        raise ValueError(f"{what} cannot be read as {path.suffix[1:].upper()}: {detail}") from exc
+        raise SimInputError(f"{what} cannot be read as {path.suffix[1:].upper()}: "
+                            f"{detail}") from exc
     if not isinstance(mesh, trimesh.Trimesh):
-        raise ValueError(f"{what} holds no triangle mesh")
+        raise SimInputError(f"{what} holds no triangle mesh")
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     if v.ndim != 2 or v.shape[1] != 3 or not np.all(np.isfinite(v)):
         bad = int(np.sum(~np.all(np.isfinite(v.reshape(len(v), -1)), axis=1)))
-        raise ValueError(f"{what} has {bad} non-finite vertices (NaN or infinite coordinates)")
+        raise SimInputError(f"{what} has {bad} non-finite vertices (NaN or infinite coordinates)")
     if len(f) == 0:
-        raise ValueError(f"{what} has no triangles ({len(v)} vertices in use)")
+        raise SimInputError(f"{what} has no triangles ({len(v)} vertices in use)")
     if f.ndim != 2 or f.shape[1] != 3 or f.min() < 0 or f.max() >= len(v):
-        raise ValueError(f"{what} has faces that are not triangles of its {len(v)} vertices")
+        raise SimInputError(f"{what} has faces that are not triangles of its {len(v)} vertices")
     return mesh
 
 
@@ -208,8 +210,8 @@ class Scene(BaseModel):
                 parts = o._local()
             except FileNotFoundError as exc:
                 raise FileNotFoundError(f"{where}: objects[{i}] ({o.kind} '{o.name}'): {exc}") from exc
-            except ValueError as exc:
-                raise ValueError(f"{where}: objects[{i}] ({o.kind} '{o.name}'): {exc}") from exc
+            except SimInputError as exc:
+                raise SimInputError(f"{where}: objects[{i}] ({o.kind} '{o.name}'): {exc}") from exc
             for j, m in enumerate(parts):
                 verts.append(o.pose.apply(m.vertices))
                 normals.append(o.pose.rotate(m.vertex_normals))
@@ -223,8 +225,8 @@ class Scene(BaseModel):
             spheres.extend(o.spheres())
         try:
             return self._geometry(verts, faces, normals, albedo, obj, face_sph, spheres)
-        except ValueError as exc:
-            raise ValueError(f"{where}: {exc}") from exc
+        except SimInputError as exc:
+            raise SimInputError(f"{where}: {exc}") from exc
 
     @staticmethod
     def _geometry(verts, faces, normals, albedo, obj, face_sph, spheres) -> TraceGeometry:
@@ -269,7 +271,7 @@ class SceneFile(BaseModel):
     objects: list[SceneObject] = Field(min_length=1, description="scene objects")
     patterns: PatternSet = Field(description="the projected pattern set")
     render: RenderSettings = Field(default_factory=RenderSettings, description="projector and camera")
-    seed: int = Field(0, description="seed of the camera noise generator")
+    seed: int = Field(0, ge=0, description="seed of the camera noise generator (>= 0)")
 
     @field_validator("lenses", mode="before")
     @classmethod
@@ -278,12 +280,12 @@ class SceneFile(BaseModel):
         for i, spec in enumerate(v if isinstance(v, list) else []):
             kind = spec.get("kind") if isinstance(spec, dict) else None
             if not isinstance(kind, str) or kind not in LENS_KINDS:
-                raise ValueError(f"lenses[{i}]: unknown lens kind {kind!r}, "
+                raise SimInputError(f"lenses[{i}]: unknown lens kind {kind!r}, "
                                  f"expected one of {', '.join(LENS_KINDS)}")
             try:
                 out.append(LENS_KINDS[kind].model_validate(spec))
             except ValidationError as exc:
-                raise ValueError(format_validation_error(f"lenses[{i}]", exc)) from exc
+                raise SimInputError(format_validation_error(f"lenses[{i}]", exc)) from exc
         return out if isinstance(v, list) else v
 
 
@@ -303,13 +305,13 @@ def _build_lens(spec, base: Path, source: Path, index: int, camera: DeviceCalibr
 
         try:
             lens = load_lens(path)
-        except ValueError as exc:
-            raise ValueError(f"{where}: {exc}") from exc
+        except SimInputError as exc:
+            raise SimInputError(f"{where}: {exc}") from exc
         from sim.optics.measured_lens import lens_camera_mismatch
 
         why = lens_camera_mismatch(lens, camera)
         if why is not None:
-            raise ValueError(f"{where}: lens file {path}: {why}")
+            raise SimInputError(f"{where}: lens file {path}: {why}")
         return lens
     return spec
 
@@ -325,6 +327,15 @@ class LoadedScene:
     scene: Scene
     geometry: TraceGeometry
 
+    def input_files(self) -> list[Path]:
+        """Every file the scene reads: the scene file, its rig, measured lenses and meshes."""
+        base = self.source.parent
+        files = [self.source, _resolve(base, self.config.rig)]
+        files += [_resolve(base, s.path) for s in self.config.lenses
+                  if isinstance(s, MeasuredLensSpec)]
+        files += [o.path for o in self.scene.objects if isinstance(o, MeshObject)]
+        return files
+
     def render(self, progress: bool = False) -> RenderResult:
         """Render the scene's pattern set on every camera (noise seeded by ``config.seed``)."""
         imgs = self.config.patterns.images(self.rig.projector.size)
@@ -332,10 +343,13 @@ class LoadedScene:
                             np.random.default_rng(self.config.seed), progress=progress,
                             where=str(self.source))
 
-    def save(self, result: RenderResult, out: str | Path, radiance: bool = False) -> dict:
+    def save(self, result: RenderResult, out: str | Path, radiance: bool = False, *,
+             final: str | Path | None = None) -> dict:
         """Write a rendering into the new folder ``out`` (docs/formats.md, "ltc render
         folder"): 8/16-bit PNGs per camera (unless unquantised), ``render.zarr`` with the
-        images and truth maps, ``summary.json``. Returns the summary."""
+        images and truth maps, ``summary.json``. ``final``: the path the folder will have
+        once renamed into place (recorded in the summary; default ``out``). Returns the
+        summary."""
         out = Path(out)
         out.mkdir(parents=True)
         cam = self.config.render.camera
@@ -344,7 +358,9 @@ class LoadedScene:
         for c, d in zip(result.cameras, png_dirs):
             if d is not None:
                 write_pngs(d, c.images, cam.bit_depth)
-        summary = self._summary(result, out, png_dirs)
+        recorded = Path(final) if final is not None else out
+        summary = self._summary(result, recorded,
+                                [d and str(recorded / Path(d).name) for d in png_dirs])
         descriptors = self.config.patterns.descriptors(self.rig.projector.size)
         attrs = {"summary": summary, "scene": self.config.model_dump(mode="json"),
                  "rig": self.rig.model_dump(mode="json"),
@@ -376,6 +392,19 @@ class LoadedScene:
         }
 
 
+def _projector_size(raw: object, base: Path) -> tuple[int, int] | None:
+    """The rig's projector (width, height) when ``[patterns]`` gives ``fringes`` and the rig
+    file reads (a rig that does not is reported by the rig's own check)."""
+    patterns = raw.get("patterns") if isinstance(raw, dict) else None
+    if not (isinstance(patterns, dict) and "fringes" in patterns
+            and isinstance(raw.get("rig"), str)):
+        return None
+    try:
+        return tuple(Rig.load(_resolve(base, Path(raw["rig"]))).projector.size)
+    except (OSError, ValueError):
+        return None
+
+
 def load_scene_file(path: str | Path) -> LoadedScene:
     """Read a scene TOML file and everything it names; errors name the file and the field."""
     path = Path(path)
@@ -384,21 +413,21 @@ def load_scene_file(path: str | Path) -> LoadedScene:
     try:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: not valid TOML: {exc}") from exc
-    try:
-        cfg = SceneFile.model_validate(raw)
-    except ValidationError as exc:
-        raise ValueError(format_validation_error(str(path), exc)) from exc
+        raise SimInputError(f"{path}: not valid TOML: {exc}") from exc
     base = path.parent
+    try:
+        cfg = SceneFile.model_validate(raw, context={"projector_size": _projector_size(raw, base)})
+    except ValidationError as exc:
+        raise SimInputError(format_validation_error(str(path), exc)) from exc
     rig_path = _resolve(base, cfg.rig)
     try:
         rig = Rig.load(rig_path)
     except FileNotFoundError as exc:
         raise FileNotFoundError(f"{path}: field 'rig': {exc}") from exc
-    except ValueError as exc:
-        raise ValueError(f"{path}: field 'rig': {exc}") from exc
+    except SimInputError as exc:
+        raise SimInputError(f"{path}: field 'rig': {exc}") from exc
     if len(cfg.lenses) != len(rig.cameras):
-        raise ValueError(f"{path}: field 'lenses': {len(cfg.lenses)} lens tables for "
+        raise SimInputError(f"{path}: field 'lenses': {len(cfg.lenses)} lens tables for "
                          f"{len(rig.cameras)} rig cameras; give one per camera")
     lenses = [_build_lens(spec, base, path, i, cam)
               for i, (spec, cam) in enumerate(zip(cfg.lenses, rig.cameras))]

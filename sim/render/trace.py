@@ -29,9 +29,10 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 from tqdm import tqdm
 
-from sim.render import trace_kernels as kern
+from sim.errors import SimInputError
 from sim.optics.lens import LensModel, PinholeLens
 from sim.optics.rig import DeviceCalibration
+from sim.render import trace_kernels as kern
 from sim.tolerances import PROJECTOR_GUARD, SHADOW_OFFSET_MM, VERTEX_NORMAL_SAME_TOL
 
 CHUNK_RAYS = 1 << 15  # rays per work item (a pinhole's: half; smaller or larger is slower)
@@ -58,16 +59,16 @@ class TraceGeometry:
     def __post_init__(self) -> None:
         v, f = np.asarray(self.vertices), np.asarray(self.faces)
         if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-            raise ValueError(f"TraceGeometry needs vertices (V, 3) and faces (F>0, 3), "
+            raise SimInputError(f"TraceGeometry needs vertices (V, 3) and faces (F>0, 3), "
                              f"got {v.shape}, {f.shape}")
         if not np.all(np.isfinite(v)):
-            raise ValueError("TraceGeometry: vertices must be finite")
+            raise SimInputError("TraceGeometry: vertices must be finite")
         if f.min() < 0 or f.max() >= len(v):
-            raise ValueError(f"TraceGeometry: face indices must be in [0, {len(v)}), "
+            raise SimInputError(f"TraceGeometry: face indices must be in [0, {len(v)}), "
                              f"got [{f.min()}, {f.max()}]")
         for name, n in (("vertex_normals", len(v)), ("face_albedo", len(f)), ("face_object", len(f))):
             if len(getattr(self, name)) != n:
-                raise ValueError(f"TraceGeometry: {name} must have {n} rows, "
+                raise SimInputError(f"TraceGeometry: {name} must have {n} rows, "
                                  f"got {len(getattr(self, name))}")
         if self.face_sphere is None:
             object.__setattr__(self, "face_sphere", np.full(len(f), -1, dtype=np.int64))
@@ -376,7 +377,7 @@ def trace_camera(geom: TraceGeometry, camera: DeviceCalibration, projector: Devi
     else:
         pix = np.asarray(pixels, dtype=np.int64).ravel()
         if len(pix) and (pix.min() < 0 or pix.max() >= w * h):
-            raise ValueError(f"pixels must be flat indices in [0, {w * h}) of camera "
+            raise SimInputError(f"pixels must be flat indices in [0, {w * h}) of camera "
                              f"'{camera.name}'")
     k = lens.bundle(np.zeros((1, 2)), np.zeros((1, 2))).weights.shape[1]
     n = len(pix)

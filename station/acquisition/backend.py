@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import contextlib
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -67,9 +67,13 @@ def open_fake_hardware(config: StationConfig, *, lut: np.ndarray | None = None):
     Tests reach the fakes' fault switches and wire log through it; the station does not."""
     from fakes.hardware import FakeHardware, parse_fake_settings
 
+    try:
+        settings = parse_fake_settings(config.fake)
+    except ValueError as exc:  # the [fake] section, refused by its validation
+        raise ConfigError(str(exc)) from exc
     s = config.stage
     fake = FakeHardware(
-        parse_fake_settings(config.fake), microstep_um=s.microstep_um, travel_mm=s.travel_mm,
+        settings, microstep_um=s.microstep_um, travel_mm=s.travel_mm,
         tolerance_um=s.tolerance_um, timeout_s=s.timeout_s, settle_s=s.settle_s,
         frame_code=frame_code_layout(config), lut=lut,
     )
@@ -114,6 +118,39 @@ def open_synthetic_hardware(config: StationConfig, *, lut: np.ndarray | None = N
     return SyntheticHardware(settings, period=config.patterns.period,
                              travel_mm=config.stage.travel_mm,
                              exposure_ms=config.camera.exposure_ms)
+
+
+def preflight(config: StationConfig, source: str, text: str | None = None) -> list[str]:
+    """Everything about ``config`` that can be checked before any device opens: the
+    ``[fake]`` section (on the fake bench) and the pattern period and check code against the
+    LCD when its size is known here (the fake benches'; a real LCD's when it opens). Raises
+    :class:`ConfigError` naming ``source`` and the field; returns warnings (values still as
+    the example gives them, when ``text``, the file's TOML, is given)."""
+    from station.acquisition.config import check_on_lcd, placeholder_warnings
+
+    lcd_size = None
+    if config.backend == "fake" and config.fake.get("model") == "synthetic":
+        from fakes.synthetic import parse_synthetic_settings
+
+        try:
+            lcd_size = parse_synthetic_settings(config.fake, source).synthetic.lcd_size
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from exc
+    elif config.backend == "fake":
+        from fakes.hardware import parse_fake_settings
+
+        try:
+            lcd_size = parse_fake_settings(config.fake, source).bench_config().lcd_size
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from exc
+    if lcd_size is not None:
+        check_on_lcd(config, tuple(lcd_size), source)
+    warnings = (placeholder_warnings(text, source)
+                if text is not None and config.backend == "real" else [])
+    if config.backend != "fake" and config.fake:
+        warnings.append(f"{source}: field 'fake': the [fake] section is used only with "
+                        "backend = 'fake'; it is ignored")
+    return warnings
 
 
 @contextlib.contextmanager

@@ -53,12 +53,16 @@ class Step:
     error: str | None = None
 
 
+WHITE_PERCENTILE = 99.0  # the white level: this percentile of a capture, over full scale
+
+
 def _capture_stats(image: np.ndarray, bit_depth: int) -> dict:
     full = float(2**bit_depth - 1)
     return {
         "min": int(image.min()),
         "max": int(image.max()),
         "mean": round(float(image.mean()), 2),
+        "white_level": round(float(np.percentile(image, WHITE_PERCENTILE)) / full, 4),
         "contrast": round(float(np.ptp(image)) / full, 4),
         "saturated_fraction": round(float(np.mean(image >= full)), 5),
     }
@@ -99,8 +103,12 @@ class Checker:
         return stats
 
 
-def run_check(config: StationConfig, out_dir: Path | None = None) -> dict:
-    """Run the check; return a JSON-ready report whose ``ok`` is True only if every step was."""
+def run_check(config: StationConfig, out_dir: Path | None = None,
+              sheet_name: str = "check.png") -> dict:
+    """Run the check; return a JSON-ready report whose ``ok`` is True only if every step was.
+    The contact sheet goes to ``out_dir / sheet_name``. ``white_level`` (report and steps): the
+    99th percentile of the checkerboard captures as a fraction of full scale (tune the
+    exposure until it is 0.80-0.90 with no saturated pixels)."""
     started = time.time()
     steps: list[Step] = []
     images: list[tuple[str, np.ndarray]] = []
@@ -134,11 +142,14 @@ def run_check(config: StationConfig, out_dir: Path | None = None) -> dict:
         else:
             steps.append(Step("close devices", error=f"{type(exc).__name__}: {exc}"))
     all_steps = [opened] + steps
+    whites = [s.detail["white_level"] for s in steps
+              if s.name.startswith("checkerboard") and "white_level" in s.detail]
     report = {
         "ok": all(s.ok for s in all_steps) and len(all_steps) > 2,
         "backend": config.backend,
         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(started)),
         "seconds": round(time.time() - started, 3),
+        "white_level": [min(whites), max(whites)] if whites else None,
         "steps": [
             {"name": s.name, "ok": s.ok, "seconds": s.seconds, "error": s.error,
              **{k: v for k, v in s.detail.items() if k != "traceback"}}
@@ -146,7 +157,7 @@ def run_check(config: StationConfig, out_dir: Path | None = None) -> dict:
         ],
     }
     if out_dir is not None and images:
-        report["contact_sheet"] = str(write_contact_sheet(images, Path(out_dir) / "check.png"))
+        report["contact_sheet"] = str(write_contact_sheet(images, Path(out_dir) / sheet_name))
     return report
 
 
@@ -192,8 +203,14 @@ def format_report(report: dict) -> str:
         mark = "ok  " if s["ok"] else "FAIL"
         extra = s.get("error") or s.get("warning") or ""
         facts = ", ".join(f"{k}={s[k]}" for k in ("measured_mm", "position_mm", "contrast",
-                                                   "saturated_fraction") if k in s)
+                                                   "white_level", "saturated_fraction")
+                          if k in s)
         lines.append(f"  [{mark}] {s['name']:<28} {facts} {extra}".rstrip())
+    if report.get("white_level"):
+        lo, hi = report["white_level"]
+        lines.append(f"  white level: {100 * lo:.0f}-{100 * hi:.0f} % of full scale (99th "
+                     "percentile of the checkerboards; tune the exposure to 80-90 % with no "
+                     "saturated pixels)")
     if "contact_sheet" in report:
         lines.append(f"  contact sheet: {report['contact_sheet']}")
     return "\n".join(lines)

@@ -2,20 +2,28 @@
 
 from __future__ import annotations
 
-
+import math
 import tomllib
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
-from drivers.frame_code import FrameCodeLayout
+from drivers.frame_code import FrameCodeLayout, frame_code_rect
 from sim.render.fringe_patterns import Modulation
 from sim.validation import field_path
+from station.errors import StationError
 
 
-class ConfigError(ValueError):
+class ConfigError(StationError, ValueError):
     """A config file is missing, unreadable or invalid; the message names file and field."""
 
 
@@ -95,6 +103,21 @@ class _CameraCommon(_Strict):
         "from it. None: unknown (principal point at the image centre)"
     )
 
+    @field_validator("matrix")
+    @classmethod
+    def _matrix_is_a_camera_matrix(cls, k: CameraMatrix | None) -> CameraMatrix | None:
+        if k is None:
+            return k
+        if not all(math.isfinite(v) for row in k for v in row):
+            raise ValueError(f"camera matrix K must be finite, got {k}")
+        if not (k[0][0] > 0 and k[1][1] > 0):
+            raise ValueError(f"camera matrix K must have fx = K[0][0] > 0 and fy = K[1][1] > 0 "
+                             f"(pixels), got fx = {k[0][0]}, fy = {k[1][1]}")
+        if tuple(k[2]) != (0.0, 0.0, 1.0) or k[1][0] != 0:
+            raise ValueError(f"camera matrix K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], "
+                             f"got {k}")
+        return k
+
 
 class FakeCameraConfig(_CameraCommon):
     """The fake bench's camera (``backend = "fake"`` only; its sensor is set in ``[fake]``)."""
@@ -163,7 +186,8 @@ class PatternConfig(Modulation):
     """Fourier single-pixel-imaging patterns (OPTICS.md section 5): ``offset`` A and
     ``amplitude`` B of ``A + B cos(...)`` (fractions of white, A +- B within [0, 1])."""
 
-    period: int = Field(24, ge=4, description="pattern period P, LCD pixels")
+    period: int = Field(24, ge=4, le=256, description="pattern period P, LCD pixels (at most "
+                        "the LCD's shorter side)")
     steps: Literal[3, 4] = Field(4, description="phase steps per frequency")
 
 
@@ -195,6 +219,17 @@ class FrameCheckConfig(_Strict):
         0.25, ge=0, lt=0.5, description="a frame must lie within 0.5 - min_margin of the way to "
         "the nearest other code value, else it is re-captured"
     )
+
+    def check_on(self, lcd_size: tuple[int, int]) -> None:
+        """Raise ``ValueError`` naming the field unless the code fits an LCD of (width,
+        height) pixels."""
+        if not self.enabled:
+            return
+        try:
+            frame_code_rect(self.layout(lcd_size), lcd_size)
+        except ValueError as exc:
+            field = "origin_px" if self.origin_px is not None else "block_px"
+            raise ValueError(f"field 'frame_check.{field}': {exc}") from None
 
     def layout(self, lcd_size: tuple[int, int]) -> FrameCodeLayout:
         """The code's layout on an LCD of (width, height) pixels."""
@@ -255,6 +290,17 @@ class StationConfig(_Strict):
     sequence: SequenceConfig = SequenceConfig()
     fake: dict[str, Any] = Field(default_factory=dict, description="fake bench settings")
 
+    @field_validator("depths_mm")
+    @classmethod
+    def _depths_once(cls, depths: list[float]) -> list[float]:
+        first: dict[float, int] = {}
+        for i, z in enumerate(depths):
+            if z in first:
+                raise ValueError(f"depths_mm[{i}] = {z} repeats depths_mm[{first[z]}]; give "
+                                 "each depth once")
+            first[z] = i
+        return depths
+
     @model_validator(mode="before")
     @classmethod
     def _default_camera_kind(cls, data: Any) -> Any:
@@ -286,6 +332,61 @@ class StationConfig(_Strict):
         return self
 
 
+def check_on_lcd(config: StationConfig, lcd_size: tuple[int, int], source: str) -> None:
+    """Refuse (:class:`ConfigError` naming ``source`` and the field) a pattern period or a
+    check code that does not fit an LCD of (width, height) pixels."""
+    w, h = lcd_size
+    if config.patterns.period > min(w, h):
+        raise ConfigError(f"{source}: field 'patterns.period': {config.patterns.period} LCD "
+                          f"pixels does not fit the {w}x{h} LCD; at most {min(w, h)}")
+    try:
+        config.frame_check.check_on(lcd_size)
+    except ValueError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def placeholder_warnings(text: str, source: str) -> list[str]:
+    """Warnings for the values of ``text`` (a config's TOML) still as ``ltc config --example
+    real`` gives them where it marks them CHECK, and for any value "CHANGE-ME"."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError:
+        return []
+    example = example_text("real")
+    ref = tomllib.loads(example)
+    warnings = []
+    section: tuple[str, ...] = ()
+    for line in example.splitlines():
+        stripped = line.strip()
+        if stripped.startswith("[") and not stripped.startswith("[["):
+            section = tuple(stripped.strip("[]").split("."))
+            continue
+        if stripped.startswith("#") or "# CHECK" not in line or "=" not in line:
+            continue
+        key = stripped.split("=", 1)[0].strip()
+        mine, theirs = _dig(data, section + (key,)), _dig(ref, section + (key,))
+        if mine is not None and mine == theirs and mine != "CHANGE-ME":
+            warnings.append(f"{source}: field '{'.'.join(section + (key,))}' still has the "
+                            f"example's value {mine!r}, marked CHECK: set it for this bench")
+    warnings += [f"{source}: field '{path}' is still \"CHANGE-ME\": set it for this bench"
+                 for path in _placeholders(data)]
+    return warnings
+
+
+def _dig(data: Any, path: tuple[str, ...]) -> Any:
+    for key in path:
+        if not isinstance(data, dict) or key not in data:
+            return None
+        data = data[key]
+    return data
+
+
+def _placeholders(data: Any, prefix: str = "") -> list[str]:
+    if isinstance(data, dict):
+        return [p for k, v in data.items() for p in _placeholders(v, f"{prefix}{k}.")]
+    return [prefix.rstrip(".")] if data == "CHANGE-ME" else []
+
+
 def parse_config(text: str, source: str = "<config>") -> StationConfig:
     """Parse TOML text into a validated config; errors name ``source`` and the field."""
     try:
@@ -304,7 +405,7 @@ def _format_errors(source: str, exc: ValidationError) -> str:
     lines = []
     for e in exc.errors():
         loc = tuple(e["loc"])
-        msg = e["msg"]
+        msg = e["msg"].removeprefix("Value error, ")
         if loc[:1] == ("camera",) and len(loc) > 1 and loc[1] in CAMERA_KINDS:
             if e["type"] == "extra_forbidden":
                 msg += f" (not a field of camera kind {loc[1]!r})"
@@ -314,7 +415,7 @@ def _format_errors(source: str, exc: ValidationError) -> str:
             msg = f"unknown camera kind {e['input'].get('kind')!r}; expected one of " \
                   f"{', '.join(repr(k) for k in CAMERA_KINDS)}"
         lines.append(f"{source}: field '{field_path(loc)}': {msg}")
-    return "\n".join(lines)
+    return "; ".join(lines)
 
 
 def load_config(path: str | Path) -> StationConfig:

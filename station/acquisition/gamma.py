@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-from drivers.camera import CameraError, CameraTimeout
+from drivers.errors import CameraError, CameraTimeout
 from station.acquisition.backend import Hardware, open_hardware
 from station.acquisition.config import StationConfig
-from station.errors import StationError
+from station.errors import StationError, StationInputError
 
 MIN_LEVELS = 64
 MIN_CONTRAST_FRACTION = 0.5  # pixels used: white-black contrast >= this fraction of the best
@@ -33,7 +33,7 @@ class GammaError(StationError):
 def grey_levels(n: int = 65) -> np.ndarray:
     """``n`` (>= 64) drive levels spread evenly over 0..255, both ends included, (n,) int."""
     if n < MIN_LEVELS or n > 256:
-        raise ValueError(f"levels must be {MIN_LEVELS}..256 grey levels, got {n}")
+        raise StationInputError(f"levels must be {MIN_LEVELS}..256 grey levels, got {n}")
     return np.unique(np.rint(np.linspace(0, 255, n)).astype(np.int64))
 
 

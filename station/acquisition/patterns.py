@@ -20,6 +20,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from sim.render.fringe_patterns import Modulation, PatternDescriptor
+from station.errors import StationInputError
 
 PLAN_FORMAT = "station-pattern-plan"
 PLAN_VERSION = 1
@@ -191,7 +192,7 @@ class StationPatternPlan(BaseModel):
         w, h = _check_size(lcd_size)
         loc = self.localisation
         if not loc.covers((w, h)):
-            raise ValueError(
+            raise StationInputError(
                 f"lcd_size {(w, h)} is larger than the localisation Gray code covers "
                 f"(bits_x={loc.bits_x}, bits_y={loc.bits_y}, period={loc.period}); "
                 "build the plan with StationPatternPlan.for_lcd"
@@ -264,11 +265,12 @@ def apply_lut(values: np.ndarray, lut: np.ndarray | None = None) -> np.ndarray:
     else:
         table = np.asarray(lut, dtype=np.float64)
         if table.ndim != 1 or len(table) < 2:
-            raise ValueError(f"lut must be a 1-D table of >= 2 entries, got shape {table.shape}")
+            raise StationInputError("lut must be a 1-D table of >= 2 entries, got shape "
+                                    f"{table.shape}")
         if not np.all(np.isfinite(table)) or table.min() < 0 or table.max() > 255:
-            raise ValueError("lut entries must be finite drive levels in [0, 255]")
+            raise StationInputError("lut entries must be finite drive levels in [0, 255]")
         if np.any(np.diff(table) < 0):
-            raise ValueError("lut must be non-decreasing (an inverse display response)")
+            raise StationInputError("lut must be non-decreasing (an inverse display response)")
         n = len(table)
         drive = np.interp(v * (n - 1), np.arange(n), table)
     return np.clip(np.rint(drive), 0, 255).astype(np.uint8)
@@ -288,5 +290,5 @@ def shown_luminance(drive: np.ndarray, lut: np.ndarray | None = None) -> np.ndar
 
 def _check_size(lcd_size: tuple[int, int]) -> tuple[int, int]:
     if len(lcd_size) != 2 or min(int(lcd_size[0]), int(lcd_size[1])) < 1:
-        raise ValueError(f"lcd_size must be positive (width, height), got {lcd_size}")
+        raise StationInputError(f"lcd_size must be positive (width, height), got {lcd_size}")
     return int(lcd_size[0]), int(lcd_size[1])

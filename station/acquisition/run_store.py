@@ -61,6 +61,7 @@ from zarr.codecs.bytes import Endian
 
 from station.acquisition.patterns import StationPatternPlan, apply_lut
 from station.acquisition.store_attrs import RunStoreAttrs, check_attrs, open_zarr_group
+from station.errors import StationError
 
 CODE_MASK = "code_mask"  # array [depth, row, col] bool: camera pixels that see the check code
 
@@ -70,7 +71,7 @@ _CRC_BYTES = 4  # a crc32c, little-endian uint32, after each inner chunk and aft
 _EMPTY = 2**64 - 1
 
 
-class RunStoreError(ValueError):
+class RunStoreError(StationError, ValueError):
     """The run store is missing, malformed, incomplete or misused; the message names the path."""
 
 

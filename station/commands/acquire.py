@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-import shutil
 
 from station.errors import UsageError
 
 OPTIONS = {"config": None, "out": "run store to create (RUN.zarr)",
-           "force": "delete an existing run store in --out and start again; with --resume, take "
+           "force": "replace the run store in --out with a new run (the old one stays until the "
+                    "new one is complete; only a run store is replaced); with --resume, take "
                     "over the writer lock left by a killed run (never a live writer's)",
            "json": None, "quiet": None}
 
@@ -25,26 +25,30 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict:
-    from station.acquisition.lock import StoreLock
+    from station.acquisition.backend import preflight
     from station.api import acquire, load_config
+    from station.outputs import RUN_STORE, check_output, staged
 
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.INFO, format="ltc acquire: %(levelname)s: %(message)s")
     args.resume_hint = (f"; finish with: ltc acquire {args.config} --out {args.out} --resume")
     config = load_config(args.config)
-    if args.out.exists() and not args.resume:
-        if not args.force:
-            raise UsageError(f"--out {args.out} exists; pass --resume to finish that run, "
-                             "--force to delete it and start again, or choose another path")
-        if args.out.is_dir():
-            with StoreLock(args.out, force=True):  # refuses a store a live writer holds
-                pass
-            shutil.rmtree(args.out)
-        else:
-            args.out.unlink()
-    summary = acquire(config, args.out, resume=args.resume, progress=not args.quiet,
-                      force=args.force)
-    return {**summary, "out": str(args.out)}
+    preflight(config, str(args.config))
+    if args.out.exists() and not args.resume and not args.force:
+        raise UsageError(f"--out {args.out} exists; pass --resume to finish that run, "
+                         "--force to replace it with a new run, or choose another path")
+    if args.resume:
+        summary = acquire(config, args.out, resume=True, progress=not args.quiet,
+                          force=args.force)
+        return {**summary, "out": str(args.out)}
+    out = check_output(args.out, args.force, kind=RUN_STORE, inputs=[args.config],
+                       parent_must_exist=True)
+    if out.exists():  # staged() refuses a store a live writer holds
+        args.resume_hint = (f"; the old run store {out} is unchanged; start again with: "
+                            f"ltc acquire {args.config} --out {out} --force")
+    with staged(out, RUN_STORE) as target:
+        summary = acquire(config, target, resume=False, progress=not args.quiet)
+    return {**summary, "run": str(out), "out": str(out)}
 
 
 def text(s: dict) -> str:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 
 from station.commands import at_least
-from station.errors import check_output
 
 OPTIONS = {"config": None, "out": "LUT file to write: .npy, or text with one value per line",
            "force": None, "json": None}
@@ -26,10 +25,13 @@ def run(args: argparse.Namespace) -> dict:
 
     from station.acquisition.gamma import measure_lut, save_lut
     from station.api import load_config
+    from station.outputs import LUT_FILE, staged
+    from station.outputs import check_output as check_kind
 
-    check_output(args.out, args.force)
+    check_kind(args.out, args.force, kind=LUT_FILE, inputs=[args.config])
     summary = measure_lut(load_config(args.config), n_levels=args.levels)
-    save_lut(args.out, np.array(summary["lut"]))
+    with staged(args.out, LUT_FILE, always=True) as target:
+        save_lut(target, np.array(summary["lut"]))
     return {**summary, "out": str(args.out)}
 
 

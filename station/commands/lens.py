@@ -14,7 +14,6 @@ import argparse
 from pathlib import Path
 
 from station.commands import at_least
-from station.errors import check_output
 
 
 OPTIONS = {"out": "lens model file to write (.npz)", "force": None, "json": None, "quiet": None,
@@ -43,16 +42,21 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     from station.api import derive_lens
+    from station.outputs import FIGURES_FOLDER, LENS_FILE, naming
+    from station.outputs import check_output as check_kind
 
-    check_output(args.out, args.force)
+    check_kind(args.out, args.force, kind=LENS_FILE, inputs=[args.store, args.rig or args.store],
+               parent_must_exist=True)
     if args.figures is not None:
-        check_output(args.figures, args.force, "--figures")
-    result = derive_lens(args.store, samples=args.samples, grid_step=args.grid_step,
-                         interpolation=args.interpolation, centre=args.centre,
-                         focus_distance_mm=args.focus_mm, rig=args.rig,
-                         rig_camera=args.rig_camera, figures=args.figures,
-                         progress=not args.quiet, out=args.out, workers=args.workers,
-                         dask=args.dask, scheduler=args.scheduler)
+        check_kind(args.figures, args.force, "--figures", kind=FIGURES_FOLDER,
+                   inputs=[args.store])
+    with naming(args.out):
+        result = derive_lens(args.store, samples=args.samples, grid_step=args.grid_step,
+                             interpolation=args.interpolation, centre=args.centre,
+                             focus_distance_mm=args.focus_mm, rig=args.rig,
+                             rig_camera=args.rig_camera, figures=args.figures,
+                             progress=not args.quiet, out=args.out, workers=args.workers,
+                             dask=args.dask, scheduler=args.scheduler)
     report = {**result.summary(), "out": str(args.out),
               "figures": [str(f) for f in result.figures]}
     return report

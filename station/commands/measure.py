@@ -21,7 +21,8 @@ import argparse
 from pathlib import Path
 
 from station.commands import positive_float
-from station.errors import UsageError, check_output
+from station.errors import UsageError
+from station.outputs import PNG_FILE, check_output
 
 OPTIONS = {"json": None}
 
@@ -63,8 +64,12 @@ def run(args: argparse.Namespace) -> dict:
     if args.ballbar and args.diameter is None:
         raise UsageError("--ballbar needs --diameter (the nominal ball diameter, mm)")
     if args.png is not None:
-        check_output(args.png, args.force, "--png")
+        check_output(args.png, args.force, "--png", kind=PNG_FILE,
+                     inputs=[args.cloud] + [p for p in (args.reference, args.against) if p])
+    import numpy as np
+
     pts = read_ply(args.cloud).points
+    dropped = int((~np.isfinite(pts).all(axis=1)).sum())  # the fits skip them
     tol = args.tolerance / 100.0
     if args.sphere:
         out, pts, d = m.measure_sphere(pts, args.diameter, tol)
@@ -85,13 +90,24 @@ def run(args: argparse.Namespace) -> dict:
     else:
         out, d = m.measure_against_cloud(pts, read_ply(args.against), not args.no_align)
         out["against"] = str(args.against)
-    out = {"cloud": str(args.cloud), **out}
+    out = {"cloud": str(args.cloud), "non_finite_dropped": dropped, **out}
     if args.png is not None:
-        out.update(m.distance_png(pts, d, args.png, f"signed distance, {out['kind']}"))
+        from station.outputs import staged
+
+        with staged(args.png, PNG_FILE, always=True) as target:
+            out.update(m.distance_png(pts, d, target, f"signed distance, {out['kind']}"))
+        out["png"] = str(args.png)
     return out
 
 
 def text(r: dict) -> str:
+    dropped = r.get("non_finite_dropped", 0)
+    note = (f"\n(dropped {dropped} point{'s' if dropped != 1 else ''} of {r['cloud']} with "
+            "non-finite coordinates)") if dropped else ""
+    return _text(r) + note
+
+
+def _text(r: dict) -> str:
     if r["kind"] == "sphere":
         c = r["centre_mm"]
         s = (f"sphere: diameter {r['diameter_mm']:.4f} mm, fit RMS {1e3 * r['fit_rms_mm']:.2f} um, "

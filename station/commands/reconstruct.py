@@ -9,13 +9,14 @@ reconstruction is finished with --resume.
 from __future__ import annotations
 
 import argparse
-import shutil
 from pathlib import Path
 
 from station.commands import at_least
-from station.errors import UsageError, check_output
+from station.errors import UsageError
 
-OPTIONS = {"out": "LTC store to create (LTC.zarr)", "force": "replace --out if it exists",
+OPTIONS = {"out": "LTC store to create (LTC.zarr)",
+           "force": "replace the LTC store in --out (the old one stays until the new one is "
+                    "complete; only an LTC store is replaced)",
            "json": None, "quiet": None, "workers": None, "dask": None,
            "scheduler": "compute on an existing Dask cluster (e.g. tcp://host:8786); the stores "
                         "must be on a path every worker can read and write"}
@@ -31,15 +32,24 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     from station.api import reconstruct_ltc
+    from station.outputs import LTC_STORE, check_output, staged
 
     args.resume_hint = f"; finish with: ltc reconstruct {args.run} --out {args.out} --resume"
     if args.resume and args.force:
         raise UsageError("--resume and --force exclude each other (--force starts afresh)")
-    if not args.resume and check_output(args.out, args.force).exists():
-        shutil.rmtree(args.out) if args.out.is_dir() else args.out.unlink()
-    return reconstruct_ltc(args.run, args.out, tile_px=args.tile, progress=not args.quiet,
-                           resume=args.resume, workers=args.workers, dask=args.dask,
-                           scheduler=args.scheduler)
+    if args.resume:
+        return reconstruct_ltc(args.run, args.out, tile_px=args.tile, progress=not args.quiet,
+                               resume=True, workers=args.workers, dask=args.dask,
+                               scheduler=args.scheduler)
+    out = check_output(args.out, args.force, kind=LTC_STORE, inputs=[args.run])
+    if out.exists():
+        args.resume_hint = (f"; the old LTC store {out} is unchanged; start again with: "
+                            f"ltc reconstruct {args.run} --out {out} --force")
+    with staged(out, LTC_STORE) as target:
+        summary = reconstruct_ltc(args.run, target, tile_px=args.tile, progress=not args.quiet,
+                                  resume=False, workers=args.workers, dask=args.dask,
+                                  scheduler=args.scheduler)
+    return {**summary, "out": str(out)}
 
 
 def text(s: dict) -> str:

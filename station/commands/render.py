@@ -9,12 +9,11 @@ images), render.zarr with the images and the truth maps, and summary.json (docs/
 from __future__ import annotations
 
 import argparse
-import shutil
 from pathlib import Path
 
-from station.errors import check_output
-
-OPTIONS = {"out": "output folder (created)", "force": "replace --out if it exists",
+OPTIONS = {"out": "output folder (created)",
+           "force": "replace the render folder in --out (the old one stays until the new one is "
+                    "complete; only a render folder is replaced)",
            "json": None, "quiet": None}
 
 
@@ -25,14 +24,16 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict:
+    from station.outputs import RENDER_FOLDER, check_output, staged
+
+    out: Path = check_output(args.out, args.force, kind=RENDER_FOLDER, inputs=[args.scene])
     from sim.render.scene import load_scene_file
 
-    out: Path = check_output(args.out, args.force)
     loaded = load_scene_file(args.scene)
+    check_output(out, args.force, kind=RENDER_FOLDER, inputs=loaded.input_files())
     result = loaded.render(progress=not args.quiet)
-    if out.exists():
-        shutil.rmtree(out) if out.is_dir() else out.unlink()
-    return loaded.save(result, out, radiance=args.radiance)
+    with staged(out, RENDER_FOLDER, always=True) as target:
+        return loaded.save(result, target, radiance=args.radiance, final=out)
 
 
 def text(s: dict) -> str:

@@ -22,6 +22,7 @@ def run(args: argparse.Namespace) -> dict:
     from station.sequence import run_sequence
 
     args.resume_hint = f"; continue with: ltc run {args.config} --out {args.out}"
+    args.log_file = Path(args.out) / "run.log"  # where the CLI keeps a bug's traceback
     summary = run_sequence(args.config, args.out, progress=not args.quiet, force=args.force)
     return {**summary, "out": str(args.out)}
 

@@ -104,6 +104,9 @@ def load_position(folder: Path, name: str) -> tuple[dict, dict, dict | None] | N
     again = f"delete {row_path} and {arr_path} to scan position {name} again"
     try:
         row = json.loads(row_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise StationError(f"{row_path}: unreadable ({exc}); {again}") from exc
+    try:
         with np.load(arr_path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}  # every member's CRC-32 is checked here
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.errors import SimError
 from station.errors import StationError
 from station.experiment.bench import RENDER
 from station.experiment.config import MODELS, ExperimentConfig
@@ -50,7 +51,7 @@ def scan_position(pos: Position, cfg: ExperimentConfig, rig, lenses: dict[str, t
         dt = time.perf_counter() - t0
         try:
             cloud = s.scan(images)
-        except ValueError as exc:  # name where: a long run's one line must say which scan
+        except SimError as exc:  # name where: a long run's one line must say which scan
             raise StationError(f"position {pos.name} ({pos.kind}, {pos.defocus} defocus), "
                                f"scanner {name}: {exc}") from exc
         out[name] = Scan(cloud, images.cameras[0].images, dt)

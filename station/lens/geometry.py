@@ -27,6 +27,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from sim.optics.projection import pixel_to_normalized
+from station.errors import StationError
 from station.lens.centre import OpticalCentre, intersect_rays, pinhole_centre
 from station.lens.centroids import STATUS_OK, Centroids
 from station.lens.rays import PrincipalRays, RayFitError, fit_principal_rays
@@ -37,7 +38,7 @@ TRACE_REL_FLOOR = 0.01  # relative error floor of an LTC second moment in the fo
 RAY_FIT_PIXELS = 1 << 16  # pixels per block of the focus fit and K directions (~1 kB each)
 
 
-class LensFitError(ValueError):
+class LensFitError(StationError, ValueError):
     """The lens cannot be derived; the message says which input and why."""
 
 

@@ -22,13 +22,15 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from station.errors import StationError
+
 FLAG_FEW_DEPTHS = 1
 FLAG_OUTLIER = 2
 FLAG_BAD_FIT = 4
 UNUSABLE = FLAG_FEW_DEPTHS | FLAG_BAD_FIT
 
 
-class RayFitError(ValueError):
+class RayFitError(StationError, ValueError):
     """Not enough usable principal rays; the message says how many and why."""
 
 

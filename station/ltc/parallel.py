@@ -16,10 +16,29 @@ the number of tasks.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import ctypes
 import multiprocessing
 import os
+import signal
+import sys
+import threading
+import time
 from collections.abc import Callable
 from typing import Any
+
+PARENT_POLL_S = 0.5  # how often a worker's watchdog looks for the main process
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM reached the main process while an engine ran: handled like Ctrl-C (the
+    command stops cleanly, releases its lock and prints how to resume)."""
+
+    def __str__(self) -> str:
+        return "terminated (SIGTERM)"
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated()
 
 
 def default_workers() -> int:
@@ -54,10 +73,14 @@ class Engine:
         self._pool: cf.Executor | None = None
         self._client = None
         self._cluster = None
+        self._old_sigterm: Any = None
+        if threading.current_thread() is threading.main_thread():
+            self._old_sigterm = signal.signal(signal.SIGTERM, _raise_terminated)
         if self.kind == "processes":
             ctx = multiprocessing.get_context("forkserver")
             self._pool = cf.ProcessPoolExecutor(self.workers, mp_context=ctx,
-                                                initializer=_single_threaded)
+                                                initializer=_worker_init,
+                                                initargs=(os.getpid(),))
         elif self.kind == "dask":
             from distributed import Client, LocalCluster
 
@@ -99,8 +122,13 @@ class Engine:
         done, rest = wait(list(pending), return_when="FIRST_COMPLETED")
         return set(done), set(rest)
 
-    def close(self) -> None:
+    def close(self, interrupted: bool = False) -> None:
+        """Shut down what this engine started; ``interrupted`` (Ctrl-C, SIGTERM): end the
+        running tasks at once rather than wait for them (a task is pure; nothing is lost)."""
         if self._pool is not None:
+            if interrupted:
+                for proc in list(getattr(self._pool, "_processes", {}).values()):
+                    proc.terminate()
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
         if self._client is not None:
@@ -109,12 +137,15 @@ class Engine:
         if self._cluster is not None:
             self._cluster.close()
             self._cluster = None
+        if self._old_sigterm is not None:
+            signal.signal(signal.SIGTERM, self._old_sigterm)
+            self._old_sigterm = None
 
     def __enter__(self) -> Engine:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
+        self.close(interrupted=exc_type is not None and issubclass(exc_type, KeyboardInterrupt))
 
 
 def run_ordered(engine: Engine, tasks, on_result: Callable[[Any, Any], None]) -> None:
@@ -142,6 +173,47 @@ def run_ordered(engine: Engine, tasks, on_result: Callable[[Any, Any], None]) ->
 
 
 def _single_threaded() -> None:
-    """Worker initialiser: one thread of maths per process (the processes are the cores)."""
+    """One thread of maths per process (the processes are the cores)."""
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
+
+
+def _worker_init(main_pid: int) -> None:
+    """Worker initialiser: single-threaded maths, and the worker ends when the main process
+    ``main_pid`` does (killed by SIGKILL, SIGTERM or the OOM killer): the kernel sends it
+    SIGKILL when its parent (the forkserver, which exits with the main process) dies, and a
+    watchdog thread checks every ``PARENT_POLL_S`` for systems without that."""
+    _single_threaded()
+    parent = os.getppid()
+    if sys.platform.startswith("linux"):
+        try:
+            PR_SET_PDEATHSIG = 1
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL),
+                                                    0, 0, 0)
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent or not _alive(main_pid):  # died before prctl took effect
+        os._exit(1)
+    threading.Thread(target=_watch_parent, args=(parent, main_pid), daemon=True,
+                     name="ltc-parent-watchdog").start()
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[1].split()[0] != b"Z"
+    except (OSError, IndexError):
+        return True
+
+
+def _watch_parent(parent: int, main_pid: int) -> None:
+    while os.getppid() == parent and _alive(main_pid):
+        time.sleep(PARENT_POLL_S)
+    os._exit(1)

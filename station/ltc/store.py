@@ -40,6 +40,7 @@ import zarr
 
 from station.acquisition.run_store import aligned_empty, write_new_file
 from station.acquisition.store_attrs import LtcStoreAttrs, check_attrs, open_zarr_group
+from station.errors import StationError
 
 FORMAT = "ltc-store"
 FORMAT_VERSION = 2
@@ -48,7 +49,7 @@ ARRAYS = ("ltc", "origin", "gain", "noise")
 OPTIONAL_ARRAYS = ("lcd_xy",)
 
 
-class LtcStoreError(ValueError):
+class LtcStoreError(StationError, ValueError):
     """The LTC store is missing, malformed or of another format; the message names the path."""
 
 
@@ -307,7 +308,7 @@ def centred_origins(centres_xy: np.ndarray, period: int) -> np.ndarray:
     return (np.floor(c + 0.5) - period // 2).astype(np.int32)
 
 
-class LtcVolumeError(ValueError):
+class LtcVolumeError(StationError, ValueError):
     """An LTC volume is unusable; the message names the source, array and element."""
 
 

@@ -69,14 +69,11 @@ def test_recorded_queries_are_the_primary_and_shadow_rays():
         B.summarise_queries([(q0[0], q0[1], {})])
 
 
-def test_bad_cases_and_readme_without_the_section(tmp_path):
+def test_bad_cases_and_the_results_file_rewritten_whole(tmp_path):
     with pytest.raises(ValueError, match=r"--cases: unknown case\(s\) \['fisheye'\]"):
         B.main(["--cases", "pinhole,fisheye"])
-    readme = tmp_path / "README.md"
-    readme.write_text("# Benchmarks\n\n## Rendering\n\ntext\n")
-    with pytest.raises(ValueError, match="needs a '## Tracing throughput' section"):
-        B.write_readme("table", readme)
-    readme.write_text("# B\n\n## Tracing throughput\n\nhow\n\n### Results\n\nold\n\n## Next\n\nkept\n")
-    B.write_readme("| new |", readme)
-    assert readme.read_text() == ("# B\n\n## Tracing throughput\n\nhow\n\n### Results\n\n| new |\n\n"
-                                  "## Next\n\nkept\n")
+    path = B.write_results(B.__file__, B.TITLE, "| old |\n", command="cmd", results_dir=tmp_path)
+    assert path == tmp_path / "trace_throughput.md"
+    path = B.write_results(B.__file__, B.TITLE, "| new |\n", results_dir=tmp_path)
+    assert path.read_text() == f"# {B.TITLE}\n\n| new |\n"  # the whole file, nothing kept
+    assert [p.name for p in tmp_path.iterdir()] == ["trace_throughput.md"]  # no temporary left

@@ -10,7 +10,6 @@ from collections.abc import Callable, Iterator
 import pytest
 import serial
 
-import drivers.stage as stage_module
 from drivers.interfaces import DeviceError
 from drivers.stage import (
     Stage,
@@ -661,7 +660,7 @@ def test_write_failing_again_after_reopening(url: str, monkeypatch: pytest.Monke
 
     device = url_device("stage-test")
     with ZaberStage(url, **STAGE) as stage:
-        monkeypatch.setattr(stage_module.serial, "serial_for_url", lambda *a, **k: BrokenPort())
+        monkeypatch.setattr(serial, "serial_for_url", lambda *a, **k: BrokenPort())
         device.faults.vanish = True
         with pytest.raises(StageConnectionLost, match=r"get pos:..': write failed \(.*vanished\), and "
                            r"again after re-opening \(still broken\)"):

@@ -434,3 +434,64 @@ def test_profile_speed_never_negative_or_above_vmax() -> None:
     for i in range(200):
         _, v = profile.state(i * profile.duration / 199)
         assert 0.0 <= v <= V + 1e-9 and not math.isnan(v)
+
+
+def test_an_overlong_line_is_dropped_and_the_buffer_stays_bounded(dev: FakeZaberDevice) -> None:
+    from fakes.zaber.device import MAX_LINE_BYTES, RECEIVED_LOG_BYTES
+
+    chunk = b"x" * (1 << 20)
+    for _ in range(8):  # 8 MB without a newline
+        dev.feed(chunk)
+        assert len(dev._inbuf) <= MAX_LINE_BYTES
+        assert len(dev.received_bytes) <= RECEIVED_LOG_BYTES
+    dev.feed(b"tail of the overlong line\n/1 get pos\n")
+    assert dev.dropped_lines == 1 and dev.received_count == 8 * len(chunk) + 37
+    assert dev.read_output() == f"@01 0 OK IDLE WR {dev.position}\r\n".encode()  # works again
+    dev.feed(b"/1 get " + b"p" * MAX_LINE_BYTES + b"\n")  # too long, though terminated
+    assert dev.dropped_lines == 2 and dev.read_output() == b""
+
+
+def test_unread_replies_are_dropped_beyond_the_bound(dev: FakeZaberDevice) -> None:
+    from fakes.zaber.device import MAX_PENDING_REPLIES
+
+    dev.feed(b"/1 get pos\n" * (MAX_PENDING_REPLIES + 10))
+    assert dev.dropped_replies == 10
+    assert dev.read_output().count(b"\r\n") == MAX_PENDING_REPLIES
+
+
+def test_a_host_that_writes_without_reading_does_not_block_the_pty_server() -> None:
+    import threading
+
+    with FakeZaberPty() as server:
+        fd = os.open(server.port, os.O_RDWR | os.O_NOCTTY)
+        try:
+            # 40,000 commands whose 800 kB of replies are never read: far beyond what the pty
+            # holds, so a server that blocked on writing would stop reading and block us too
+            writer = threading.Thread(target=lambda: [os.write(fd, b"/1 get pos\n" * 1000)
+                                                      for _ in range(40)], daemon=True)
+            writer.start()
+            writer.join(timeout=30)
+            assert not writer.is_alive(), "the host's writes blocked: the server deadlocked"
+            time.sleep(0.2)
+            assert server.dropped_bytes > 0 and server._thread.is_alive()
+            os.set_blocking(fd, False)
+            while True:  # drain what the server did send
+                try:
+                    if not os.read(fd, 65536):
+                        break
+                except BlockingIOError:
+                    time.sleep(0.05)
+                    try:
+                        os.read(fd, 65536)
+                    except BlockingIOError:
+                        break
+            os.write(fd, b"/1 get pos\n")
+            deadline, got = time.monotonic() + 5, b""
+            while not got.endswith(b"\r\n") and time.monotonic() < deadline:
+                try:
+                    got += os.read(fd, 4096)
+                except BlockingIOError:
+                    time.sleep(0.01)
+            assert got.endswith(f"@01 0 OK IDLE WR {server.device.position}\r\n".encode())
+        finally:
+            os.close(fd)

@@ -37,7 +37,7 @@ def test_each_error_names_source_and_field_path():
 
 def test_root_errors_and_prefix():
     assert format_validation_error("b.json", _error({"items": [{"n": 1}]})) == (
-        "b.json: field '(root)': Value error, need two items")
+        "b.json: field '(root)': need two items")
     msg = format_validation_error("c.toml", _error({"items": [{"n": 0}, {"n": 1}]}), ("sec",))
     assert msg == "c.toml: field 'sec.items.0.n': Input should be greater than or equal to 1"
     assert field_path(()) == "(root)" and field_path((), ("fake",)) == "fake"

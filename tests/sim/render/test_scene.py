@@ -121,7 +121,7 @@ def _write(path, text):
     (HEAD + LENSES + PATTERNS + '[[objects]]\nkind = "plane"\nsize_mm = [0.0, 5.0]\n', ValueError,
      r"scene.toml: objects\[0\] \(plane ''\): field 'size_mm' must be > 0"),
     (HEAD + '[[lenses]]\nkind = "fisheye"\n' + LENSES + PATTERNS + SPHERE, ValueError,
-     r"scene.toml: field 'lenses': Value error, lenses\[0\]: unknown lens kind 'fisheye'"),
+     r"scene.toml: field 'lenses': lenses\[0\]: unknown lens kind 'fisheye'"),
     (HEAD + '[[lenses]]\nkind = "thin"\nfocus_distance_mm = 700.0\n' + LENSES + PATTERNS + SPHERE, ValueError,
      r"scene.toml: field 'lenses'.*lenses\[0\]: field 'pupil_diameter_mm': Field required"),
     (HEAD + PINHOLE + '[[lenses]]\nkind = "measured"\npath = "lens.zarr"\n' + PATTERNS
@@ -137,7 +137,7 @@ def _write(path, text):
     (HEAD + LENSES + PATTERNS + '[[objects]]\nkind = "sphere"\ncolour = "red"\n', ValueError,
      r"scene.toml: field 'objects.0.sphere.colour': Extra inputs are not permitted"),
     (HEAD + LENSES + PATTERNS + '[[objects]]\nkind = "sphere"\npose = { R = [[1, 0, 0], [0, 1, 0], [0, 0, 2]] }\n',
-     ValueError, r"scene.toml: field 'objects.0.sphere.pose.R': Value error, R must be a proper rotation"),
+     ValueError, r"scene.toml: field 'objects.0.sphere.pose.R': R must be a proper rotation"),
     (HEAD + LENSES + '[patterns]\nkind = "phase_shift"\nperiods_px = [-4.0]\n' + SPHERE, ValueError,
      r"scene.toml: field 'patterns.phase_shift'.*periods_px must all be > 0"),
     (HEAD + LENSES + PATTERNS + SPHERE + '[render.camera]\nbit_depth = 10\n', ValueError,
@@ -203,3 +203,29 @@ def test_measured_lens_errors_name_scene_and_field(tmp_path):
     (tmp_path / "lens.npz").write_bytes(b"not a zip")
     with pytest.raises(ValueError, match=r"scene.toml: field 'lenses\[0\].path': .*lens.npz: not a readable"):
         load_scene_file(_scene(tmp_path, text))
+
+
+def test_scene_patterns_accept_fringes_like_a_patterns_file(tmp_path):
+    """One pattern model for a scene's [patterns] and a --patterns file: ``fringes`` (counts
+    across the 192 px wide projector) give the periods 192 / count in both."""
+    import json
+    import shutil
+
+    from sim.fpp.scan_input import load_pattern_set
+    from sim.render.scene import load_scene_file
+
+    root = Path(__file__).resolve().parents[3] / "examples"
+    shutil.copy(root / "sphere_rig.yaml", tmp_path / "sphere_rig.yaml")
+    text = (root / "sphere_scene.toml").read_text()
+    old = "periods_px = [192.0, 24.0, 8.0]"
+    assert old in text
+    (tmp_path / "s.toml").write_text(text.replace(old, "fringes = [1, 8, 24]"))
+    scene = load_scene_file(tmp_path / "s.toml")
+    assert scene.config.patterns.periods_px == [192.0, 24.0, 8.0]
+    (tmp_path / "p.json").write_text(json.dumps({"kind": "phase_shift", "fringes": [1, 8, 24],
+                                                 "steps": 4, "direction": "u"}))
+    assert load_pattern_set(tmp_path / "p.json", (192, 108)) == scene.config.patterns
+    (tmp_path / "bad.toml").write_text(text.replace(old, "fringes = [1, 0]"))
+    with pytest.raises(ValueError, match=r"bad.toml: field 'patterns.phase_shift': 'fringes' "
+                                         r"must be counts > 0, got \[1, 0\]"):
+        load_scene_file(tmp_path / "bad.toml")

@@ -28,7 +28,7 @@ def test_examples_parse():
         ("depths_mm = [40.0,", "depths_mm = [250.0,", r"depths_mm\[0\] = 250.0 is outside stage\.travel_mm"),
         ("steps = 4", "steps = 5", r"patterns\.steps"),
         ('backend = "fake"', 'backend = "simulated"', r"field 'backend': Input should be 'fake' or 'real'"),
-        ("travel_mm = [0.0, 200.0]", "travel_mm = [200.0, 0.0]", r"field 'stage': Value error, travel_mm must be"),
+        ("travel_mm = [0.0, 200.0]", "travel_mm = [200.0, 0.0]", r"field 'stage': travel_mm must be"),
     ],
 )
 def test_bad_configs_name_file_and_field(tmp_path, old, new, message):

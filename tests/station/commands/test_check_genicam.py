@@ -57,7 +57,7 @@ def test_check_with_the_fake_gige_camera_on_the_fake_bench_is_ok(tmp_path, capsy
         code, report = check_report(text, tmp_path, capsys)
     assert code == 0 and report["ok"] is True and report["backend"] == "fake"
     assert_camera_steps(report)
-    assert (tmp_path / "check" / "check.png").read_bytes()[:4] == b"\x89PNG"
+    assert [p.read_bytes()[:4] for p in (tmp_path / "check").glob("check-*.png")] == [b"\x89PNG"]
 
 
 def test_check_with_real_drivers_and_the_fake_gige_camera_is_ok(tmp_path, capsys, xvfb_display):

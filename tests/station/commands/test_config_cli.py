@@ -16,8 +16,12 @@ def test_example_is_printed_verbatim_and_is_valid(kind, capsys, tmp_path):
     path = tmp_path / f"{kind}.toml"
     path.write_text(text)
     assert main(["config", "--check", str(path)]) == 0
-    out = capsys.readouterr().out
-    assert out.startswith(f"{path}: valid {kind} station config:")
+    out = capsys.readouterr().out.splitlines()
+    if kind == "fake":
+        assert out[0].startswith(f"{path}: valid fake station config:")
+    else:  # the real example's values marked CHECK are warned about until they are edited
+        assert out[-1].startswith(f"{path}: valid real station config with 9 warning(s):")
+        assert all(line.startswith(f"warning: {path}: field ") for line in out[:-1])
 
 
 def test_check_names_the_file_and_the_field(capsys, tmp_path):
@@ -61,3 +65,56 @@ def test_new_sections_are_validated(section, line, message):
     text = "\n".join(lines).replace(section, f"{section}\n{line}", 1)
     with pytest.raises(ConfigError, match=message):
         parse_config(text, "x.toml")
+
+
+FAKE = example_text("fake")
+
+
+@pytest.mark.parametrize(("old", "new", "field", "message"), [
+    ("seed = 0", "seed = -1", "fake.seed", "greater than or equal to 0"),
+    ("bit_depth = 12", "bit_depth = 99", "fake.noise.bit_depth", "less than or equal to 16"),
+    ("camera_size = [64, 48]", "camera_size = [0, 48]", "fake.bench", "camera_size must be "
+     "positive"),
+    ("f_number = 2.4", "f_number = 0", "fake.bench.f_number", "greater than 0"),
+    ("origin_px = [92, 68]", "origin_px = [900, 68]", "frame_check.origin_px",
+     r"reaches \(916, 76\), outside the 160x120 display"),
+    ("period = 12", "period = 100000", "patterns.period", "less than or equal to 256"),
+    ("period = 12", "period = 200", "patterns.period", "does not fit the 160x120 LCD; at most 120"),
+    ("[640.0, 0.0, 31.5]", "[nan, 0.0, 31.5]", "camera.matrix", "K must be finite"),
+    ("[640.0, 0.0, 31.5]", "[0.0, 0.0, 31.5]", "camera.matrix", r"fx = K\[0\]\[0\] > 0"),
+    ("depths_mm = [40.0, 70.0,", "depths_mm = [40.0, 40.0,", "depths_mm",
+     r"depths_mm\[1\] = 40.0 repeats depths_mm\[0\]"),
+])
+def test_check_refuses_what_would_fail_later_naming_file_and_field(old, new, field, message,
+                                                                   tmp_path, capsys):
+    import re
+
+    path = tmp_path / "bench.toml"
+    assert old in FAKE
+    path.write_text(FAKE.replace(old, new, 1))
+    assert main(["config", "--check", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err
+    assert re.search(f"^ltc config: error: {re.escape(str(path))}: field '{re.escape(field)}': "
+                     f".*{message}", err), err
+    # acquire refuses it before opening anything: no run store is created
+    assert main(["acquire", str(path), "--out", str(tmp_path / "run.zarr"), "--quiet"]) == 1
+    assert field in capsys.readouterr().err and not (tmp_path / "run.zarr").exists()
+
+
+def test_an_edited_real_config_has_no_placeholder_warnings(tmp_path, capsys):
+    text = example_text("real")
+    for old, new in {"[100.0, 140.0,": "[100.0, 141.0,", '"/dev/ttyUSB0"': '"/dev/ttyACM3"',
+                     "0.047625": "0.1", "[50.0, 350.0]": "[40.0, 350.0]", "monitor = 1": "monitor = 2",
+                     "settle_ms = 8.0": "settle_ms = 5.0", "pitch_mm = 0.2715": "pitch_mm = 0.25",
+                     '"Mono12"': '"Mono8"', '"CHANGE-ME"': '"24130001"'}.items():
+        assert old in text
+        text = text.replace(old, new, 1)
+    path = tmp_path / "bench.toml"
+    path.write_text(text)
+    assert main(["config", "--check", str(path)]) == 0
+    assert capsys.readouterr().out.startswith(f"{path}: valid real station config: 6 depths")
+    path.write_text(text.replace('"24130001"', '"CHANGE-ME"'))
+    assert main(["config", "--check", str(path)]) == 0
+    assert (f"warning: {path}: field 'camera.serial' is still \"CHANGE-ME\""
+            in capsys.readouterr().out)

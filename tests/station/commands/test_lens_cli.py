@@ -108,6 +108,9 @@ def test_errors_are_reported_not_raised(tmp_path, store, capsys):
         main(["lens", str(store), "--out", str(out), "--force", "--samples", "0"])
     assert usage.value.code == 2
     assert "argument --samples: must be >= 1, got 0" in capsys.readouterr().err
-    assert main(["lens", str(store), "--out", str(out), "--force", "--focus-mm", "250",
+    assert main(["lens", str(store), "--out", str(out), "--force"]) == 2  # not a lens file
+    assert "is a file but not a lens file" in capsys.readouterr().err and out.read_bytes() == b"x"
+    out.unlink()
+    assert main(["lens", str(store), "--out", str(out), "--focus-mm", "250",
                  "--centre", "rays", "--grid-step", "10"]) == 0
     assert load_lens(out).focus_distance_mm == pytest.approx(250.0)

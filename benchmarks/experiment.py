@@ -1,30 +1,37 @@
-"""Write an ``ltc experiment`` / ``ltc demo`` run's results into benchmarks/README.md, section
-"Experiment: measured LTC vs Gaussian (ltc experiment)" (nothing else changes).
+"""Write an ``ltc experiment`` / ``ltc demo`` run's results (its ``results.json``) into
+``benchmarks/results/experiment.md``, rewritten whole.
 
     .venv/bin/ltc demo --out out/demo                      # or: ltc experiment --out out/exp
-    .venv/bin/python benchmarks/experiment_readme.py out/demo/results.json
+    .venv/bin/python benchmarks/experiment.py out/demo/results.json
+    .venv/bin/python benchmarks/experiment.py out/paper/results.json --variant paper-size \
+        --command ".venv/bin/ltc experiment --paper-size --out out/paper"
+
+``--variant NAME`` writes ``benchmarks/results/experiment-NAME.md`` instead (the
+``--paper-size`` run keeps its own file).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from station.experiment.report import tables
 
-README = Path(__file__).resolve().with_name("README.md")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-SECTION = "## Experiment: measured LTC vs Gaussian (ltc experiment)"
+from _results import write_results  # noqa: E402
+
+TITLE = "Experiment: measured LTC against Gaussian and pinhole (ltc experiment / ltc demo)"
 
 
 def section(res: dict, command: str) -> str:
-    """The README section of one run's ``results.json``."""
+    """The results file's body for one run's ``results.json``."""
     cfg, acc = res["config"], res["acceptance"]
     st = res["station"]
     rt = res["render_vs_pinhole"]
-    lines = [SECTION, "",
-             "The reference paper's experiment as one command (issue 16): `ltc experiment` / "
+    lines = ["The reference paper's experiment as one command: `ltc experiment` / "
              "`ltc demo` (station/experiment/). Method and figures: the run's `report.md`; "
              "every number: its `results.json`.", "",
              f"    {command}", "",
@@ -43,47 +50,35 @@ def section(res: dict, command: str) -> str:
                 f"{k} {v:.0f} s" for k, v in s["seconds"].items() if v) + f"), optical centre "
             f"error {s['optical_centre_error_mm'] * 1e3:.0f} um" for i, s in enumerate(st)) + ".")
     w = acc["ltc_worst"]
+    ltc_ok = ("met" if acc["ltc_within_limits"]
+              else "NOT met at " + ", ".join(acc["ltc_failing"]))
+    gauss_ok = ("yes" if acc["gaussian_worse_at_large"]
+                else "no at " + ", ".join(acc["gaussian_not_worse"]))
+    own = f" (own points: {w['size_own_um']:.1f} um)." if "size_own_um" in w else "."
     lines += [
         f"- ltc against real at every sphere and ball-bar position (|mean| <= 5 um, RMSE <= 10 "
-        f"um, size within 20 um of real's on the pixels both clouds share): {'met' if acc['ltc_within_limits'] else 'NOT met at ' + ', '.join(acc['ltc_failing'])}; "
-        f"worst |mean| {w['mean_um']:.1f} um, RMSE {w['rmse_um']:.1f} um, size {w['size_um']:.1f} um"
-        + (f" (own points: {w['size_own_um']:.1f} um)." if "size_own_um" in w else "."),
+        f"um, size within 20 um of real's on the pixels both clouds share): {ltc_ok}; "
+        f"worst |mean| {w['mean_um']:.1f} um, RMSE {w['rmse_um']:.1f} um, "
+        f"size {w['size_um']:.1f} um{own}",
         f"- Gaussian worse than ltc at every large-defocus position (|mean| and size): "
-        f"{'yes' if acc['gaussian_worse_at_large'] else 'no at ' + ', '.join(acc['gaussian_not_worse'])}.",
+        f"{gauss_ok}.",
         "- Render time against the pinhole (same positions): " + ", ".join(
             f"{k} {v:.1f} x" for k, v in rt.items()) + ".", ""]
     lines += tables(res["rows"])
     return "\n".join(lines) + "\n"
 
 
-def write_readme(text: str, path: Path = README) -> None:
-    """Replace the generated part of the section starting at ``SECTION`` (up to the next
-    ``## `` heading or the first hand-written ``### `` subsection, whose headings are not
-    among the generated tables') with ``text``, or insert it before "## Tracing throughput";
-    nothing else changes (the hand-written analyses after the tables are kept)."""
-    lines = path.read_text().splitlines()
-    new = text.strip().splitlines() + [""]
-    own = {ln for ln in new if ln.startswith("### ")}
-    if SECTION in lines:
-        start = lines.index(SECTION)
-        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")
-                    or (lines[i].startswith("### ") and lines[i] not in own)), len(lines))
-        lines[start:end] = new
-    else:
-        at = next((i for i, ln in enumerate(lines) if ln.startswith("## Tracing")), len(lines))
-        lines[at:at] = new
-    path.write_text("\n".join(lines) + "\n")
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("results", type=Path, help="results.json of the run")
     ap.add_argument("--command", default=".venv/bin/ltc demo --out out/demo",
-                    help="the command that made it (shown in the section)")
+                    help="the command that made it (shown in the results file)")
+    ap.add_argument("--variant", help="write benchmarks/results/experiment-VARIANT.md")
     args = ap.parse_args(argv)
     res = json.loads(args.results.read_text())
-    write_readme(section(res, args.command))
-    print(f"README section '{SECTION}' written")
+    path = write_results(__file__, TITLE + (f", {args.variant}" if args.variant else ""),
+                         section(res, args.command), variant=args.variant)
+    print(f"{path} written")
     return 0
 
 

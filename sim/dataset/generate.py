@@ -1,0 +1,338 @@
+"""One sample: a pure function from its scene description to numpy arrays.
+
+Trace once, pattern many: each camera is traced once (``sim.render.images.render_camera``,
+every lens ray's projector coordinate and weight) and every pattern of the set is gathered
+from that one trace; the ground-truth maps come from the same trace's chief rays.
+
+Per camera (``H x W`` pixels, ``n`` patterns, ``F`` phase-shift frequencies in the set's
+order), with ``I_k = A + B cos(phi - 2 pi k / N)`` (Feng, Zuo et al. 2019):
+
+====================  ==============  ===========================================================
+``images``            (n, H, W)       the fringe images (uint8/uint16 DN, or float32 DN)
+``numerator``         (F, H, W) f32   ``M = sum_k I_k sin(2 pi k / N)`` of the noise-free,
+                                      unquantised images (DN)
+``denominator``       (F, H, W) f32   ``D = sum_k I_k cos(2 pi k / N)``
+``wrapped_phase``     (F, H, W) f32   ``atan2(M, D)`` in [0, 2 pi), rad
+``background``        (F, H, W) f32   ``A = sum_k I_k / N``, DN
+``modulation``        (F, H, W) f32   ``B = 2 sqrt(M^2 + D^2) / N``, DN
+``absolute_phase``    (H, W) f32      ``2 pi u_p / p`` of the finest period ``p``, from the chief
+                                      ray's projector coordinate (geometry, not the images), rad
+``fringe_order``      (H, W) int32    ``floor(absolute_phase / 2 pi)``, -1 where none
+``projector_uv``      (H, W, 2) f32   chief ray's projector pixel (u_p, v_p), NaN where none
+``depth_mm``          (H, W) f32      chief ray's hit z in the camera frame, mm; NaN: nothing
+``normals``           (H, W, 3) f32   unit surface normal, camera frame, facing the camera
+``mask``              (H, W) uint8    0 nothing hit, 1 valid (lit), 2 shadowed, 3 outside the
+                                      projector's image
+====================  ==============  ===========================================================
+
+The numerator and the rest are labels: computed from the noise-free radiance through the
+camera's exposure, full well, gain and black level, before noise and rounding. With a
+defocused lens they carry the defocus (the blur of the fringes), the geometric truth maps do
+not: their difference is the defocus-induced phase error.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numba as nb
+import numpy as np
+import trimesh
+
+from sim.dataset.objects import Parts, from_file, procedural
+from sim.dataset.randomise import MeasuredLensDraw, SampleObject, SampleScene
+from sim.optics.rig import DeviceCalibration
+from sim.render.fringe_patterns import GrayCodeSet
+from sim.render.images import project_patterns, render_camera
+from sim.render.pattern_stack import ALONG_U, PatternStack
+from sim.render.trace import TraceGeometry, normalized_grid
+
+MASK_NONE, MASK_VALID, MASK_SHADOWED, MASK_OUTSIDE = 0, 1, 2, 3
+CAMERA_KEYS = ("images", "numerator", "denominator", "wrapped_phase", "background",
+               "modulation", "absolute_phase", "fringe_order", "projector_uv", "depth_mm",
+               "normals", "mask")
+TWO_PI = 2.0 * np.pi
+POISSON_EXACT_BELOW_E = 64.0  # electrons: shot noise drawn exactly below, as a normal above
+
+
+@dataclass
+class Sample:
+    """A generated sample: its scene and, per camera, the arrays of ``CAMERA_KEYS``."""
+
+    scene: SampleScene
+    cameras: list[dict[str, np.ndarray]]
+
+    @property
+    def index(self) -> int:
+        return self.scene.index
+
+    def checksum(self) -> str:
+        """sha256 (hex) of the scene description and every array (name, dtype, shape, bytes)."""
+        return checksum(self.scene.model_dump_json(), self.cameras)
+
+
+def checksum(scene_json: str, cameras: list[dict[str, np.ndarray]]) -> str:
+    """The sample checksum of a scene description (JSON text) and per-camera arrays."""
+    h = hashlib.sha256(scene_json.encode())
+    for i, cam in enumerate(cameras):
+        for key in CAMERA_KEYS:
+            a = np.ascontiguousarray(cam[key])
+            h.update(f"{i}/{key}/{a.dtype.str}/{a.shape}".encode())
+            h.update(memoryview(a).cast("B"))
+    return h.hexdigest()
+
+
+def object_parts(obj: SampleObject) -> Parts:
+    """An object of a sample in its normalised frame."""
+    if obj.kind == "procedural":
+        return procedural(obj.family or "", list(obj.seed or []), obj.size_mm)
+    if obj.kind == "mesh":
+        return from_file(Path(obj.path or ""), obj.size_mm)
+    w, h = obj.extent_mm or (1.0, 1.0)
+    v = np.array([[-w / 2, -h / 2, 0], [w / 2, -h / 2, 0], [w / 2, h / 2, 0], [-w / 2, h / 2, 0]])
+    return Parts([trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False)], np.zeros((0, 4)))
+
+
+def scene_geometry(objects: list[SampleObject]) -> TraceGeometry:
+    """Every object of a sample as one ``TraceGeometry`` (world mm; exact spheres kept)."""
+    verts, faces, normals, albedo, obj_id, face_sph, spheres = [], [], [], [], [], [], []
+    nv = 0
+    for i, o in enumerate(objects):
+        parts = object_parts(o)
+        R, t = np.asarray(o.pose.R), np.asarray(o.pose.t)
+        first_sphere = len(spheres)
+        for j, m in enumerate(parts.meshes):
+            verts.append(np.asarray(m.vertices) @ R.T + t)
+            normals.append(np.asarray(m.vertex_normals) @ R.T)
+            faces.append(np.asarray(m.faces, dtype=np.int64) + nv)
+            nv += len(m.vertices)
+            nf = len(m.faces)
+            albedo.append(np.full(nf, o.albedo))
+            obj_id.append(np.full(nf, i, np.int32))
+            face_sph.append(np.full(nf, first_sphere + j if len(parts.spheres) else -1, np.int64))
+        for s in parts.spheres:
+            spheres.append([*(R @ s[:3] + t), s[3]])
+    return TraceGeometry(np.concatenate(verts), np.concatenate(faces), np.concatenate(normals),
+                         np.concatenate(albedo), np.concatenate(obj_id),
+                         np.asarray(spheres, dtype=np.float64).reshape(-1, 4),
+                         np.concatenate(face_sph))
+
+
+def build_lens(draw, camera: DeviceCalibration):
+    """The lens model of a drawn lens (a measured lens file loaded and its pupil scaled)."""
+    if not isinstance(draw, MeasuredLensDraw):
+        return draw
+    from dataclasses import replace
+
+    from sim.optics.measured_lens import load_lens
+
+    lens = _load_lens_cached(draw.path, load_lens)
+    if tuple(lens.camera_size) != tuple(camera.size):
+        raise ValueError(f"lens file {draw.path} is for a {lens.camera_size} camera, camera "
+                         f"'{camera.name}' is {tuple(camera.size)} (width, height)")
+    if draw.pupil_scale == 1.0:
+        return lens
+    return replace(lens, aperture_x_mm=lens.aperture_x_mm * draw.pupil_scale,
+                   aperture_y_mm=lens.aperture_y_mm * draw.pupil_scale)
+
+
+_LENSES: dict[str, object] = {}
+
+
+def _load_lens_cached(path: str, load):
+    if path not in _LENSES:
+        if len(_LENSES) >= 4:
+            _LENSES.pop(next(iter(_LENSES)))
+        _LENSES[path] = load(path)
+    return _LENSES[path]
+
+
+def phase_groups(scene: SampleScene) -> list[tuple[float, list[int], int]]:
+    """(period px, image indices in shift order, N) of each phase-shift frequency, in the
+    pattern set's order."""
+    descs = scene.patterns.descriptors(tuple(scene.rig.projector.size))
+    groups: dict[float, list] = {}
+    for d in descs:
+        if d.kind == "phase":
+            groups.setdefault(float(d.period_px), []).append(d)
+    return [(p, [d.index for d in sorted(ds, key=lambda d: d.shift)], ds[0].steps)
+            for p, ds in groups.items()]
+
+
+def _labels(dn: np.ndarray, groups) -> dict[str, np.ndarray]:
+    """Feng/Zuo labels (F, H, W) float32 of noise-free images ``dn`` (n, H, W) float32."""
+    out = {k: [] for k in ("numerator", "denominator", "wrapped_phase", "background",
+                           "modulation")}
+    two_pi = np.float32(TWO_PI)
+    for _, idx, n in groups:
+        d = TWO_PI * np.arange(n) / n
+        stack = dn[idx]
+        m = np.tensordot(np.sin(d).astype(np.float32), stack, axes=1)
+        c = np.tensordot(np.cos(d).astype(np.float32), stack, axes=1)
+        ph = np.mod(np.arctan2(m, c), two_pi)
+        ph[ph >= two_pi] = 0.0
+        out["numerator"].append(m)
+        out["denominator"].append(c)
+        out["wrapped_phase"].append(ph)
+        out["background"].append(stack.mean(axis=0, dtype=np.float32))
+        out["modulation"].append(np.float32(2.0 / n) * np.hypot(m, c))
+    return {k: np.stack(v).astype(np.float32, copy=False) for k, v in out.items()}
+
+
+@nb.njit(cache=True, nogil=True)
+def _expose_kernel(rad, z, exposure, r2, shot, threshold, full_well, dn_per_e, black, max_dn,
+                   out, low):  # pragma: no cover - compiled
+    """One pass over flat radiance ``rad`` and normal deviates ``z`` (float32): DN before
+    rounding into ``out``; pixels whose electrons lie in (0, threshold) with shot noise on are
+    left out and their indices listed in ``low``. Returns how many were listed."""
+    n_low = 0
+    zero = np.float32(0.0)
+    for i in range(rad.size):
+        e = rad[i] * exposure
+        if e < zero:
+            e = zero
+        if shot and e > zero and e < threshold:
+            low[n_low] = i
+            n_low += 1
+            continue
+        var = r2 + (e if shot else zero)
+        e = e + np.sqrt(var) * z[i]
+        if e > full_well:
+            e = full_well
+        dn = e * dn_per_e + black
+        out[i] = zero if dn < zero else (max_dn if dn > max_dn else dn)
+    return n_low
+
+
+def _noisy_images(radiance: np.ndarray, camera, rng: np.random.Generator) -> np.ndarray:
+    """The camera's digital images of noise-free radiance (n, H, W) float32 with shot and
+    read noise (``sim.optics.sensor``'s model: Poisson electrons, full-well clip, Gaussian read
+    noise, then gain, black level, clip and rounding). Dark pixels draw no Poisson deviate
+    (Poisson(0) is 0); pixels of ``POISSON_EXACT_BELOW_E`` electrons or more draw shot and read
+    noise as one normal deviate of their summed variance, then the full-well clip
+    (``Sensor.expose_gaussian``'s approximation, 7x faster than Poisson), the others an exact
+    Poisson deviate plus the read noise."""
+    f32 = np.float32
+    rad = np.ascontiguousarray(radiance, dtype=f32).reshape(-1)
+    z = rng.standard_normal(rad.size, dtype=f32)
+    dn = np.empty(rad.size, f32)
+    low = np.empty(rad.size, np.int64)
+    r2 = f32(camera.read_noise_e**2)
+    k = _expose_kernel(rad, z, f32(camera.exposure_e), r2, bool(camera.shot_noise),
+                       f32(POISSON_EXACT_BELOW_E), f32(camera.full_well_e),
+                       f32(camera.dn_per_e), f32(camera.black_level_dn), f32(camera.max_dn),
+                       dn, low)
+    if k:
+        idx = low[:k]
+        e = rng.poisson(rad[idx] * f32(camera.exposure_e)).astype(f32) + np.sqrt(r2) * z[idx]
+        e = np.minimum(e, f32(camera.full_well_e)) * f32(camera.dn_per_e) \
+            + f32(camera.black_level_dn)
+        dn[idx] = np.clip(e, f32(0.0), f32(camera.max_dn))
+    dn = dn.reshape(radiance.shape)
+    if not camera.quantize:
+        return dn
+    return np.rint(dn).astype(np.uint8 if camera.bit_depth == 8 else np.uint16)
+
+
+def _normals(points: np.ndarray, obj: np.ndarray) -> np.ndarray:
+    """Unit normals (H, W, 3) of camera-frame points (H, W, 3) from neighbour differences
+    within the same object (central where both neighbours are, else one-sided), facing the
+    camera; NaN where a pixel has no same-object neighbour along a row or a column."""
+    def diff(axis: int) -> np.ndarray:
+        g, o = np.moveaxis(points, axis, 0), np.moveaxis(obj, axis, 0)
+        fwd = np.full_like(g, np.nan)
+        bwd = np.full_like(g, np.nan)
+        same = (o[1:] == o[:-1]) & (o[1:] >= 0)
+        d = np.where(same[..., None], g[1:] - g[:-1], np.nan)
+        fwd[:-1], bwd[1:] = d, d
+        c = 0.5 * (fwd + bwd)
+        c = np.where(np.isnan(c), fwd, c)
+        c = np.where(np.isnan(c), bwd, c)
+        return np.moveaxis(c, 0, axis)
+
+    n = np.cross(diff(1), diff(0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n /= np.linalg.norm(n, axis=2, keepdims=True)
+        flip = np.sum(n * points, axis=2) > 0  # facing the camera at the origin
+    n[flip] *= -1
+    return n
+
+
+def _pixel_xy(cam: DeviceCalibration) -> np.ndarray:
+    """Undistorted normalised coordinates (H, W, 2) of every pixel."""
+    w, h = cam.size
+    grid = normalized_grid(cam)
+    if grid is not None:
+        return grid.reshape(h, w, 2)
+    K = cam.K_array
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    y = (v - K[1, 2]) / K[1, 1]
+    return np.stack([(u - K[0, 2] - K[0, 1] * y) / K[0, 0], y], axis=-1)
+
+
+def _camera_arrays(res, cam: DeviceCalibration, scene: SampleScene, groups) -> dict:
+    c = scene.camera
+    dn = (np.minimum(res.radiance * np.float32(c.exposure_e), np.float32(c.full_well_e))
+          * np.float32(c.dn_per_e) + np.float32(c.black_level_dn))
+    out = {"images": res.images, **_labels(dn, groups)}
+    fine = min(p for p, _, _ in groups)
+    u_p = res.projector_map[..., 0]
+    absph = TWO_PI * u_p / fine
+    out["absolute_phase"] = absph.astype(np.float32)
+    order = np.where(np.isfinite(absph), np.floor(absph / TWO_PI), -1)
+    out["fringe_order"] = order.astype(np.int32)
+    out["projector_uv"] = res.projector_map.astype(np.float32)
+    out["depth_mm"] = res.depth.astype(np.float32)
+    xy = _pixel_xy(cam)
+    z = res.depth.astype(np.float32)[..., None]
+    pts = np.concatenate([xy.astype(np.float32) * z, z], axis=-1)
+    out["normals"] = _normals(pts, res.object_id)
+    hit = res.object_id >= 0
+    inside = np.isfinite(res.projector_map[..., 0])
+    out["mask"] = np.where(~hit, MASK_NONE, np.where(res.lit, MASK_VALID, np.where(
+        inside, MASK_SHADOWED, MASK_OUTSIDE))).astype(np.uint8)
+    return out
+
+
+def pattern_stack(scene: SampleScene) -> PatternStack:
+    """The sample's patterns as rows (they vary along u only): the images of a one-row
+    projector, exactly the rows of the full images, without making the full images."""
+    w, h = scene.rig.projector.size
+    rows = scene.patterns.images((w, 1))[:, 0, :]
+    n = len(rows)
+    return PatternStack((w, h), np.full(n, ALONG_U, np.int8), np.arange(n, dtype=np.int64),
+                        np.zeros((0, h, w), np.float32), np.ascontiguousarray(rows),
+                        np.zeros((0, h), np.float32))
+
+
+def render_sample(scene: SampleScene, geometry: TraceGeometry | None = None) -> Sample:
+    """The arrays of a sample from its description alone (a pure function of ``scene``)."""
+    rig = scene.rig
+    geom = geometry if geometry is not None else scene_geometry(scene.objects)
+    projected = project_patterns(pattern_stack(scene), scene.projector)
+    groups = phase_groups(scene)
+    if not groups:
+        raise ValueError("the pattern set has no phase-shift images")
+    if isinstance(scene.patterns, GrayCodeSet):
+        groups = groups[:1]
+    cams = []
+    noisy = scene.camera.sensor.noisy
+    quiet = scene.camera.model_copy(update={"shot_noise": False, "read_noise_e": 0.0})
+    for i, cam in enumerate(rig.cameras):
+        lens = build_lens(scene.lenses[i], cam)
+        res = render_camera(geom, rig, i, lens, projected, quiet, None,
+                            where=f"sample {scene.index}")
+        if noisy:
+            res.images = _noisy_images(res.radiance, scene.camera,
+                                       np.random.default_rng([*scene.noise_seed, i]))
+        cams.append(_camera_arrays(res, cam, scene, groups))
+    return Sample(scene, cams)
+
+
+def generate_sample(cfg, rig, index: int) -> Sample:
+    """Sample ``index`` of a data set: its scene drawn from (config, seed, index), rendered."""
+    from sim.dataset.randomise import draw_scene
+
+    return render_sample(draw_scene(cfg, rig, index))
