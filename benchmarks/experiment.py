@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 from station.experiment.report import tables
+from station.experiment.rows import PositionRow
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -64,7 +65,7 @@ def section(res: dict, command: str) -> str:
         f"{gauss_ok}.",
         "- Render time against the pinhole (same positions): " + ", ".join(
             f"{k} {v:.1f} x" for k, v in rt.items()) + ".", ""]
-    lines += tables(res["rows"])
+    lines += tables([PositionRow.from_json(r) for r in res["rows"]])
     return "\n".join(lines) + "\n"
 
 

@@ -76,12 +76,14 @@ def main(lens_path: str, out_dir: str = "out/measured_vs_gaussian") -> dict:
             cloud = s.scan(s.render())
             sim.write_ply(out / f"{name.replace(' ', '_')}_{label}.ply", cloud)
             fit = s.measure(cloud, sphere_mm=diameter_mm)
+            assert isinstance(fit, sim.SphereMeasurement)
             clouds[label] = cloud
             row[label] = {"points": len(cloud.points),
-                          "diameter_error_um": 1e3 * (fit["diameter_mm"] - diameter_mm)}
+                          "diameter_error_um": 1e3 * (fit.diameter_mm - diameter_mm)}
         cmp = sim.Scanner.measure(clouds["gaussian"], reference=clouds["measured"], align=False)
-        row["gaussian_vs_measured"] = {"mean_um": 1e3 * cmp["mean_mm"],
-                                       "rmse_um": 1e3 * cmp["rmse_mm"]}
+        assert isinstance(cmp, sim.DistanceMeasurement)
+        row["gaussian_vs_measured"] = {"mean_um": 1e3 * cmp.mean_mm,
+                                       "rmse_um": 1e3 * cmp.rmse_mm}
         summary["positions"].append(row)
         print(f"{name} (z = {z_mm:+.1f} mm): diameter error measured "
               f"{row['measured']['diameter_error_um']:+.1f} um, Gaussian "

@@ -18,15 +18,16 @@ import station
 from station.acquisition.config import example_config
 
 
-def main(out_dir: str, config_path: str | None = None, force: bool = False) -> dict:
+def main(out_dir: str, config_path: str | None = None,
+         force: bool = False) -> station.SequenceSummary:
     config = station.load_config(config_path) if config_path else example_config("fake")
     try:
         summary = station.run_sequence(config, out_dir, force=force)
     except station.StationError as exc:
         sys.exit(f"unattended_sequence: {exc}")
-    for name, step in summary["steps"].items():
-        print(f"{name}: {step['status']}")
-    o = summary["steps"]["lens"]["result"]["optical_centre_mm"]
+    for name, step in summary.steps.items():
+        print(f"{name}: {step.status}")
+    o = (summary.steps["lens"].result or {})["optical_centre_mm"]
     print(f"optical centre: ({o[0]:.4f}, {o[1]:.4f}, {o[2]:.4f}) mm")
     print(f"lens model: {Path(out_dir) / 'lens.npz'}")
     return summary

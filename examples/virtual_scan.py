@@ -28,9 +28,11 @@ def main(scene_file: str = str(HERE / "sphere_scene.toml"), out_ply: str | None 
         sim.write_ply(out_ply, cloud)
         print(f"wrote: {out_ply}")
     report = scanner.measure(cloud, sphere_mm=NOMINAL_DIAMETER_MM)
-    print(f"sphere: diameter {report['diameter_mm']:.4f} mm, error "
-          f"{1e3 * report['diameter_error_mm']:+.1f} um, fit RMS {1e3 * report['fit_rms_mm']:.1f} um")
-    return report
+    assert isinstance(report, sim.SphereMeasurement)
+    print(f"sphere: diameter {report.diameter_mm:.4f} mm, error "
+          f"{1e3 * (report.diameter_error_mm or 0.0):+.1f} um, fit RMS "
+          f"{1e3 * report.fit_rms_mm:.1f} um")
+    return report.to_json()
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ from sim._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "errors": "SimError SimInputError",
-    "scanner": "Scanner",
+    "scanner": "Scanner SphereMeasurement BallBarMeasurement DistanceMeasurement",
     "optics.rig": "Rig DeviceCalibration",
     "optics.lens": "PinholeLens GaussianLens AberratedLens LensModel",
     "optics.measured_lens": "MeasuredLens load_lens save_lens gaussian_equivalent",

@@ -5,7 +5,7 @@
     scanner = sim.Scanner.from_scene_file("examples/sphere_scene.toml")
     images = scanner.render()                     # RenderResult: images + truth maps per camera
     cloud = scanner.scan(images)                  # PointCloud, stereo (camera=i: with projector)
-    report = scanner.measure(cloud, sphere_mm=50.8007)   # dict: diameter, fit RMS, error
+    report = scanner.measure(cloud, sphere_mm=50.8007)   # SphereMeasurement, mm
 
     lens = sim.MeasuredLens.load("lens.npz")      # the station's measured lens
     measured = scanner.with_lenses([lens, lens])  # same rig, scene and patterns, other lenses
@@ -16,8 +16,9 @@ Each method is a thin composition of ``sim.render``, ``sim.fpp`` and ``sim.metro
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 
@@ -109,17 +110,107 @@ class Scanner:
     @staticmethod
     def measure(cloud: PointCloud, *, sphere_mm: float | None = None,
                 ballbar_mm: tuple[float, float | None] | None = None,
-                reference: str | Path | PointCloud | None = None, align: bool = True) -> dict:
+                reference: str | Path | PointCloud | None = None,
+                align: bool = True) -> Measurement:
         """Measure a cloud: ``sphere_mm`` (nominal diameter; ``0``: the best-supported sphere of
         any size), ``ballbar_mm`` (ball diameter, nominal length or None), or ``reference`` (a
-        CAD mesh file, or another cloud). Returns the JSON-able report (lengths mm)."""
+        CAD mesh file, or another cloud). Returns a ``SphereMeasurement``,
+        ``BallBarMeasurement`` or ``DistanceMeasurement`` (lengths mm; ``.to_json()``)."""
         pts = cloud.points
         if sphere_mm is not None:
-            return _measure.measure_sphere(pts, sphere_mm or None)[0]
+            return SphereMeasurement.from_json(_measure.measure_sphere(pts, sphere_mm or None)[0])
         if ballbar_mm is not None:
-            return _measure.measure_ballbar(pts, *ballbar_mm)[0]
+            return BallBarMeasurement.from_json(_measure.measure_ballbar(pts, *ballbar_mm)[0])
         if isinstance(reference, PointCloud):
-            return _measure.measure_against_cloud(pts, reference, align)[0]
+            return DistanceMeasurement.from_json(
+                _measure.measure_against_cloud(pts, reference, align)[0])
         if reference is not None:
-            return _measure.measure_against_mesh(pts, reference, align)[0]
+            return DistanceMeasurement.from_json(
+                _measure.measure_against_mesh(pts, reference, align)[0])
         raise SimInputError("measure: give sphere_mm, ballbar_mm or reference")
+
+
+def _known(cls: type, data: dict[str, Any]) -> dict[str, Any]:
+    names = {f.name for f in fields(cls)}
+    return {k: v for k, v in data.items() if k in names}
+
+
+def _present(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in d.items() if v is not None}
+
+
+@dataclass(frozen=True)
+class SphereMeasurement:
+    """A sphere fitted to a cloud: centre (3,) and diameter mm, the fit's RMS and peak-to-valley
+    residuals mm, the points it was fitted to and its inliers; ``diameter_error_mm`` against
+    the nominal diameter when one was given."""
+
+    centre_mm: list[float]
+    diameter_mm: float
+    fit_rms_mm: float
+    fit_pv_mm: float
+    points: int
+    inliers: int
+    diameter_error_mm: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """``ltc measure --sphere``'s JSON fields (``kind`` "sphere")."""
+        return {"kind": "sphere", **_present(asdict(self))}
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> SphereMeasurement:
+        return cls(**_known(cls, data))
+
+
+@dataclass(frozen=True)
+class BallBarMeasurement:
+    """A ball bar: the two balls' centre distance mm and their fits; ``length_error_mm``
+    against the nominal length when one was given."""
+
+    length_mm: float
+    spheres: list[SphereMeasurement]
+    length_error_mm: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """``ltc measure --ballbar``'s JSON fields (``kind`` "ballbar")."""
+        out: dict[str, Any] = {"kind": "ballbar", "length_mm": self.length_mm,
+                               "spheres": [_present(asdict(s)) for s in self.spheres]}
+        if self.length_error_mm is not None:
+            out["length_error_mm"] = self.length_error_mm
+        return out
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> BallBarMeasurement:
+        return cls(length_mm=data["length_mm"],
+                   spheres=[SphereMeasurement.from_json(s) for s in data["spheres"]],
+                   length_error_mm=data.get("length_error_mm"))
+
+
+@dataclass(frozen=True)
+class DistanceMeasurement:
+    """Signed distances of a cloud's points to a CAD mesh (``kind`` "reference", positive
+    outside) or to another cloud (``kind`` "against"): count, mean, RMSE, std, min and max
+    mm; with ICP alignment its iterations and the transform applied (``R`` 3x3, ``t_mm``)."""
+
+    kind: Literal["reference", "against"]
+    points: int
+    mean_mm: float
+    rmse_mm: float
+    std_mm: float
+    min_mm: float
+    max_mm: float
+    reference: str | None = None
+    icp_iterations: int | None = None
+    R: list[list[float]] | None = None
+    t_mm: list[float] | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """``ltc measure --reference`` / ``--against``'s JSON fields."""
+        return _present(asdict(self))
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> DistanceMeasurement:
+        return cls(**_known(cls, data))
+
+
+Measurement = SphereMeasurement | BallBarMeasurement | DistanceMeasurement

@@ -24,12 +24,13 @@ from __future__ import annotations
 from sim._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
-    "api": "Bench open_bench load_config acquire reconstruct_ltc derive_lens",
-    "sequence": "run_sequence",
+    "api": "Bench open_bench load_config acquire reconstruct_ltc derive_lens lens_config",
+    "sequence": "run_sequence SequenceSummary StepRecord",
     "experiment.run": "ExperimentConfig load_experiment_config run_experiment",
     "experiment.demo": "run_demo",
     "acquisition.config": "StationConfig ConfigError",
     "lens.derive": "LensResult",
+    "lens.geometry": "LensFitConfig",
     "errors": "StationError StationInputError UsageError",
     "dataset": "DatasetReport generate_dataset",
 })

@@ -10,7 +10,7 @@
         frame = bench.camera.capture()                   # drivers.Frame
     station.acquire(config, "run.zarr")                  # resumable: resume=True
     station.reconstruct_ltc("run.zarr", "ltc.zarr")
-    result = station.derive_lens("ltc.zarr")            # LensResult
+    result = station.derive_lens("ltc.zarr")            # LensResult, recommended settings
     result.lens.save("lens.npz")                         # sim.MeasuredLens; .load() reads it
     station.run_sequence(config, "night/")               # check .. lens, unattended, resumable
 
@@ -23,7 +23,7 @@ from __future__ import annotations
 import contextlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from drivers.interfaces import Camera, PatternDisplay, Stage
     from station.acquisition.config import StationConfig
     from station.lens.derive import LensResult
+    from station.lens.geometry import LensFitConfig
 
 
 def load_config(path: str | Path) -> StationConfig:
@@ -112,22 +113,31 @@ def reconstruct_ltc(run: str | Path, out: str | Path, *, tile_px: int | None = N
                        workers=workers, dask=dask, scheduler=scheduler)
 
 
-def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,
-                interpolation: str = "bilinear", centre: str = "auto",
-                focus_distance_mm: float | None = None, rig: str | Path | None = None,
-                rig_camera: str | None = None, figures: str | Path | None = None,
-                progress: bool = True, out: str | Path | None = None,
-                workers: int | None = 1, dask: bool = False,
-                scheduler: str | None = None, pixel_samples: int = 0,
-                settings: dict | None = None) -> LensResult:
+def lens_config(**fields: Any) -> LensFitConfig:
+    """A ``LensFitConfig`` with ``fields`` (by name) over the recommended defaults; an unknown
+    or invalid field is refused by name (``UsageError``)."""
+    from pydantic import ValidationError
+
+    from sim.validation import format_validation_error
+    from station.lens.geometry import LensFitConfig
+
+    try:
+        return LensFitConfig(**fields)
+    except ValidationError as exc:
+        raise UsageError(format_validation_error("lens settings", exc)) from exc
+
+
+def derive_lens(ltc: str | Path, config: LensFitConfig | None = None, *,
+                rig: str | Path | None = None, rig_camera: str | None = None,
+                figures: str | Path | None = None, progress: bool = True,
+                out: str | Path | None = None, workers: int | None = 1, dask: bool = False,
+                scheduler: str | None = None) -> LensResult:
     """The measured lens of an LTC store: principal rays, optical centre, focus, and K
     aperture samples per node pixel. ``result.lens`` is a :class:`sim.MeasuredLens`
     (``save(path)`` / ``MeasuredLens.load(path)``); ``result.summary()`` reports it.
 
-    pixel_samples : how a camera pixel integrates its LCD footprint (0: a box, n: an n x n
-        point grid, a simulated camera's subpixels; ``LensFitConfig.pixel_samples``).
-    settings : further ``LensFitConfig`` fields by name (e.g. ``deconvolve_iterations``,
-        ``support_floor``, ``aim_offset_sigma_px``); errors name the field.
+    config : the derivation's settings (default ``LensFitConfig()``: the recommended ones;
+        ``lens_config(**fields)`` builds one with its fields checked by name).
     rig, rig_camera : a rig file (``sim.Rig``) giving the camera matrix K, used instead of
         the store's ``camera_matrix``; figures : a folder for the PNG figures.
     out : write the lens file there while the nodes are derived (memory does not grow with
@@ -136,22 +146,13 @@ def derive_lens(ltc: str | Path, *, samples: int = 32, grid_step: int = 1,
         Dask cluster of ``workers`` processes; scheduler : an existing Dask cluster's
         address. Every choice gives the same lens, bit for bit.
     """
-    from pydantic import ValidationError
-
-    from sim.validation import format_validation_error
     from station.lens.derive import derive_lens as _derive
     from station.lens.figures import write_figures
     from station.lens.geometry import LensFitConfig
     from station.ltc.parallel import Engine
     from station.ltc.store import open_ltc_volume
 
-    try:
-        cfg = LensFitConfig(**{"samples": samples, "grid_step": grid_step,
-                               "interpolation": interpolation, "centre_method": centre,
-                               "focus_distance_mm": focus_distance_mm,
-                               "pixel_samples": pixel_samples, **(settings or {})})
-    except ValidationError as exc:
-        raise UsageError(format_validation_error("lens settings", exc)) from exc
+    cfg = config if config is not None else LensFitConfig()
     volume = open_ltc_volume(ltc)
     K, dist = _rig_camera(rig, rig_camera, volume.camera_size)
     with Engine(workers, dask=dask, scheduler=scheduler) as engine:

@@ -20,16 +20,17 @@ from the LTC store, and nothing before it is redone (``config.toml`` takes the n
 
 from __future__ import annotations
 
-import datetime as _dt
 import contextlib
+import datetime as _dt
 import json
 import logging
 import os
 import shutil
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import tomli_w
 
@@ -76,6 +77,59 @@ def _remove(path: Path) -> None:
         path.unlink()
 
 
+@dataclass
+class StepRecord:
+    """One step's outcome in ``summary.json``: ``status`` ("running", "done", "skipped",
+    "failed", "interrupted", "outdated"), UTC times (ISO 8601), ``seconds`` (wall clock),
+    the step's ``result`` (its JSON-able summary), ``error`` and ``reason`` lines; None:
+    not recorded (left out of the JSON)."""
+
+    status: str
+    started: str | None = None
+    ended: str | None = None
+    seconds: float | None = None
+    result: dict[str, Any] | None = None
+    error: str | None = None
+    reason: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """The recorded fields."""
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> StepRecord:
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in names})
+
+
+@dataclass
+class SequenceSummary:
+    """The sequence folder's ``summary.json``: the config file, every step's record (in
+    ``STEPS`` order as run), the overall ``status`` ("complete", "running STEP", "failed at
+    STEP", "interrupted at STEP") and when it was last ``updated`` (UTC, ISO 8601)."""
+
+    config: str
+    steps: dict[str, StepRecord] = field(default_factory=dict)
+    status: str | None = None
+    updated: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON object of ``summary.json`` (docs/formats.md)."""
+        out: dict[str, Any] = {"config": self.config,
+                               "steps": {k: v.to_json() for k, v in self.steps.items()}}
+        if self.updated is not None:
+            out["updated"] = self.updated
+        if self.status is not None:
+            out["status"] = self.status
+        return out
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> SequenceSummary:
+        return cls(config=str(data["config"]),
+                   steps={k: StepRecord.from_json(v) for k, v in data.get("steps", {}).items()},
+                   status=data.get("status"), updated=data.get("updated"))
+
+
 class Sequence:
     """One sequence folder: its config, its summary, and the steps still to do."""
 
@@ -105,9 +159,14 @@ class Sequence:
         self._text, self._changed = text, changed
         self.summary = self._read_summary()
 
-    def _read_summary(self) -> dict:
-        return (json.loads(self.summary_path.read_text()) if self.summary_path.exists()
-                else {"config": str(self.config_path), "steps": {}})
+    def _read_summary(self) -> SequenceSummary:
+        if not self.summary_path.exists():
+            return SequenceSummary(config=str(self.config_path))
+        try:
+            return SequenceSummary.from_json(json.loads(self.summary_path.read_text()))
+        except (ValueError, KeyError, TypeError) as exc:
+            raise StationError(f"{self.summary_path}: unreadable ({exc}); delete it to run "
+                               "every step again") from exc
 
     def _take_config(self) -> None:
         """Under the folder's lock: the summary as it is now; the config kept beside the
@@ -132,20 +191,27 @@ class Sequence:
 
     def done(self, step: str) -> bool:
         """Whether ``step`` is recorded as done and its outputs exist."""
-        rec = self.summary["steps"].get(step, {})
-        return rec.get("status") == "done" and all(p.exists() for p in self.outputs(step))
+        rec = self.summary.steps.get(step)
+        return (rec is not None and rec.status == "done"
+                and all(p.exists() for p in self.outputs(step)))
 
     def wanted(self, step: str) -> bool:
         """Whether the config asks for ``step``."""
         s = self.config.sequence
         return {"gamma": s.gamma, "align": s.align}.get(step, True)
 
-    def _record(self, step: str, **fields: object) -> None:
-        self.summary["steps"].setdefault(step, {}).update(fields)
-        self.summary["updated"] = _now()
-        write_json(self.summary_path, self.summary)
+    def _record(self, step: str, status: str, **values: Any) -> None:
+        rec = self.summary.steps.setdefault(step, StepRecord(status=status))
+        rec.status = status
+        for name, value in values.items():
+            setattr(rec, name, value)
+        self.summary.updated = _now()
+        self._write_summary()
 
-    def run(self) -> dict:
+    def _write_summary(self) -> None:
+        write_json(self.summary_path, self.summary.to_json())
+
+    def run(self) -> SequenceSummary:
         """Run every step not yet done; returns the summary (``status`` "complete" or the
         step that failed). Raises the failing step's error after recording it. One sequence
         per folder at a time: a second is refused, naming the holder (``writer.lock``; a
@@ -154,7 +220,7 @@ class Sequence:
             self._take_config()
             return self._run_steps()
 
-    def _run_steps(self) -> dict:
+    def _run_steps(self) -> SequenceSummary:
         handler = logging.FileHandler(self.out / "run.log", encoding="utf-8")
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s %(message)s"))
         log.addHandler(handler)
@@ -177,8 +243,8 @@ class Sequence:
                     log.info("%s: done in an earlier run, skipped", step)
                     continue
                 self._step(step)
-            self.summary["status"] = "complete"
-            write_json(self.summary_path, self.summary)
+            self.summary.status = "complete"
+            self._write_summary()
             log.info("sequence %s: complete", self.out)
             return self.summary
         finally:
@@ -190,13 +256,13 @@ class Sequence:
     def _step(self, step: str) -> None:
         log.info("%s: start", step)
         self._record(step, status="running", started=_now())
-        self.summary["status"] = f"running {step}"
+        self.summary.status = f"running {step}"
         t0 = time.perf_counter()
         try:
             result = getattr(self, f"_{step}")()
         except BaseException as exc:
             status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-            self.summary["status"] = f"{status} at {step}"
+            self.summary.status = f"{status} at {step}"
             # an OSError as the one line the CLI prints: the path, what went wrong, what to do
             error = (describe_os_error(exc) if isinstance(exc, OSError)
                      else str(exc) or type(exc).__name__)
@@ -256,30 +322,35 @@ class Sequence:
             self.out / "run.zarr", tmp, progress=self.progress))
 
     def _lens(self) -> dict:
-        from station.api import derive_lens
+        from station.api import derive_lens, lens_config
 
         s = self.config.sequence
+        given = {"samples": s.lens_samples, "grid_step": s.lens_grid_step,
+                 "pixel_samples": s.lens_pixel_samples}
+        config = lens_config(**{k: v for k, v in given.items() if v is not None},
+                             **s.lens_settings)
         figures = self.out / "figures"
         _remove(figures)
         # written as the nodes are derived (temporary name, then renamed into place)
-        result = derive_lens(self.out / "ltc.zarr", samples=s.lens_samples,
-                             grid_step=s.lens_grid_step, figures=figures,
-                             pixel_samples=s.lens_pixel_samples,
-                             settings=dict(s.lens_settings),
+        result = derive_lens(self.out / "ltc.zarr", config, figures=figures,
                              progress=self.progress, out=self.out / "lens.npz")
-        summary = result.summary()
+        summary = result.summary().to_json()
         return {k: summary[k] for k in ("optical_centre_mm", "focus_distance_mm",
                                         "pixels_usable", "pixels", "notes")}
 
 
 def _atomic(final: Path, write: Callable[[Path], dict | None], suffix: str = "") -> dict:
-    """Write an output under a temporary name, then rename it into place."""
+    """Write an output under a temporary name, then rename it into place; the result names
+    the final path wherever the writer named the temporary one."""
     tmp = final.with_name(final.stem + ".partial" + (suffix or final.suffix))
     _remove(tmp)
     result = write(tmp)
     _remove(final)
     os.replace(tmp, final)
-    return result if isinstance(result, dict) else {"out": str(final)}
+    if not isinstance(result, dict):
+        return {"out": str(final)}
+    return {k: str(final) if isinstance(v, str) and v == str(tmp) else v
+            for k, v in result.items()}
 
 
 def _lens_settings_changed(before: str, now: str) -> list[str] | None:
@@ -306,8 +377,8 @@ def _config_text(config: StationConfig | str | Path) -> str:
 
 
 def run_sequence(config: StationConfig | str | Path, out: str | Path, *,
-                 progress: bool = True, force: bool = False) -> dict:
+                 progress: bool = True, force: bool = False) -> SequenceSummary:
     """Run (or continue) the whole station sequence into the folder ``out``; see the module
     docstring. ``force`` takes over the run store's writer lock left by a killed run (never a
-    live writer's). Returns the summary (also in ``out/summary.json``)."""
+    live writer's). Returns the summary (``SequenceSummary``; ``out/summary.json``)."""
     return Sequence(config, out, progress=progress, force=force).run()

@@ -260,16 +260,20 @@ class SequenceConfig(_Strict):
                         "inverse LUT for the run (written as lut.npy in the run folder)")
     align: bool = Field(True, description="image a crosshair at every depth and write the "
                         "alignment report (align.json) before acquiring")
-    lens_samples: int = Field(32, ge=1, description="aperture samples K per node pixel")
-    lens_grid_step: int = Field(1, ge=1, description="lens node spacing, camera pixels")
-    lens_pixel_samples: int = Field(0, ge=0, le=16, description="how a camera pixel "
-                                    "integrates its LCD footprint in the lens fit: 0 a box "
-                                    "(a real camera), n an n x n point grid (a simulated "
-                                    "camera rendered with n x n subpixels)")
+    lens_samples: int | None = Field(None, ge=1, description="aperture samples K per node "
+                                     "pixel (None: the lens step's default, 256)")
+    lens_grid_step: int | None = Field(None, ge=1, description="lens node spacing, camera "
+                                       "pixels (None: the lens step's default, 4)")
+    lens_pixel_samples: int | None = Field(None, ge=0, le=16, description="how a camera "
+                                           "pixel integrates its LCD footprint in the lens "
+                                           "fit: 0 a box (a real camera), n an n x n point "
+                                           "grid (a simulated camera rendered with n x n "
+                                           "subpixels); None: the lens step's default, 0")
     lens_settings: dict[str, float | int | bool] = Field(
         default_factory=dict, description="further settings of the lens step by name "
-        "(station.lens.geometry.LensFitConfig: e.g. deconvolve_iterations, support_floor, "
-        "aim_offset_sigma_px); checked when the lens step starts")
+        "(station.lens.geometry.LensFitConfig, whose defaults are the recommended settings: "
+        "e.g. deconvolve_iterations, support_floor, aim_offset_sigma_px); checked when the "
+        "lens step starts")
 
 
 class StationConfig(_Strict):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from station.commands.experiment import log, report, text  # noqa: F401 - the same table
 
@@ -23,9 +24,10 @@ def arguments(p: argparse.ArgumentParser) -> None:
                    "fields replace the demo's")
 
 
-def run(args: argparse.Namespace) -> dict:
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    from station.experiment.config import load_experiment_config
     from station.experiment.demo import demo_config, run_demo
-    from station.experiment.run import load_experiment_config
 
     config = demo_config() if args.config is None else load_experiment_config(args.config)
-    return report(run_demo(args.out, config=config, progress=not args.quiet, log=log(args)))
+    return report(run_demo(args.out, config=config, progress=not args.quiet, log=log(args)),
+                  args)

@@ -24,7 +24,7 @@ def run(args: argparse.Namespace) -> dict:
     args.resume_hint = f"; continue with: ltc run {args.config} --out {args.out}"
     args.log_file = Path(args.out) / "run.log"  # where the CLI keeps a bug's traceback
     summary = run_sequence(args.config, args.out, progress=not args.quiet, force=args.force)
-    return {**summary, "out": str(args.out)}
+    return {**summary.to_json(), "out": str(args.out)}
 
 
 def text(s: dict) -> str:

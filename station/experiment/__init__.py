@@ -7,6 +7,8 @@ from __future__ import annotations
 from sim._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
-    "run": "ExperimentConfig LensSpec load_experiment_config paper_size_config run_experiment",
+    "config": "ExperimentConfig LensSpec load_experiment_config paper_size_config",
+    "rows": "DistanceStats ModelNumbers PoseValidation PositionRow",
+    "run": "run_experiment",
     "demo": "demo_config run_demo",
 })

@@ -5,13 +5,20 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from station.experiment.config import BENCH_SUBPIXELS, FOCAL_MM, ExperimentConfig, Log
 from station.sequence import run_sequence
 
-def build_rig(cfg: ExperimentConfig):
+if TYPE_CHECKING:
+    from sim.optics.lens import AberratedLens, LensModel
+    from sim.optics.measured_lens import MeasuredLens
+    from sim.optics.rig import DeviceCalibration, Rig
+    from station.acquisition.config import StationConfig
+
+def build_rig(cfg: ExperimentConfig) -> Rig:
     """``small_rig(scale)`` without distortion, both cameras cropped to ``camera_size``
     about the image centre (same focal length and pose)."""
     from sim.optics.rig import DeviceCalibration, Rig, small_rig
@@ -26,7 +33,7 @@ def build_rig(cfg: ExperimentConfig):
     return Rig(cameras=cams, projector=full.projector)
 
 
-def truth_lens(cfg: ExperimentConfig, index: int, samples: int):
+def truth_lens(cfg: ExperimentConfig, index: int, samples: int) -> AberratedLens:
     """Camera ``index``'s ground-truth lens with ``samples`` pupil samples."""
     from sim.optics.lens import AberratedLens
 
@@ -38,7 +45,7 @@ def truth_lens(cfg: ExperimentConfig, index: int, samples: int):
                          spherical_mm=s.spherical_mm, samples=samples, edge="soft")
 
 
-def lcd_size(cfg: ExperimentConfig, camera) -> tuple[int, int]:
+def lcd_size(cfg: ExperimentConfig, camera: DeviceCalibration) -> tuple[int, int]:
     """LCD pixels covering the camera's view at the farthest depth, with a blur margin."""
     far = cfg.lcd_distance_at_zero_mm + max(cfg.depths_mm)
     f = camera.K_array[0, 0]
@@ -47,7 +54,7 @@ def lcd_size(cfg: ExperimentConfig, camera) -> tuple[int, int]:
             int(np.ceil(camera.height / f * far / cfg.lcd_pitch_mm)) + margin)
 
 
-def station_config(cfg: ExperimentConfig, rig, index: int):
+def station_config(cfg: ExperimentConfig, rig: Rig, index: int) -> StationConfig:
     """The fake-bench station config of camera ``index``: the rig camera's K and sensor, its
     own ground-truth lens; ``camera.matrix`` = K places the optical centre."""
     from station.acquisition.config import StationConfig
@@ -100,8 +107,8 @@ def station_config(cfg: ExperimentConfig, rig, index: int):
     })
 
 
-def measure_cameras(cfg: ExperimentConfig, rig, out: Path, progress: bool, log: Log,
-                    force: bool = False) -> list[dict]:
+def measure_cameras(cfg: ExperimentConfig, rig: Rig, out: Path, progress: bool, log: Log,
+                    force: bool = False) -> list[dict[str, Any]]:
     """The station sequence (``ltc run``) for each camera into ``out/station/camI``; returns
     per camera the lens file, its figures and a summary (steps' seconds, optical centre and
     its error against the fake bench's true one). ``force`` takes over a run store's writer
@@ -115,14 +122,14 @@ def measure_cameras(cfg: ExperimentConfig, rig, out: Path, progress: bool, log: 
             f"reconstruct, lens -> {folder}")
         t0 = time.perf_counter()
         summary = run_sequence(config, folder, progress=progress, force=force)
-        lens = summary["steps"]["lens"]["result"]
+        lens = summary.steps["lens"].result or {}
         w, h = lcd_size(cfg, cam)
         true_centre = np.array([(w - 1) / 2 * cfg.lcd_pitch_mm, (h - 1) / 2 * cfg.lcd_pitch_mm,
                                 -cfg.lcd_distance_at_zero_mm])
         err = np.asarray(lens["optical_centre_mm"]) - true_centre
         rec = {"camera": cam.name, "folder": str(folder), "lens": str(folder / "lens.npz"),
                "figures": sorted(str(p) for p in (folder / "figures").glob("*.png")),
-               "seconds": {k: v.get("seconds") for k, v in summary["steps"].items()},
+               "seconds": {k: v.seconds for k, v in summary.steps.items()},
                "total_s": time.perf_counter() - t0,
                "optical_centre_mm": lens["optical_centre_mm"],
                "optical_centre_true_mm": true_centre.tolist(),
@@ -138,7 +145,8 @@ def measure_cameras(cfg: ExperimentConfig, rig, out: Path, progress: bool, log: 
 
 # --- the scanners -----------------------------------------------------------------------------
 
-def scanner_lenses(cfg: ExperimentConfig, measured: list) -> dict[str, tuple]:
+def scanner_lenses(cfg: ExperimentConfig,
+                   measured: list[MeasuredLens]) -> dict[str, tuple[LensModel, ...]]:
     """Per scanner the lens of each camera: "ltc" the measured lenses smoothed over
     ``lens_smoothing_nodes``; "gaussian" from the measured lenses as derived (OPTICS.md
     section 7: the second moment of the measured LTC at the optical centre, which the

@@ -7,10 +7,12 @@ import json
 import tomllib
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from station.errors import StationError
+from station.lens.geometry import LensFitConfig
 
 SPHERE_DIAMETER_MM = 50.8007
 BALLBAR_LENGTH_MM = 209.8219
@@ -24,6 +26,7 @@ MIN_BALL_COVERAGE = 0.25  # a blurring scanner's points on a ball / the pinhole 
 MODELS = ("real", "ltc", "gaussian", "pinhole")
 VIRTUAL = ("ltc", "gaussian", "pinhole")
 Log = Callable[[str], None]
+_LENS_DEFAULTS = LensFitConfig()
 
 
 class LensSpec(BaseModel):
@@ -60,24 +63,14 @@ class ExperimentConfig(BaseModel):
                                          "depths, mm (six in the paper)")
     period: int = Field(12, ge=4, description="Fourier pattern period P, LCD px")
     steps: int = Field(3, ge=3, le=4, description="Fourier phase steps")
-    lens_samples: int = Field(256, ge=1, description="aperture samples K of the measured "
-                              "lens: 256 measured better at large defocus than 128 on two "
-                              "noise seeds (worst size 12 / 14 against 20 / 18 um), though "
-                              "the samples with weight are only 61 against 53 per node "
-                              "(benchmarks/README.md)")
-    lens_grid_step: int = Field(4, ge=1, description="measured-lens node spacing, px")
+    lens_samples: int = Field(_LENS_DEFAULTS.samples, ge=1, description="aperture samples K "
+                              "of the measured lens (default: LensFitConfig's)")
+    lens_grid_step: int = Field(_LENS_DEFAULTS.grid_step, ge=1, description="measured-lens "
+                                "node spacing, px (default: LensFitConfig's)")
     lens_settings: dict[str, float | int | bool] = Field(
-        {"support_floor": 0.1, "deconvolve_iterations": 20, "aim_offset_sigma_px": 8.0,
-         "aperture_cells": 64, "focus_zones": True},
-        description="further settings of the station's lens step "
-        "(station.lens.geometry.LensFitConfig): the samples drawn from the deblurred aperture "
-        "distribution, each node's aim offset from the station's principal-ray slopes "
-        "(benchmarks/README.md, 'What limits the measured lens'); the aperture on a 64-cell "
-        "grid, on which the samples' quadrature has converged (K = 256 and 1024 agree within "
-        "0.3 um; on 32 cells they differ by 4.6 um at the near large-defocus sphere, "
-        "benchmarks/README.md); and the focus per pupil zone, through which the LTCs are "
-        "mapped onto the aperture plane and the optical centre refitted (one focus skews a "
-        "vignetted pupil and put the centre 23-31 um behind the pupil at paper size)")
+        {}, description="further settings of the station's lens step by name "
+        "(station.lens.geometry.LensFitConfig); empty: LensFitConfig's defaults, the "
+        "recommended settings (docs/decisions/0025-recommended-lens-settings.md)")
     average_frames: int = Field(4, ge=1, description="camera frames averaged per station "
                                 "pattern ([camera] average_frames): the noise of the principal "
                                 "rays' intercepts / sqrt(N) (benchmarks/README.md)")
@@ -124,7 +117,7 @@ class ExperimentConfig(BaseModel):
     cad_z_mm: float = Field(0.0, description="CAD part's world z, mm")
 
 
-def paper_size_config(**overrides) -> ExperimentConfig:
+def paper_size_config(**overrides: Any) -> ExperimentConfig:
     """The reference camera's pixel pitch and focal length (scale 1: f = 4638 px), the
     camera cropped to the region the objects occupy (LCD pitch and period of the paper)."""
     base = dict(scale=1.0, camera_size=(1536, 768), lcd_pitch_mm=0.2715, period=24, steps=4,
@@ -145,12 +138,12 @@ def paper_size_config(**overrides) -> ExperimentConfig:
     return ExperimentConfig(**base)
 
 
-def load_experiment_config(path: str | Path | None, **overrides) -> ExperimentConfig:
+def load_experiment_config(path: str | Path | None, **overrides: Any) -> ExperimentConfig:
     """The config of a TOML or JSON file (None: the defaults), with ``overrides``; errors
     name the file and the field."""
     from sim.validation import format_validation_error
 
-    data: dict = {}
+    data: dict[str, Any] = {}
     if path is not None:
         path = Path(path)
         if not path.is_file():
@@ -159,7 +152,8 @@ def load_experiment_config(path: str | Path | None, **overrides) -> ExperimentCo
         try:
             data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
         except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
-            raise StationError(f"{path}: not valid {path.suffix[1:].upper() or 'TOML'}: {exc}")
+            raise StationError(
+                f"{path}: not valid {path.suffix[1:].upper() or 'TOML'}: {exc}") from exc
     data.update(overrides)
     try:
         return ExperimentConfig(**data)

@@ -7,11 +7,12 @@ from __future__ import annotations
 import datetime as _dt
 import time
 from pathlib import Path
+from typing import Any
 
 from station.experiment.run import ExperimentConfig, Log, run_experiment
 
 
-def demo_config(**overrides) -> ExperimentConfig:
+def demo_config(**overrides: Any) -> ExperimentConfig:
     """The demo's experiment: the built-in defaults (``ExperimentConfig()``)."""
     return ExperimentConfig(**overrides)
 
@@ -22,7 +23,7 @@ def default_out() -> Path:
 
 
 def run_demo(out: str | Path | None = None, *, config: ExperimentConfig | None = None,
-             progress: bool = True, log: Log = print) -> dict:
+             progress: bool = True, log: Log = print) -> dict[str, Any]:
     """Run the demo into ``out`` (default: ``default_out()``); returns the experiment's
     results with ``seconds.demo`` (wall clock)."""
     t0 = time.perf_counter()

@@ -5,11 +5,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from station.errors import StationError
 from station.experiment.config import BALLBAR_BALL_MM, BALLBAR_LENGTH_MM, ExperimentConfig
+
+if TYPE_CHECKING:
+    from trimesh import Trimesh
+
+    from sim.optics.rig import Rig
+    from sim.render.scene import Scene
 
 @dataclass(frozen=True)
 class Position:
@@ -23,10 +30,11 @@ class Position:
     depth_mm: float
 
 
-def positions(cfg: ExperimentConfig, rig) -> list[Position]:
+def positions(cfg: ExperimentConfig, rig: Rig) -> list[Position]:
     """Spheres (slight, then large), ball bars (slight, then large), the CAD part."""
     out = []
-    groups = [("sphere", "S", "slight", cfg.sphere_slight), ("sphere", "S", "large", cfg.sphere_large),
+    groups = [("sphere", "S", "slight", cfg.sphere_slight),
+              ("sphere", "S", "large", cfg.sphere_large),
               ("ballbar", "B", "slight", cfg.ballbar_slight),
               ("ballbar", "B", "large", cfg.ballbar_large)]
     if cfg.cad:
@@ -41,7 +49,7 @@ def positions(cfg: ExperimentConfig, rig) -> list[Position]:
     return out
 
 
-def cad_part_mesh(step_mm: float = 0.5):
+def cad_part_mesh(step_mm: float = 0.5) -> Trimesh:
     """The CAD part: a 120 x 80 mm plate (object frame, z towards the rig negative) with two
     steps (8 and 16 mm), two holes (12 and 8 mm diameter, 10 mm deep) and a freeform face
     (a smooth bump and saddle); a height field meshed every ``step_mm``, closed by no walls
@@ -69,10 +77,11 @@ def cad_part_mesh(step_mm: float = 0.5):
     return trimesh.Trimesh(verts, faces, process=False)
 
 
-def scene_of(pos: Position, cfg: ExperimentConfig, cad_path: Path | None):
+def scene_of(pos: Position, cfg: ExperimentConfig, cad_path: Path | None) -> Scene:
     """The ``sim`` scene of one position."""
     from sim.render.scene import BallBarObject, MeshObject, Scene, SphereObject
 
+    obj: SphereObject | BallBarObject | MeshObject
     if pos.kind == "sphere":
         obj = SphereObject(name=pos.name, pose={"t": list(pos.centre_mm)})
     elif pos.kind == "ballbar":
@@ -85,12 +94,15 @@ def scene_of(pos: Position, cfg: ExperimentConfig, cad_path: Path | None):
                             centre_distance_mm=BALLBAR_LENGTH_MM,
                             pose={"t": list(pos.centre_mm), "R": R})
     else:
+        if cad_path is None:
+            raise StationError(f"position {pos.name}: a CAD position needs the CAD mesh's file")
         obj = MeshObject(name=pos.name, path=cad_path, smooth_angle_deg=30.0,
                          pose={"t": list(pos.centre_mm)})
     return Scene(objects=[obj])
 
 
-def view_extents_px(pos: Position, cfg: ExperimentConfig, rig, cad_mesh=None) -> np.ndarray:
+def view_extents_px(pos: Position, cfg: ExperimentConfig, rig: Rig,
+                    cad_mesh: Trimesh | None = None) -> np.ndarray:
     """Per camera the pixel box (u0, u1, v0, v1) the position's object covers (pinhole, the
     OpenCV pixel-centre convention): its balls' surfaces, or the CAD part's bounding box
     corners (``cad_mesh``, object frame)."""
@@ -112,7 +124,7 @@ def view_extents_px(pos: Position, cfg: ExperimentConfig, rig, cad_mesh=None) ->
     return np.asarray(boxes)
 
 
-def check_views(cfg: ExperimentConfig, rig, cad_mesh=None) -> None:
+def check_views(cfg: ExperimentConfig, rig: Rig, cad_mesh: Trimesh | None = None) -> None:
     """Refuse a config with an object that does not lie wholly inside both cameras' crops
     (which would leave a scan with too few, or no, pixels seen by both cameras), naming each
     such position, its overhang and what to change."""

@@ -6,21 +6,39 @@ from __future__ import annotations
 
 import os
 import textwrap
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from station.experiment.acceptance import size_vs_real_um
-from station.experiment.config import (BALLBAR_LENGTH_MM, MODELS, SPHERE_DIAMETER_MM, VIRTUAL,
-                                       ExperimentConfig)
+from station.experiment.config import (
+    BALLBAR_LENGTH_MM,
+    MODELS,
+    SPHERE_DIAMETER_MM,
+    VIRTUAL,
+    ExperimentConfig,
+)
+from station.experiment.rows import PositionRow
+from station.experiment.scan import Maps
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.collections import PathCollection
+    from matplotlib.figure import Figure
+
+    from sim.optics.measured_lens import MeasuredLens
+    from sim.optics.rig import Rig
 
 LABELS = {"real": "real", "ltc": "measured LTC", "gaussian": "Gaussian", "pinhole": "pinhole"}
 
 
-def _figure(size: tuple[float, float]):
+def _figure(size: tuple[float, float]) -> Figure:
+    """A figure (inches) laid out by matplotlib's constrained layout."""
     from matplotlib.figure import Figure
 
-    return Figure(figsize=size, dpi=100)
+    return Figure(figsize=size, dpi=100, layout="constrained")
 
 
 def wrapped_phase(images: np.ndarray, steps: int = 4) -> tuple[np.ndarray, np.ndarray]:
@@ -33,7 +51,7 @@ def wrapped_phase(images: np.ndarray, steps: int = 4) -> tuple[np.ndarray, np.nd
     return np.arctan2(s, c), 2 * np.hypot(s, c) / steps
 
 
-def fringe_figure(images: dict, path: Path) -> Path:
+def fringe_figure(images: dict[str, Any], path: Path) -> Path:
     """Camera 0's finest fringe image, real and virtual side by side, with the per-pixel
     intensity difference and the wrapped-phase difference of each virtual scanner."""
     fig = _figure((15, 9))
@@ -44,7 +62,7 @@ def fringe_figure(images: dict, path: Path) -> Path:
     for j, n in enumerate(MODELS):
         img = np.asarray(images[n][-4], dtype=np.float64)
         axes[0, j].imshow(img, cmap="gray")
-        axes[0, j].set_title(f"{LABELS[n]}: finest fringe, camera 0")
+        axes[0, j].set_title(f"{LABELS[n]}: finest fringe, camera 0", fontsize=10)
         if n == "real":
             axes[1, j].axis("off")
             axes[2, j].axis("off")
@@ -65,82 +83,101 @@ def fringe_figure(images: dict, path: Path) -> Path:
         ax.set_xticks([])
         ax.set_yticks([])
     fig.suptitle(f"position {images['name']} ({images['defocus']} defocus)")
-    fig.tight_layout()
     fig.savefig(path)
     return path
 
 
-def distance_map_figure(name: str, maps: dict, path: Path) -> Path:
-    """Each virtual cloud's signed distance to the real cloud (unaligned), world x-y."""
+def distance_map_figure(name: str, maps: Maps, path: Path) -> Path:
+    """Each virtual cloud's signed distance to the real cloud (unaligned), world x-y, each on
+    its own colour scale covering its 1st to 99th percentile (diverging about 0 when the
+    range holds 0, else sequential): a cloud offset by hundreds of um still shows its
+    structure."""
     fig = _figure((15, 4.2))
     axes = fig.subplots(1, 3)
-    lim = max(np.percentile(np.abs(maps["ltc"][1]), 98) * 1e3, 1.0)
     for ax, n in zip(axes, VIRTUAL):
         pts, d = maps[n]
-        sc = _distance_map(ax, pts, d, lim, 2, f"{name}: {LABELS[n]} - real, mean "
-                           f"{d.mean() * 1e3:+.1f} um, RMSE {np.sqrt(np.mean(d * d)) * 1e3:.1f} um")
+        lo, hi = ((float(np.percentile(d, 1)) * 1e3, float(np.percentile(d, 99)) * 1e3)
+                  if d.size else (-1.0, 1.0))
+        title = (f"{name}: {LABELS[n]} - real\nmean {d.mean() * 1e3:+.1f} um, RMSE "
+                 f"{np.sqrt(np.mean(d * d)) * 1e3:.1f} um")
+        if lo < 0 < hi or hi - lo < 1.0:
+            lim = max(abs(lo), abs(hi), 1.0)
+            sc = _distance_map(ax, pts, d, lim, 2, title)
+        else:
+            sc = _distance_map(ax, pts, d, 0.0, 2, title, vmin_um=lo, vmax_um=hi)
         ax.set_xlabel("world x, mm")
         ax.set_ylabel("world y, mm")
-        fig.colorbar(sc, ax=ax, shrink=0.8, label="um (same scale: ltc's 98th percentile)")
-    fig.tight_layout()
+        fig.colorbar(sc, ax=ax, shrink=0.8, label="um (its 1st-99th percentile)")
     fig.savefig(path)
     return path
 
 
-def _distance_map(ax, pts: np.ndarray, d_mm: np.ndarray, lim_um: float, size: float,
-                  title: str):
-    """Signed distances (mm) of points (n, 3) drawn in image orientation, um, +-lim_um."""
-    sc = ax.scatter(pts[:, 0], pts[:, 1], c=d_mm * 1e3, s=size, cmap="coolwarm", vmin=-lim_um,
-                    vmax=lim_um)
+def _distance_map(ax: Axes, pts: np.ndarray, d_mm: np.ndarray, lim_um: float, size: float,
+                  title: str, vmin_um: float | None = None,
+                  vmax_um: float | None = None) -> PathCollection:
+    """Signed distances (mm) of points (n, 3) drawn in image orientation, um: +-lim_um on a
+    diverging map, or vmin_um..vmax_um on a sequential one."""
+    if vmin_um is None or vmax_um is None:
+        cmap, lo, hi = "coolwarm", -lim_um, lim_um
+    else:
+        cmap, lo, hi = "viridis", vmin_um, vmax_um
+    sc = ax.scatter(pts[:, 0], pts[:, 1], c=d_mm * 1e3, s=size, cmap=cmap, vmin=lo, vmax=hi)
     ax.set_aspect("equal")
     ax.invert_yaxis()
     ax.set_title(title, fontsize=9)
     return sc
 
 
-def cad_figure(maps: dict, path: Path) -> Path:
-    """Every scanner's cloud of the CAD part against the CAD mesh (Fig. 17)."""
-    fig = _figure((16, 4.2))
+def cad_figure(maps: Maps, path: Path) -> Path:
+    """Every scanner's cloud of the CAD part against the CAD mesh (Fig. 17), on one colour
+    scale (+- the real cloud's 95th percentile of |distance|), the colour bars below."""
+    fig = _figure((16, 4.0))
     axes = fig.subplots(1, 4)
     d_real = maps["cad_real"][1]
-    lim = max(np.percentile(np.abs(d_real), 95) * 1e3, 1.0)
+    lim = max(float(np.percentile(np.abs(d_real), 95)) * 1e3, 1.0)
     for ax, n in zip(axes, MODELS):
         pts, d = maps[f"cad_{n}"]
-        sc = _distance_map(ax, pts, d, lim, 1, f"{LABELS[n]} - CAD: mean {d.mean() * 1e3:+.0f} "
+        sc = _distance_map(ax, pts, d, lim, 1, f"{LABELS[n]} - CAD\nmean {d.mean() * 1e3:+.0f} "
                            f"um, RMSE {np.sqrt(np.mean(d * d)) * 1e3:.0f} um")
-        fig.colorbar(sc, ax=ax, shrink=0.8, label="um")
-    fig.tight_layout()
+        fig.colorbar(sc, ax=ax, location="bottom", shrink=0.8, label="um")
     fig.savefig(path)
     return path
 
 
-def summary_figure(rows: list[dict], path: Path) -> Path:
+def summary_figure(rows: list[PositionRow], path: Path) -> Path:
     """Mean and RMSE against the real cloud, and the size error against real's, versus
-    defocus, per virtual scanner (spheres and ball bars)."""
-    fig = _figure((16, 4.5))
+    defocus, per virtual scanner (colour) and object kind (marker: spheres and ball bars,
+    unjoined: each point is its own position)."""
+    fig = _figure((16, 4.8))
     axes = fig.subplots(1, 3)
-    sel = [r for r in rows if r["kind"] != "cad"]
-    x = np.array([r["defocus_mm"] for r in sel])
-    o = np.argsort(x)
-    marks = {"ltc": "o-", "gaussian": "s-", "pinhole": "^--"}
-    for n in VIRTUAL:
-        m = [sel[i]["models"] for i in o]
-        axes[0].plot(x[o], [v[n]["mean_mm"] * 1e3 for v in m], marks[n], label=LABELS[n])
-        axes[1].plot(x[o], [v[n]["rmse_mm"] * 1e3 for v in m], marks[n], label=LABELS[n])
-        axes[2].plot(x[o], [abs(size_vs_real_um(v[n])) for v in m], marks[n], label=LABELS[n])
+    colours = {"ltc": "C0", "gaussian": "C1", "pinhole": "C2"}
+    kinds = {"sphere": ("o", "sphere"), "ballbar": ("s", "ball bar")}
+    for kind, (marker, label) in kinds.items():
+        sel = [r for r in rows if r.kind == kind]
+        if not sel:
+            continue
+        x = np.array([r.defocus_mm for r in sel])
+        for n in VIRTUAL:
+            m = [r.models[n] for r in sel]
+            style = dict(marker=marker, linestyle="none", color=colours[n],
+                         label=f"{LABELS[n]}, {label}",
+                         markerfacecolor=colours[n] if kind == "sphere" else "none")
+            axes[0].plot(x, [(v.mean_mm or 0.0) * 1e3 for v in m], **style)
+            axes[1].plot(x, [(v.rmse_mm or 0.0) * 1e3 for v in m], **style)
+            axes[2].plot(x, [abs(size_vs_real_um(v)) for v in m], **style)
     for ax, t in zip(axes, ("mean distance to real, um", "RMSE to real, um",
                             "|size - real's size|, shared pixels, um")):
         ax.set_yscale("symlog", linthresh=10.0)
         ax.set_xlabel("defocus (depth - focus distance), mm")
         ax.set_title(t)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.tight_layout()
+        ax.legend(fontsize=7)
     fig.savefig(path)
     return path
 
 
-def _size_table(rows: list[dict], kind: str, title: str, unit: str, cell) -> list[str]:
+def _size_table(rows: list[PositionRow], kind: str, title: str, unit: str,
+                cell: Callable[[float], str]) -> list[str]:
     """Markdown table of every model's size on its own points (``cell(size_mm)``) at the
     positions of ``kind``, then each virtual model against real on the pixels both clouds
     share, and ltc and Gaussian against real on their own points (um)."""
@@ -148,14 +185,22 @@ def _size_table(rows: list[dict], kind: str, title: str, unit: str, cell) -> lis
            + " | " + " | ".join(f"{LABELS[n]} - real, shared{unit}" for n in VIRTUAL)
            + f" | ltc - real, own{unit} | Gaussian - real, own{unit} |",
            "|" + "---|" * (4 + len(MODELS) + len(VIRTUAL))]
-    for r in (r for r in rows if r["kind"] == kind):
-        m = r["models"]
-        out.append(f"| {r['name']} ({r['defocus']}) | {r['defocus_mm']:+.0f} | "
-                   + " | ".join(cell(m[n]["size_mm"]) for n in MODELS) + " | "
+    for r in (r for r in rows if r.kind == kind):
+        m = r.models
+        size = {n: _given(m[n].size_mm) for n in MODELS}
+        out.append(f"| {r.name} ({r.defocus}) | {r.defocus_mm:+.0f} | "
+                   + " | ".join(cell(size[n]) for n in MODELS) + " | "
                    + " | ".join(f"{size_vs_real_um(m[n]):+.1f}" for n in VIRTUAL)
-                   + f" | {_um(m['ltc']['size_mm'] - m['real']['size_mm'])}"
-                   f" | {_um(m['gaussian']['size_mm'] - m['real']['size_mm'])} |")
+                   + f" | {_um(size['ltc'] - size['real'])}"
+                   f" | {_um(size['gaussian'] - size['real'])} |")
     return out
+
+
+def _given(value: float | None) -> float:
+    """A number the position's kind always has (None: a bug)."""
+    if value is None:
+        raise TypeError("a number the position's kind always has is missing")
+    return value
 
 
 SIZE_RULE = (
@@ -172,7 +217,7 @@ def _um(x: float, sign: bool = True) -> str:
     return f"{x * 1e3:+.1f}" if sign else f"{x * 1e3:.1f}"
 
 
-def tables(rows: list[dict]) -> list[str]:
+def tables(rows: list[PositionRow]) -> list[str]:
     """Markdown: Table 4 (distances), Table 5 (sphere fits), Table 6 (ball-bar lengths)."""
     out = ["### Table 4: virtual against real, point distances (um)", "",
            "Mean / RMSE of the signed distances of each virtual cloud to the real one, "
@@ -183,10 +228,12 @@ def tables(rows: list[dict]) -> list[str]:
                f"{LABELS[n]} | {LABELS[n]} (ICP)" for n in VIRTUAL) + " |",
            "|" + "---|" * (2 + 2 * len(VIRTUAL))]
     for r in rows:
-        m = r["models"]
-        out.append(f"| {r['name']} ({r['kind']}, {r['defocus']}) | {r['defocus_mm']:+.0f} | "
-                   + " | ".join(f"{_um(m[n]['mean_mm'])} / {_um(m[n]['rmse_mm'], False)} | "
-                                f"{_um(m[n]['mean_icp_mm'])} / {_um(m[n]['rmse_icp_mm'], False)}"
+        m = r.models
+        out.append(f"| {r.name} ({r.kind}, {r.defocus}) | {r.defocus_mm:+.0f} | "
+                   + " | ".join(f"{_um(_given(m[n].mean_mm))} / "
+                                f"{_um(_given(m[n].rmse_mm), False)} | "
+                                f"{_um(_given(m[n].mean_icp_mm))} / "
+                                f"{_um(_given(m[n].rmse_icp_mm), False)}"
                                 for n in VIRTUAL) + " |")
     out += ["", textwrap.fill(SIZE_RULE, 100)]
     out += _size_table(rows, "sphere", f"### Table 5: sphere fits, diameter - "
@@ -194,25 +241,29 @@ def tables(rows: list[dict]) -> list[str]:
     out += _size_table(rows, "ballbar", f"### Table 6: ball-bar lengths (nominal "
                        f"{BALLBAR_LENGTH_MM} mm), mm", ", um",
                        lambda mm: f"{BALLBAR_LENGTH_MM + mm:.4f}")
-    cad = [r for r in rows if r["kind"] == "cad"]
+    cad = [r for r in rows if r.kind == "cad"]
     if cad:
         out += ["", "### CAD part against the CAD model (um)", "",
                 "| scanner | mean | RMSE | std | points | against real: mean / RMSE |",
                 "|---|---|---|---|---|---|"]
         for n in MODELS:
-            m = cad[0]["models"][n]
-            vs = (f"{_um(m['mean_mm'])} / {_um(m['rmse_mm'], False)}" if n != "real" else "")
-            out.append(f"| {LABELS[n]} | {_um(m['cad']['mean_mm'])} | "
-                       f"{_um(m['cad']['rmse_mm'], False)} | {_um(m['cad']['std_mm'], False)} | "
-                       f"{m['points']} | {vs} |")
+            mc = cad[0].models[n]
+            vs = (f"{_um(_given(mc.mean_mm))} / {_um(_given(mc.rmse_mm), False)}"
+                  if n != "real" else "")
+            c = mc.cad
+            if c is None:
+                raise TypeError(f"position {cad[0].name}: no CAD distances for {n}")
+            out.append(f"| {LABELS[n]} | {_um(c.mean_mm)} | {_um(c.rmse_mm, False)} | "
+                       f"{_um(c.std_mm, False)} | {mc.points} | {vs} |")
     return out
 
 
-def pose_table(rows: list[dict]) -> list[str]:
+def pose_table(rows: list[PositionRow]) -> list[str]:
     """Markdown: the pose refinement of the validation path per position (um from the true
     pose): the real cloud's own fit, the pose refined with the measured-LTC scanner, and
     where one step with the Gaussian and the pinhole scanners puts it."""
-    sel = [r for r in rows if r.get("validation", {}).get("true_offsets_um")]
+    sel = [(r, r.validation, t) for r in rows if r.validation is not None
+           and (t := r.validation.true_offsets_um)]
     if not sel:
         return []
     out = ["### The artefact's pose, refined by analysis by synthesis (um from the true pose)",
@@ -222,33 +273,35 @@ def pose_table(rows: list[dict]) -> list[str]:
            "step with them puts the artefact (their own bias).", "",
            "| position | real fit | refined (ltc) | Gaussian | pinhole | steps, um |",
            "|---|---|---|---|---|---|"]
-    for r in sel:
-        v = r["validation"]
-        t = v["true_offsets_um"]
-        out.append(f"| {r['name']} ({r['kind']}, {r['defocus']}) | {t['real_fit']:.1f} | "
+    for r, v, t in sel:
+        out.append(f"| {r.name} ({r.kind}, {r.defocus}) | {t['real_fit']:.1f} | "
                    f"{t['refined']:.2f} | {t.get('refined_gaussian', float('nan')):.1f} | "
                    f"{t.get('refined_pinhole', float('nan')):.1f} | "
-                   + ", ".join(f"{x:.2f}" for x in v["refine_steps_um"]) + " |")
+                   + ", ".join(f"{x:.2f}" for x in v.refine_steps_um) + " |")
     return out
 
 
-def write_report(results: dict, cfg: ExperimentConfig, rig, measured, models: dict,
-                 maps: dict, images: dict, out: Path) -> list[str]:
+def write_report(results: dict[str, Any], cfg: ExperimentConfig, rig: Rig,
+                 measured: list[MeasuredLens], models: dict[str, tuple[Any, ...]],
+                 maps: dict[str, Maps], images: dict[str, Any], out: Path) -> list[str]:
     """Write ``figures/*.png`` and ``report.md``; returns the figure paths."""
     figs = out / "figures"
     figs.mkdir(exist_ok=True)
-    rows = results["rows"]
+    rows: list[PositionRow] = results["rows"]
     paths = [summary_figure(rows, figs / "summary.png")]
     if images:
         paths.append(fringe_figure(images, figs / "fringes.png"))
     for r in rows:
-        if r["kind"] != "cad":
-            paths.append(distance_map_figure(r["name"], maps[r["name"]],
-                                             figs / f"distances_{r['name']}.png"))
+        if r.kind != "cad":
+            paths.append(distance_map_figure(r.name, maps[r.name],
+                                             figs / f"distances_{r.name}.png"))
         else:
-            paths.append(cad_figure(maps[r["name"]], figs / "cad_error_map.png"))
+            paths.append(cad_figure(maps[r.name], figs / "cad_error_map.png"))
     acc = results["acceptance"]
-    rel = lambda p: os.path.relpath(p, out)  # noqa: E731
+
+    def rel(p: str | Path) -> str:
+        return os.path.relpath(p, out)
+
     lines = ["# The reference paper's experiment: measured LTC against a Gaussian defocus model",
              "", f"Run of {results['date']} on {results['machine']}; "
              f"{results['seconds']['total']:.0f} s in all.", ""]
@@ -271,8 +324,9 @@ def write_report(results: dict, cfg: ExperimentConfig, rig, measured, models: di
     if results["station"]:
         setup.append(
             f"Station: fake bench per camera, LCD pitch {cfg.lcd_pitch_mm:g} mm, P = "
-            f"{cfg.period} ({cfg.steps}-step), {len(cfg.depths_mm)} depths (LCD at " + ", ".join(
-                f"{cfg.lcd_distance_at_zero_mm + z:g}" for z in cfg.depths_mm) + " mm). " + " ".join(
+            f"{cfg.period} ({cfg.steps}-step), {len(cfg.depths_mm)} depths (LCD at "
+            + ", ".join(f"{cfg.lcd_distance_at_zero_mm + z:g}" for z in cfg.depths_mm)
+            + " mm). " + " ".join(
                 f"Camera {i}: {s['total_s']:.0f} s, optical centre error "
                 f"{s['optical_centre_error_mm'] * 1e3:.1f} um, focus distance "
                 f"{s['focus_distance_mm']:.1f} mm." for i, s in enumerate(results["station"])))
@@ -308,9 +362,9 @@ def write_report(results: dict, cfg: ExperimentConfig, rig, measured, models: di
         lines += ["Real and virtual fringe images (camera 0), intensity and phase differences:",
                   "", f"![fringes]({rel(figs / 'fringes.png')})", ""]
     lines += ["Distance maps per position (virtual cloud - real cloud, unaligned):", ""]
-    lines += [f"![{r['name']}]({rel(figs / ('distances_' + r['name'] + '.png'))})"
-              for r in rows if r["kind"] != "cad"]
-    if any(r["kind"] == "cad" for r in rows):
+    lines += [f"![{r.name}]({rel(figs / ('distances_' + r.name + '.png'))})"
+              for r in rows if r.kind != "cad"]
+    if any(r.kind == "cad" for r in rows):
         lines += ["", "CAD error map (each scanner's cloud against the CAD mesh, Fig. 17):", "",
                   f"![cad]({rel(figs / 'cad_error_map.png')})"]
     if results["station"]:

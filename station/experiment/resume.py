@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -12,6 +13,8 @@ from station.acquisition.lock import LOCK_NAME
 from station.errors import StationError, UsageError
 from station.experiment.config import ExperimentConfig
 from station.experiment.objects import Position
+from station.experiment.rows import PositionRow
+from station.experiment.scan import Maps
 from station.sequence import durable_file, write_json
 
 POSITIONS = "positions"  # one finished position per file pair: NAME.npz, then NAME.json
@@ -78,12 +81,13 @@ def image_position(poss: list[Position]) -> str | None:
     return pick[0].name if pick else None
 
 
-def save_position(folder: Path, name: str, row: dict, maps: dict, images: dict | None) -> None:
+def save_position(folder: Path, name: str, row: PositionRow, maps: Maps,
+                  images: dict[str, np.ndarray] | None) -> None:
     """One finished position, durably: its arrays (``NAME.npz``: per map
     ``KEY.points_mm`` (n, 3) and ``KEY.distances_mm`` (n,), per model ``images.MODEL``),
     then its numbers (``NAME.json``), which mark it done."""
     folder.mkdir(exist_ok=True)
-    arrays = {}
+    arrays: dict[str, Any] = {}  # names and arrays for np.savez
     for key, (pts, d) in maps.items():
         arrays[f"{key}.points_mm"] = np.asarray(pts)
         arrays[f"{key}.distances_mm"] = np.asarray(d)
@@ -91,10 +95,11 @@ def save_position(folder: Path, name: str, row: dict, maps: dict, images: dict |
         arrays[f"images.{model}"] = np.asarray(im)
     with durable_file(folder / f"{name}.npz", "wb") as f:
         np.savez(f, **arrays)
-    write_json(folder / f"{name}.json", row)
+    write_json(folder / f"{name}.json", row.to_json())
 
 
-def load_position(folder: Path, name: str) -> tuple[dict, dict, dict | None] | None:
+def load_position(folder: Path, name: str
+                  ) -> tuple[PositionRow, Maps, dict[str, np.ndarray] | None] | None:
     """A position finished in an earlier run (row, maps, images or None), or None."""
     import zipfile
 
@@ -103,16 +108,17 @@ def load_position(folder: Path, name: str) -> tuple[dict, dict, dict | None] | N
         return None
     again = f"delete {row_path} and {arr_path} to scan position {name} again"
     try:
-        row = json.loads(row_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
+        data = json.loads(row_path.read_text(encoding="utf-8"))
+        row = PositionRow.from_json(data)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
         raise StationError(f"{row_path}: unreadable ({exc}); {again}") from exc
     try:
         with np.load(arr_path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}  # every member's CRC-32 is checked here
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
         raise StationError(f"{arr_path}: unreadable ({exc}); {again}") from exc
-    if row.get("name") != name:
-        raise StationError(f"{row_path}: holds position {row.get('name')!r}, not {name}; {again}")
+    if row.name != name:
+        raise StationError(f"{row_path}: holds position {row.name!r}, not {name}; {again}")
     maps = {k[: -len(".points_mm")]: (v, arrays[k[: -len(".points_mm")] + ".distances_mm"])
             for k, v in arrays.items() if k.endswith(".points_mm")}
     images = {k[len("images."):]: v for k, v in arrays.items() if k.startswith("images.")}

@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -14,9 +15,20 @@ from station.errors import StationError
 from station.experiment.bench import RENDER
 from station.experiment.config import MODELS, ExperimentConfig
 from station.experiment.objects import Position, scene_of
+from station.experiment.rows import DistanceStats, ModelNumbers, PositionRow
 from station.experiment.sizes import check_coverage, shared_size_mm, size_error_mm, size_fit
 
-def world_cad_mesh(mesh, pos: Position):
+if TYPE_CHECKING:
+    from trimesh import Trimesh
+
+    from sim.fpp.cloud import PointCloud
+    from sim.optics.lens import LensModel
+    from sim.optics.rig import Rig
+
+Maps = dict[str, tuple[np.ndarray, np.ndarray]]  # per map: points (n, 3) mm, distances (n,) mm
+
+
+def world_cad_mesh(mesh: Trimesh, pos: Position) -> Trimesh:
     """The CAD mesh at the position's pose (world frame)."""
     m = mesh.copy()
     m.apply_translation(pos.centre_mm)
@@ -28,12 +40,13 @@ class Scan:
     """One scanner's result at one position: cloud (``PointCloud``, mm), camera 0's images,
     seconds."""
 
-    cloud: object
+    cloud: PointCloud
     images: np.ndarray
     render_s: float
 
 
-def scan_position(pos: Position, cfg: ExperimentConfig, rig, lenses: dict[str, tuple],
+def scan_position(pos: Position, cfg: ExperimentConfig, rig: Rig,
+                  lenses: dict[str, tuple[LensModel, ...]],
                   cad_path: Path | None) -> dict[str, Scan]:
     """Render and reconstruct the position with every scanner (one traced geometry)."""
     from sim.render.fringe_patterns import PhaseShiftSet
@@ -43,7 +56,7 @@ def scan_position(pos: Position, cfg: ExperimentConfig, rig, lenses: dict[str, t
     patterns = PhaseShiftSet(periods_px=list(cfg.periods_px), steps=4, direction="u")
     base = Scanner(rig, lenses["real"], patterns, scene_of(pos, cfg, cad_path),
                    RenderSettings.model_validate(RENDER), where=f"position {pos.name}")
-    out = {}
+    out: dict[str, Scan] = {}
     for name in MODELS:
         s = base.with_lenses(lenses[name])
         t0 = time.perf_counter()
@@ -58,8 +71,8 @@ def scan_position(pos: Position, cfg: ExperimentConfig, rig, lenses: dict[str, t
     return out
 
 
-def compare_position(pos: Position, cfg: ExperimentConfig, rig, scans: dict[str, Scan],
-                     cad_path: Path | None, cad_mesh) -> dict:
+def compare_position(pos: Position, cfg: ExperimentConfig, rig: Rig, scans: dict[str, Scan],
+                     cad_path: Path | None, cad_mesh: Trimesh | None) -> tuple[PositionRow, Maps]:
     """The numbers of one position: per model the size error (sphere, ball bar) or the
     distances to the CAD mesh, and each virtual cloud against the real one, unaligned and
     after ICP (mm). Cloud against cloud is by pixel correspondence
@@ -71,11 +84,13 @@ def compare_position(pos: Position, cfg: ExperimentConfig, rig, scans: dict[str,
 
     scene = scene_of(pos, cfg, cad_path)
     real = scans["real"].cloud
-    row = {"name": pos.name, "kind": pos.kind, "defocus": pos.defocus,
-           "defocus_mm": round(pos.depth_mm - cfg.focus_distance_mm, 3),
-           "centre_mm": list(pos.centre_mm), "models": {}}
-    maps = {}
-    world_mesh = world_cad_mesh(cad_mesh, pos) if pos.kind == "cad" else None
+    models: dict[str, ModelNumbers] = {}
+    maps: Maps = {}
+    world_mesh = None
+    if pos.kind == "cad":
+        if cad_mesh is None:
+            raise StationError(f"position {pos.name}: a CAD position needs the CAD mesh")
+        world_mesh = world_cad_mesh(cad_mesh, pos)
     real_size = None
     if pos.kind != "cad":
         check_coverage(scans, pos, scene, rig)
@@ -83,12 +98,12 @@ def compare_position(pos: Position, cfg: ExperimentConfig, rig, scans: dict[str,
     for name in MODELS:
         cloud = scans[name].cloud
         pts = cloud.points
-        m: dict = {"points": int(len(pts)), "render_s": scans[name].render_s}
-        if pos.kind == "cad":
+        m: dict[str, Any] = {"points": int(len(pts)), "render_s": scans[name].render_s}
+        if world_mesh is not None:
             d = mesh_signed_distance(pts, world_mesh)
-            m["cad"] = distance_stats(d)
+            m["cad"] = DistanceStats(**distance_stats(d))
             maps[f"cad_{name}"] = (pts, d)
-        else:
+        elif real_size is not None:
             own = real_size if name == "real" else size_fit(cloud, pos, scene)
             m.update(size_error_mm(own))
             if name != "real":
@@ -101,5 +116,8 @@ def compare_position(pos: Position, cfg: ExperimentConfig, rig, scans: dict[str,
             m.update(mean_mm=c.mean, rmse_mm=c.rmse, mean_icp_mm=a.mean, rmse_icp_mm=a.rmse,
                      mean_nn_mm=nn.mean, rmse_nn_mm=nn.rmse, pixels_compared=int(c.index.size))
             maps[name] = (pts[c.index], c.distances)
-        row["models"][name] = m
+        models[name] = ModelNumbers(**m)
+    row = PositionRow(name=pos.name, kind=pos.kind, defocus=pos.defocus,
+                      defocus_mm=round(pos.depth_mm - cfg.focus_distance_mm, 3),
+                      centre_mm=list(pos.centre_mm), models=models)
     return row, maps

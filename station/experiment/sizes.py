@@ -10,21 +10,30 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from station.errors import StationError
-from station.experiment.config import (BALLBAR_LENGTH_MM, MIN_BALL_COVERAGE, MODELS, SHELL_MM,
-                                       SPHERE_DIAMETER_MM)
+from station.experiment.config import (
+    BALLBAR_LENGTH_MM,
+    MIN_BALL_COVERAGE,
+    MODELS,
+    SHELL_MM,
+    SPHERE_DIAMETER_MM,
+)
 from station.experiment.objects import Position
 
 if TYPE_CHECKING:
+    from sim.fpp.cloud import PointCloud
+    from sim.metrology.spheres import SphereFit
+    from sim.optics.rig import Rig
+    from sim.render.scene import Scene
     from station.experiment.scan import Scan
 
-def _pixel_keys(cloud) -> np.ndarray:
+def _pixel_keys(cloud: PointCloud) -> np.ndarray:
     """One integer per point naming its rig pixel (camera, v, u) (n,)."""
     f = cloud.fields
     return ((np.asarray(f["camera"], np.int64) * 1_000_000 + np.asarray(f["v"], np.int64))
             * 1_000_000 + np.asarray(f["u"], np.int64))
 
 
-def _size_of(fits: list, pos: Position) -> float:
+def _size_of(fits: list[SphereFit], pos: Position) -> float:
     """Sphere: diameter minus nominal; ball bar: centre distance minus nominal, mm."""
     if pos.kind == "sphere":
         return float(fits[0].diameter - SPHERE_DIAMETER_MM)
@@ -36,19 +45,19 @@ class SizeFit:
     """One scanner's size at one position on its own points: per ball the sphere fit and the
     pixel keys of the points it kept (its inliers); ``size_mm`` against nominal."""
 
-    fits: tuple
-    kept: tuple
+    fits: tuple[SphereFit, ...]
+    kept: tuple[np.ndarray, ...]
     size_mm: float
 
 
-def on_ball(points: np.ndarray, ball) -> np.ndarray:
+def on_ball(points: np.ndarray, ball: np.ndarray) -> np.ndarray:
     """Which points (n, 3) mm lie within ``SHELL_MM`` of the true ball (cx, cy, cz, r) mm:
     the points every size rule and coverage check counts."""
     cx, cy, cz, r = ball
     return np.abs(np.linalg.norm(points - [cx, cy, cz], axis=1) - r) < SHELL_MM
 
 
-def size_fit(cloud, pos: Position, scene) -> SizeFit:
+def size_fit(cloud: PointCloud, pos: Position, scene: Scene) -> SizeFit:
     """The size rule, the same for every scanner: each ball fitted (geometric least squares,
     ``fit_sphere``: 3-sigma robust trimming) to the cloud's points within ``SHELL_MM`` of the
     true ball; sphere: fitted diameter minus nominal; ball bar: fitted centre distance minus
@@ -69,7 +78,7 @@ def size_fit(cloud, pos: Position, scene) -> SizeFit:
     return SizeFit(tuple(fits), tuple(kept), _size_of(fits, pos))
 
 
-def check_coverage(scans: dict[str, Scan], pos: Position, scene, rig) -> None:
+def check_coverage(scans: dict[str, Scan], pos: Position, scene: Scene, rig: Rig) -> None:
     """Refuse a size from balls a scanner barely saw: per ball, each blurring scanner's points
     within ``SHELL_MM`` must reach ``MIN_BALL_COVERAGE`` of the pinhole scanner's (the same
     decoder, no blur: whatever the pixel scale, it keeps what the silhouettes and shadows
@@ -80,7 +89,7 @@ def check_coverage(scans: dict[str, Scan], pos: Position, scene, rig) -> None:
     benchmarks/README.md)."""
     balls = scene.objects[0].spheres()
 
-    def counts(cloud) -> list[int]:
+    def counts(cloud: PointCloud) -> list[int]:
         p = np.asarray(cloud.points, dtype=np.float64)
         return [int(on_ball(p, ball).sum()) for ball in balls]
 
@@ -100,12 +109,13 @@ def check_coverage(scans: dict[str, Scan], pos: Position, scene, rig) -> None:
                     f"working range; move it nearer focus (sphere_*, ballbar_*)")
 
 
-def size_error_mm(own: SizeFit) -> dict:
+def size_error_mm(own: SizeFit) -> dict[str, float]:
     """``size_mm`` (own points against nominal) and the fits' largest RMS, mm."""
     return {"size_mm": own.size_mm, "fit_rms_mm": float(max(f.rms for f in own.fits))}
 
 
-def shared_size_mm(cloud, own: SizeFit, real, real_own: SizeFit, pos: Position) -> dict:
+def shared_size_mm(cloud: PointCloud, own: SizeFit, real: PointCloud, real_own: SizeFit,
+                   pos: Position) -> dict[str, float | int]:
     """Sizes of a virtual cloud and the real one compared on the pixels both share: per ball
     the pixels both scanners' own fits kept (``size_fit``), each cloud refitted there with no
     further trimming (``fit_sphere(reject_sigma=None)``), so the two sizes differ only by the

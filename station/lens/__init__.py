@@ -10,6 +10,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "rays": "PrincipalRays RayFitError fit_principal_rays",
     "centre": "OpticalCentre intersect_rays pinhole_centre",
     "geometry": "LensFitConfig LensFitError LensGeometry fit_geometry",
-    "derive": "LensResult derive_lens",
+    "derive": "derive_lens",
+    "result": "LensResult LensSummary",
     "figures": "write_figures",
 })

@@ -66,7 +66,6 @@ import numpy as np
 
 from sim.optics.measured_lens import sym_sqrtm
 
-
 SQRT_2_OVER_PI = float(np.sqrt(2.0 / np.pi))
 EDGE_L1_PER_SIGMA = 0.8  # L1 error of a blurred step edge per unit blur std and edge length
 LLOYD_ITERATIONS = 5  # Lloyd steps after the ring strata (see ring_samples)

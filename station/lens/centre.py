@@ -23,6 +23,7 @@ K the principal-ray intersection (the paper's definition) is used, and the repor
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,7 +84,7 @@ def intersect_rays(rays: PrincipalRays, use: np.ndarray | None = None,
     z_c = float(np.mean(rays.z_ref[ok]))
     o = np.full(3, np.inf)
 
-    def normal(weight) -> np.ndarray:  # weight(b): the block's weights
+    def normal(weight: Callable[[slice], np.ndarray]) -> np.ndarray:  # the block's weights
         mat = np.zeros((3, 3))
         for b in blocks:
             d, _, _ = lines(b)
@@ -168,7 +169,8 @@ def pinhole_centre(rays: PrincipalRays, usable: np.ndarray, xn: np.ndarray,
         a = rays.xy_ref[j] + rays.slope[j] * (focus_plane_z_mm - rays.z_ref[j])[:, None]
         return a if bias_mm is None else a - bias_mm[b]
 
-    def normal(weight, slopes: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def normal(weight: Callable[[slice], np.ndarray],
+               slopes: bool = False) -> tuple[np.ndarray, np.ndarray]:
         # rows (1, 0, x0, -x1) for x and (0, 1, x1, x0) for y, both with weight w; np.dot,
         # not @: a 1-D matmul goes through threaded BLAS, whose spinning threads cost ~15x
         # the CPU time on a shared machine

@@ -26,13 +26,18 @@ broken store and raises. This is the project's one LTC centroid: the reconstruct
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
 
 from station.lens.kernels import stats_kernel
 from station.ltc.store import LtcVolume, LtcVolumeError
+
+if TYPE_CHECKING:
+    from station.ltc.parallel import Engine
 
 STATUS_OK = 0
 STATUS_NO_SIGNAL = 1  # NaN window, or no weight above the noise threshold
@@ -145,17 +150,25 @@ class Centroids:
 
     def points_mm(self) -> np.ndarray:
         """Station-frame points (D, H, W, 3): ``(x_g pitch, y_g pitch, z)`` mm (NaN if invalid)."""
-        d = self.xy_lcd_px.shape[0]
-        z = np.broadcast_to(self.depths_mm.reshape(d, 1, 1, 1), self.xy_lcd_px.shape[:3] + (1,))
-        return np.concatenate([self.xy_lcd_px * self.pitch_mm, z], axis=-1)
+        xy = self._held(self.xy_lcd_px)
+        d = xy.shape[0]
+        z = np.broadcast_to(self.depths_mm.reshape(d, 1, 1, 1), xy.shape[:3] + (1,))
+        return np.concatenate([xy * self.pitch_mm, z], axis=-1)
 
     def std_mm(self) -> np.ndarray:
         """Centroid std (D, H, W, 2) in mm."""
-        return self.std_lcd_px * self.pitch_mm
+        return np.asarray(self._held(self.std_lcd_px) * self.pitch_mm)
+
+    @staticmethod
+    def _held(a: np.ndarray | None) -> np.ndarray:
+        if a is None:
+            raise ValueError("Centroids: the per-depth centroids are not held (a "
+                             "LensGeometry's centroids keep only moments and status)")
+        return a
 
 
 def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
-                      progress: bool = False, engine=None) -> Centroids:
+                      progress: bool = False, engine: Engine | None = None) -> Centroids:
     """Centroids of all pixels at all depths, one depth of one stored chunk of camera rows
     and columns (default: the store's chunk; ``rows_per_tile`` overrides the rows) per
     task, ``WINDOWS_PER_BATCH`` windows at once, so memory does not grow with the sensor
@@ -178,7 +191,7 @@ def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
     bar = tqdm(total=len(tasks), desc="lens: centroids", unit="block",
                disable=None if progress else True)
 
-    def on_result(key, part) -> None:
+    def on_result(key: tuple[int, int, int, int, int], part: dict[str, np.ndarray]) -> None:
         i, r0, r1, c0, c1 = key
         for name, value in part.items():
             out[name][i, r0:r1, c0:c1] = value
@@ -189,7 +202,9 @@ def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
                      volume.depths_mm.copy(), float(volume.pitch_mm))
 
 
-def run_centroid_blocks(volume: LtcVolume, tasks: list, on_result, engine, bar) -> None:
+def run_centroid_blocks(volume: LtcVolume, tasks: list[tuple[int, int, int, int, int]],
+                        on_result: Callable[[Any, Any], None], engine: Engine | None,
+                        bar: tqdm) -> None:
     """Compute ``centroid_rows`` of every (depth, r0, r1, c0, c1) in ``tasks`` on ``engine``
     (default: in this process), calling ``on_result(task, part)`` as each finishes; closes
     the progress ``bar`` and any engine it started."""

@@ -25,7 +25,9 @@ nearest node that has one; the file's metadata lists how many were filled.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -36,21 +38,44 @@ from sim.optics.projection import pixel_to_normalized
 from station.lens import aperture as ap
 from station.lens.centroids import STATUS_OK
 from station.lens.geometry import LensFitConfig, LensFitError, LensGeometry, fit_geometry
-from station.lens.jobs import (EXTENT_PERCENTILE, GRID_MARGIN, GRID_PIXELS, MIN_COVERAGE,
-                               ApertureJob, ApertureSet, aperture_block, aperture_grid,
-                               aperture_job, aperture_set, pixel_inputs, tile_groups,
-                               tile_shape)
-from station.lens.rayfit import (aim_offsets, local_plane_fit, local_ray_centres,
-                                 local_ray_slopes, sample_moment)
-from station.lens.result import RESIDUAL_PIXELS, LensResult, _residual_stats, node_positions
-from station.lens.zones import fit_focus_zones
+from station.lens.jobs import (
+    EXTENT_PERCENTILE,
+    GRID_MARGIN,
+    GRID_PIXELS,
+    MIN_COVERAGE,
+    ApertureJob,
+    ApertureSet,
+    aperture_block,
+    aperture_grid,
+    aperture_job,
+    aperture_set,
+    pixel_inputs,
+    tile_groups,
+    tile_shape,
+)
+from station.lens.rayfit import (
+    aim_offsets,
+    local_plane_fit,
+    local_ray_centres,
+    local_ray_slopes,
+    sample_moment,
+)
+from station.lens.result import (
+    RESIDUAL_PIXELS,
+    LensResult,
+    LensSummary,
+    _residual_stats,
+    node_positions,
+)
 from station.lens.zoned import CENTRE_PIXELS, MISS_TERMS, shift_zones, zoned_centre
+from station.lens.zones import fit_focus_zones
 from station.ltc.parallel import Engine, run_ordered
 from station.ltc.store import LtcVolume
 
 __all__ = [
     "CENTRE_PIXELS", "EXTENT_PERCENTILE", "GRID_MARGIN", "GRID_PIXELS", "MIN_COVERAGE",
-    "MISS_TERMS", "RESIDUAL_PIXELS", "ApertureJob", "ApertureSet", "LensResult", "aim_offsets",
+    "MISS_TERMS", "RESIDUAL_PIXELS", "ApertureJob", "ApertureSet", "LensResult", "LensSummary",
+    "aim_offsets",
     "aperture_block", "aperture_grid", "aperture_job", "aperture_set", "derive_lens",
     "local_plane_fit", "local_ray_centres", "local_ray_slopes", "node_positions",
     "pixel_inputs", "sample_moment", "shift_zones", "tile_groups", "tile_shape",
@@ -81,7 +106,8 @@ def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,
             engine.close()
 
 
-def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engine: Engine,
+def _derive(volume: LtcVolume, cfg: LensFitConfig, K: np.ndarray | None,
+            dist: np.ndarray | None, progress: bool, engine: Engine,
             out: str | Path | None) -> LensResult:
     geom = fit_geometry(volume, cfg, K, dist, progress=progress, engine=engine)
     grid = aperture_grid(geom, cfg)
@@ -98,7 +124,10 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
             found = fit_focus_zones(volume, float(geom.centre.position[2]), geom.camera_matrix,
                                     geom.focus_distance_mm, _centre_radius_mm(geom),
                                     pixel_samples=cfg.pixel_samples)
-            if found is not None:
+            if found is not None and cfg.centre_method == "rays":
+                # the principal-ray intersection asked for: the zones, not the pinhole refit
+                zones, zone_fit = found[0], {**found[1], "centre_shift_mm": 0.0}
+            elif found is not None:
                 geom, shift = zoned_centre(volume, geom, grid, cfg, *found, engine=engine)
                 zones, zone_fit = shift_zones(*found, shift)
                 grid = aperture_grid(geom, cfg)
@@ -122,19 +151,21 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
         bar = tqdm(total=len(blocks), desc="lens: aperture", unit="block",
                    disable=None if progress else True)
 
-        def tasks():
+        def tasks() -> Iterator[tuple[tuple[np.ndarray, np.ndarray],
+                                      Callable[..., dict[str, np.ndarray]], tuple[Any, ...]]]:
             for r0, r1, c0, c1, jv, iu in blocks:
                 pix = (nv[jv][:, None] * w + nu[iu][None, :]).ravel()
                 if slope_term is not None:
                     uv = np.stack([pix % w, pix // w], axis=1).astype(np.float64)
-                    xn = pixel_to_normalized(uv, geom.camera_matrix, geom.dist_coeffs)
+                    xn = pixel_to_normalized(uv, geom.known_camera_matrix(),
+                                             geom.dist_coeffs)
                     slope_term[jv[0]:jv[-1] + 1, iu[0]:iu[-1] + 1] = (
                         local_ray_slopes(geom, pix, cfg.ray_window_px) - xn
                     ).reshape(len(jv), len(iu), 2)
                 yield ((jv, iu), aperture_block,
                        (volume, job, r0, r1, c0, c1, pix, pixel_inputs(geom, pix, cfg)))
 
-        def on_result(key, res) -> None:
+        def on_result(key: tuple[np.ndarray, np.ndarray], res: dict[str, np.ndarray]) -> None:
             jv, iu = key
             sub = (len(jv), len(iu))
             g = (res["ok"] & res["w"].any(axis=1)).reshape(sub)
@@ -171,7 +202,8 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
         trans = _transmittance(volume, geom.centroids.status, nu, nv)
         offset = None
         if slope_term is not None:
-            def focus(x_mm, y_mm):  # where the lens file's samples will aim
+            def focus(x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray | float:
+                # where the lens file's samples will aim
                 return aim_depths(zones, geom.focus_distance_mm, x_mm, y_mm)
 
             moment = np.empty(shape + (2,))
@@ -186,7 +218,7 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
             del moment, slope_term
         meta = {"source": volume.name, "config": cfg.model_dump(mode="json"),
                 "summary_at_fit": None, "focus_zone_fit": zone_fit}
-        fields_ = dict(focus_distance_mm=geom.focus_distance_mm,
+        fields_: dict[str, Any] = dict(focus_distance_mm=geom.focus_distance_mm,
                        optical_centre_mm=geom.centre.position, camera_size=volume.camera_size,
                        transmittance=trans, interpolation=cfg.interpolation,
                        camera_matrix=geom.camera_matrix, dist_coeffs=geom.dist_coeffs,
@@ -201,11 +233,12 @@ def _derive(volume: LtcVolume, cfg: LensFitConfig, K, dist, progress: bool, engi
                               parts["weight"].reshape(len(pix), -1).sum(axis=1) > 0,
                               parts["mean"].reshape(-1, 2), parts["cov"].reshape(-1, 2, 2))
             result = LensResult(cfg, geom, grid, nu, nv, aps, lens, int(bad.sum()))
-            meta["summary_at_fit"] = result.summary()
+            meta["summary_at_fit"] = result.summary().to_json()
             return result
+        assert out is not None  # the writer's file
         result = LensResult(cfg, geom, grid, nu, nv, None, None, int(bad.sum()),
                             lens_path=Path(out))
-        meta["summary_at_fit"] = result.summary()
+        meta["summary_at_fit"] = result.summary().to_json()
         writer.close(**fields_)
         writer = None
         return result
@@ -221,7 +254,8 @@ def _centre_radius_mm(geom: LensGeometry) -> float:
     c = geom.centroids
     d = len(c.depths_mm)
     w, h = geom.camera_size
-    u, v = np.clip(np.rint(geom.camera_matrix[:2, 2]).astype(np.int64), 0, [w - 1, h - 1])
+    u, v = np.clip(np.rint(geom.known_camera_matrix()[:2, 2]).astype(np.int64), 0,
+                   [w - 1, h - 1])
     mom = c.moments_px2.reshape(d, -1, 3)[:, v * w + u].astype(np.float64)
     s = ap.scale_ratio(c.depths_mm, geom.focus_plane_z_mm, float(geom.centre.position[2]))
     var = (mom[:, 0] + mom[:, 1]) * (c.pitch_mm * s) ** 2

@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from station.ltc.store import LtcVolume
 from station.lens.centroids import centroid_rows
 from station.lens.derive import LensResult, aperture_set
 from station.lens.rays import UNUSABLE
+from station.ltc.store import LtcVolume
 
 DPI = 110
 RAYS_SHOWN = 60  # principal rays drawn at most
@@ -117,13 +117,16 @@ def aperture_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path:
     pix = chosen_pixels(volume.camera_size)
     flat = np.array([_flat(uv, w) for uv in pix.values()])
     aps = aperture_set(volume, g, result.grid, flat, result.config)
+    fused = aps.fused
+    if fused is None:
+        raise ValueError("aperture_set kept no fused distributions")
     x, y, wk = result.samples_at(np.array(list(pix.values()), dtype=np.float64))
     hw = result.grid.half_width_mm
     fig = Figure(figsize=(3.6 * len(pix), 3.6), dpi=DPI)
     axes = fig.subplots(1, len(pix), squeeze=False)[0]
     for k, (name, uv) in enumerate(pix.items()):
         ax = axes[k]
-        ax.imshow(aps.fused[k], extent=(-hw, hw, hw, -hw), cmap="viridis",
+        ax.imshow(fused[k], extent=(-hw, hw, hw, -hw), cmap="viridis",
                   interpolation="nearest")
         s = wk[k] / max(float(wk[k].max()), 1e-12)
         ax.scatter(x[k], y[k], s=40 * s + 2, facecolors="none", edgecolors="r", lw=0.8)

@@ -21,7 +21,7 @@ point.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -33,6 +33,9 @@ from station.lens.centroids import STATUS_OK, Centroids
 from station.lens.rays import PrincipalRays, RayFitError, fit_principal_rays
 from station.ltc.store import LtcVolume
 
+if TYPE_CHECKING:
+    from station.ltc.parallel import Engine
+
 LCD_BIN_VAR = 1.0 / 12.0  # variance of an LCD pixel box, pitch^2
 TRACE_REL_FLOOR = 0.01  # relative error floor of an LTC second moment in the focus fit
 RAY_FIT_PIXELS = 1 << 16  # pixels per block of the focus fit and K directions (~1 kB each)
@@ -43,14 +46,18 @@ class LensFitError(StationError, ValueError):
 
 
 class LensFitConfig(BaseModel):
-    """Options of the lens derivation."""
+    """Options of the lens derivation. The defaults are the recommended settings (K = 256
+    samples on nodes every 4 px, a 64-cell aperture grid, the samples drawn from the deblurred
+    and support-cut aperture distribution, a focus per pupil zone and each node's aim offset:
+    docs/decisions/0025-recommended-lens-settings.md); ``LensFitConfig.basic()`` is the plain
+    derivation without the refinements."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    samples: int = Field(32, ge=1, le=4096, description="aperture samples K per node")
-    grid_step: int = Field(1, ge=1, description="node spacing, camera pixels (1: every pixel)")
+    samples: int = Field(256, ge=1, le=4096, description="aperture samples K per node")
+    grid_step: int = Field(4, ge=1, description="node spacing, camera pixels (1: every pixel)")
     interpolation: Literal["nearest", "bilinear"] = Field(
         "bilinear", description="how the simulator reads samples between nodes")
-    aperture_cells: int = Field(32, ge=8, le=256, description="aperture grid cells per side")
+    aperture_cells: int = Field(64, ge=8, le=256, description="aperture grid cells per side")
     supersample: int = Field(2, ge=1, le=8, description="sub-samples per cell and axis")
     focus_distance_mm: float | None = Field(
         None, gt=0, description="configured focus distance from the optical centre, mm; "
@@ -68,27 +75,23 @@ class LensFitConfig(BaseModel):
                                "own ray)")
     deblur: bool = Field(True, description="remove the known LCD-pixel and camera-pixel box "
                          "variances from the samples' second moments")
-    deconvolve_iterations: int = Field(0, ge=0, le=1000, description="Richardson-Lucy "
+    deconvolve_iterations: int = Field(20, ge=0, le=1000, description="Richardson-Lucy "
                                        "steps removing the known LCD-pixel and camera-pixel "
                                        "blur from the fused aperture distribution before the "
-                                       "samples are drawn (aperture.deblur; 20 measured best, "
-                                       "about 0.5 ms per node); 0: off (the experiment sets "
-                                       "it: benchmarks/README.md)")
-    support_floor: float = Field(0.0, ge=0, lt=1, description="before the samples are "
+                                       "samples are drawn (aperture.deblur; about 0.5 ms per "
+                                       "node); 0: off")
+    support_floor: float = Field(0.1, ge=0, lt=1, description="before the samples are "
                                  "drawn, the fused aperture distribution is cut to its main "
                                  "body: the connected cells above this fraction of its largest "
-                                 "cell (aperture.support_floor; 0.1 measured); 0: only "
-                                 "negative noise cut (off, as deconvolve_iterations; the "
-                                 "experiment sets 0.1)")
-    focus_zones: bool = Field(False, description="fit a focus distance per pupil zone "
+                                 "cell (aperture.support_floor); 0: only negative noise cut")
+    focus_zones: bool = Field(True, description="fit a focus distance per pupil zone "
                               "(spherical aberration) from the LTCs at the optical centre, "
                               "map every LTC onto the aperture plane through it, refit the "
                               "optical centre with the zones' misses of the pinhole points "
-                              "removed, and store it as the lens file's focus_zones_mm "
-                              "(needs K; the experiment sets it). Off by default: the lens "
-                              "step takes 1.5x as long at the paper's size, 2.3x on the demo "
-                              "(benchmarks/README.md)")
-    aim_offset_sigma_px: float = Field(0.0, ge=0, description="give each node the aim "
+                              "removed (not with centre_method 'rays'), and store it as the lens "
+                              "file's focus_zones_mm "
+                              "(needs K; without K: one focus)")
+    aim_offset_sigma_px: float = Field(8.0, ge=0, description="give each node the aim "
                                        "offset (the lens file's aim_offset) that makes its "
                                        "principal ray's slope the station's measured one "
                                        "(local-plane fits over ray_window_px), smoothed over "
@@ -96,12 +99,21 @@ class LensFitConfig(BaseModel):
                                        "mean over the sensor (a uniform offset is the camera "
                                        "matrix's, not the lens's); needs K; 0: off (every "
                                        "principal ray passes its pixel's pinhole point at the "
-                                       "focus plane; benchmarks/README.md)")
+                                       "focus plane)")
     pixel_samples: int = Field(0, ge=0, le=16, description="how a camera pixel integrates "
                                "its footprint on the LCD in the focus-zone fit: 0 a box (a "
                                "real camera), n an n x n grid of points (a simulated camera "
                                "rendered with n x n subpixels)")
     nodes_per_chunk: int = Field(256, ge=1, description="node pixels processed together")
+
+    @classmethod
+    def basic(cls, **fields: Any) -> LensFitConfig:
+        """The plain derivation (K = 32 samples at every pixel, a 32-cell aperture grid, no
+        deconvolution or support cut, one focus, no aim offsets) with ``fields`` on top."""
+        plain: dict[str, Any] = {"samples": 32, "grid_step": 1, "aperture_cells": 32,
+                                 "deconvolve_iterations": 0, "support_floor": 0.0,
+                                 "focus_zones": False, "aim_offset_sigma_px": 0.0}
+        return cls(**{**plain, **fields})
 
 
 @dataclass(frozen=True)
@@ -140,6 +152,8 @@ def fit_focus_plane(c: Centroids, usable: np.ndarray, centre_z_mm: float,
     z0 = float(np.mean(c.depths_mm))
     dz = (c.depths_mm - z0)[:, None]
     span = np.ptp(c.depths_mm)
+    if c.trace_std_px2 is None:
+        raise ValueError("fit_focus_plane: centroids without trace_std_px2")
     mom = c.moments_px2.reshape(d, -1, 3)
     tstd = c.trace_std_px2.reshape(d, -1)
     status = c.status.reshape(d, -1)
@@ -206,6 +220,13 @@ class LensGeometry:
     def focus_distance_mm(self) -> float:
         return float(self.focus_plane_z_mm - self.centre.position[2])
 
+    def known_camera_matrix(self) -> np.ndarray:
+        """The camera matrix K (3, 3) px; a step that needs it refuses a geometry without."""
+        if self.camera_matrix is None:
+            raise LensFitError("this step needs the camera matrix K (store attribute "
+                               "camera_matrix, or --rig)")
+        return self.camera_matrix
+
 
 def _focus_plane(fit: FocusFit | None, z_f_config: float | None, centre_z: float,
                  name: str) -> tuple[float, float]:
@@ -219,7 +240,7 @@ def _focus_plane(fit: FocusFit | None, z_f_config: float | None, centre_z: float
 
 
 def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = False,
-                       engine=None) -> tuple[Centroids, PrincipalRays]:
+                       engine: Engine | None = None) -> tuple[Centroids, PrincipalRays]:
     """The centroid pass (``centroid_rows`` per depth of each stored chunk, on ``engine``)
     with each chunk's principal rays fitted as soon as all its depths have arrived (from
     the float64 centroids and their stds, which are then dropped): the geometry holds
@@ -237,8 +258,9 @@ def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = F
     rows = volume.chunk_rows
     cols = int(chunks[2]) if chunks else w
     f4 = np.float32
-    out = {"mom": np.full((d, h, w, 3), np.nan, f4), "tstd": np.full((d, h, w), np.nan, f4),
-           "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
+    out: dict[str, np.ndarray] = {"mom": np.full((d, h, w, 3), np.nan, f4),
+                                  "tstd": np.full((d, h, w), np.nan, f4),
+                                  "status": np.full((d, h, w), STATUS_NO_SIGNAL, dtype=np.int8)}
     rays = PrincipalRays.empty(d, w * h)
     z = volume.depths_mm.reshape(d, 1, 1)
     tasks = [(i, r0, min(h, r0 + rows), c0, min(w, c0 + cols))
@@ -247,7 +269,7 @@ def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = F
                disable=None if progress else True)
     waiting: dict[tuple[int, int], dict[int, dict]] = {}
 
-    def on_result(key, part) -> None:
+    def on_result(key: tuple[int, int, int, int, int], part: dict[str, np.ndarray]) -> None:
         i, r0, r1, c0, c1 = key
         for name in out:
             out[name][i, r0:r1, c0:c1] = part[name]
@@ -276,7 +298,7 @@ def centroids_and_rays(volume: LtcVolume, cfg: LensFitConfig, progress: bool = F
 
 def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
                  K: np.ndarray | None = None, dist: np.ndarray | None = None,
-                 progress: bool = False, engine=None) -> LensGeometry:
+                 progress: bool = False, engine: Engine | None = None) -> LensGeometry:
     """Centroids, principal rays, focus plane and optical centre of an LTC volume.
 
     K, dist : camera matrix and distortion; default: the volume's (``camera_matrix``).
@@ -301,8 +323,7 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
     zf_cfg = cfg.focus_distance_mm
     plane, plane_var = _focus_plane(fit, zf_cfg, z_c, volume.name)
     centre, rot, pin = centre_rays, np.eye(3), None
-    use_pinhole = K is not None and cfg.centre_method != "rays"
-    if use_pinhole:
+    if K is not None and cfg.centre_method != "rays":  # the pinhole centre
         w = volume.camera_size[0]
         idx = np.flatnonzero(usable)  # the usable rays' pixels, normalised in blocks
         xn = np.empty((len(idx), 2))

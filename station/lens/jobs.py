@@ -37,7 +37,7 @@ class ApertureSet:
     per_depth: np.ndarray | None
     weight: np.ndarray
     coverage: np.ndarray
-    fused: np.ndarray
+    fused: np.ndarray | None
     ok: np.ndarray
     mean: np.ndarray
     cov: np.ndarray
@@ -81,7 +81,8 @@ def tile_shape(volume: LtcVolume) -> tuple[int, int]:
     return (int(chunks[1]), int(chunks[2])) if chunks else (64, 64)
 
 
-def tile_groups(volume: LtcVolume, pixels: np.ndarray) -> list[tuple[np.ndarray, tuple]]:
+def tile_groups(volume: LtcVolume,
+                pixels: np.ndarray) -> list[tuple[np.ndarray, tuple[int, int, int, int]]]:
     """Flat pixels grouped by the stored ``ltc`` chunk they lie in: (indices into ``pixels``,
     the chunk's (r0, r1, c0, c1)) per chunk, so each chunk is read once."""
     w, h = volume.camera_size
@@ -263,7 +264,8 @@ def aperture_set(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
     for sel, tile in tqdm(tile_groups(volume, pixels), desc="lens: aperture", unit="block",
                           disable=None if progress else True):
         pix = pixels[sel]
-        res = aperture_block(volume, job, *tile, pix, pixel_inputs(geom, pix, cfg))
+        r0, r1, c0, c1 = tile
+        res = aperture_block(volume, job, r0, r1, c0, c1, pix, pixel_inputs(geom, pix, cfg))
         for name in out:
             out[name][sel] = res[name]
         if fused is not None:

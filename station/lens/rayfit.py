@@ -3,11 +3,14 @@ optical centre's plane, and their slopes) and the nodes' aim offsets (``aim_offs
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy import ndimage
 
 from station.lens.geometry import LensGeometry
-from station.lens.rays import UNUSABLE
+from station.lens.rays import UNUSABLE, PrincipalRays
+
 
 def local_plane_fit(values: np.ndarray, var: np.ndarray, ok: np.ndarray,
                     camera_size: tuple[int, int], pixels: np.ndarray,
@@ -46,7 +49,7 @@ def local_ray_centres(geom: LensGeometry, pixels: np.ndarray, radius_px: int) ->
     per-pixel noise (centroid noise magnified ~4x by the extrapolation from the LCD depths
     to the centre) averages out. Only the rows the pixels' windows reach are evaluated, so
     a block's cost does not grow with the sensor."""
-    def at_centre(rays, band):
+    def at_centre(rays: PrincipalRays, band: slice) -> tuple[np.ndarray, np.ndarray]:
         dz = float(geom.centre.position[2]) - rays.z_ref[band]
         own = rays.xy_ref[band] + rays.slope[band] * dz[:, None] - geom.centre.position[:2]
         return own, rays.var_ref[band] + dz**2 * rays.var_slope[band]
@@ -58,7 +61,7 @@ def local_ray_slopes(geom: LensGeometry, pixels: np.ndarray, radius_px: int) -> 
     """Principal-ray slopes (n, 2) of the given flat pixels in the camera frame (dx/dz,
     dy/dz), by ``local_plane_fit`` of the station-frame slopes over the same windows as
     ``local_ray_centres``, then rotated (``geom.rotation``)."""
-    def slope(rays, band):
+    def slope(rays: PrincipalRays, band: slice) -> tuple[np.ndarray, np.ndarray]:
         return rays.slope[band], rays.var_slope[band]
 
     s = _local_ray_fit(geom, pixels, radius_px, slope)
@@ -67,7 +70,8 @@ def local_ray_slopes(geom: LensGeometry, pixels: np.ndarray, radius_px: int) -> 
 
 
 def _local_ray_fit(geom: LensGeometry, pixels: np.ndarray, radius_px: int,
-                   values) -> np.ndarray:
+                   values: Callable[[PrincipalRays, slice], tuple[np.ndarray, np.ndarray]]
+                   ) -> np.ndarray:
     """``local_plane_fit`` of ``values(rays, band)`` -> (per-pixel values (m, 2), variances
     (m,)) over the camera rows the pixels' windows reach (a block's cost does not grow with
     the sensor)."""
@@ -110,7 +114,9 @@ def aim_offsets(slope_term: np.ndarray, moment: np.ndarray, good: np.ndarray,
     return e
 
 
-def sample_moment(x: np.ndarray, y: np.ndarray, w: np.ndarray, lens_focus) -> np.ndarray:
+def sample_moment(x: np.ndarray, y: np.ndarray, w: np.ndarray,
+                  lens_focus: Callable[[np.ndarray, np.ndarray], np.ndarray | float]
+                  ) -> np.ndarray:
     """``sum_k w_k p_k / z_k`` (..., 2) of samples x, y mm and weights (..., K) (normalised
     here), ``z_k = lens_focus(x, y)`` mm (a scalar focus distance or the zones' focus)."""
     w = w / w.sum(axis=-1, keepdims=True)

@@ -102,7 +102,8 @@ class PrincipalRays:
         return np.where(self.used, self.residual_mm, np.nan)
 
 
-def _line_fit(z: np.ndarray, xy: np.ndarray, w: np.ndarray):
+def _line_fit(z: np.ndarray, xy: np.ndarray, w: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Weighted regression of xy (D, N, 2) on z (D, 1) with weights w (D, N), 0 = unused."""
     sw = w.sum(axis=0)
     safe = np.where(sw > 0, sw, 1.0)

@@ -3,8 +3,9 @@ and its summary."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -12,7 +13,7 @@ from sim.optics.measured_lens import MeasuredLens, read_lens_nodes
 from station.lens import aperture as ap
 from station.lens.geometry import LensFitConfig, LensGeometry
 from station.lens.jobs import ApertureSet
-from station.lens.rays import FLAG_BAD_FIT, FLAG_FEW_DEPTHS, FLAG_OUTLIER
+from station.lens.rays import FLAG_BAD_FIT, FLAG_FEW_DEPTHS, FLAG_OUTLIER, PrincipalRays
 
 # pixels per block of the summary's residual lengths: their order (depth-major per block)
 # fixes the mean and std reported in the lens file to the last bit
@@ -49,52 +50,97 @@ class LensResult:
         interpolation in memory; from the written file, the nearest node's."""
         if self.lens is not None:
             return self.lens.samples_at(uv)
+        if self.lens_path is None:
+            raise ValueError("LensResult: neither a lens nor a lens file")
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         i = np.abs(uv[:, 0, None] - self.node_u[None]).argmin(axis=1)
         j = np.abs(uv[:, 1, None] - self.node_v[None]).argmin(axis=1)
         return read_lens_nodes(self.lens_path, j * len(self.node_u) + i)
 
-    def summary(self) -> dict:
-        """A JSON-able report of what was measured."""
+    def summary(self) -> LensSummary:
+        """What was measured (``LensSummary``; ``.to_json()`` for the JSON fields)."""
         g = self.geometry
         r = g.rays
         res_mean, res_std, res_count = _residual_stats(r)
         fl = r.flags
-        out = {
-            "optical_centre_mm": g.centre.position.tolist(),
-            "optical_centre_std_mm": g.centre.std.tolist(),
-            "optical_centre_method": g.centre.method,
-            "principal_ray_intersection_mm": g.centre_rays.position.tolist(),
-            "principal_ray_intersection_std_mm": g.centre_rays.std.tolist(),
-            "focus_plane_z_mm": g.focus_plane_z_mm,
-            "focus_distance_mm": g.focus_distance_mm,
-            "focus_distance_fitted_mm": g.focus_distance_fit_mm,
-            "focus_distance_config_mm": g.focus_distance_config_mm,
-            "focus_fit_spread_mm": None if g.focus is None else g.focus.spread_mm,
-            "ray_residual_mean_mm": res_mean,
-            "ray_residual_std_mm": res_std,
-            "ray_residual_count": res_count,
-            "pixels": len(fl),
-            "pixels_usable": int(r.usable.sum()),
-            "pixels_few_depths": int(((fl & FLAG_FEW_DEPTHS) > 0).sum()),
-            "pixels_outlier_removed": int(((fl & FLAG_OUTLIER) > 0).sum()),
-            "pixels_bad_fit": int(((fl & FLAG_BAD_FIT) > 0).sum()),
-            "depths_mm": g.centroids.depths_mm.tolist(),
-            "samples": self.config.samples,
-            "nodes": [len(self.node_v), len(self.node_u)],
-            "nodes_filled": self.filled_nodes,
-            "aperture_half_width_mm": self.grid.half_width_mm,
-            "aperture_cells": self.grid.cells,
-            "camera_matrix_known": g.camera_matrix is not None,
-            "notes": list(g.notes),
-        }
+        rotation = None
         if g.centre_pinhole is not None:
-            out["camera_rotation_deg"] = float(np.degrees(np.arccos(
+            rotation = float(np.degrees(np.arccos(
                 np.clip((np.trace(g.rotation) - 1) / 2, -1, 1))))
+        return LensSummary(
+            optical_centre_mm=g.centre.position.tolist(),
+            optical_centre_std_mm=g.centre.std.tolist(),
+            optical_centre_method=g.centre.method,
+            principal_ray_intersection_mm=g.centre_rays.position.tolist(),
+            principal_ray_intersection_std_mm=g.centre_rays.std.tolist(),
+            focus_plane_z_mm=g.focus_plane_z_mm,
+            focus_distance_mm=g.focus_distance_mm,
+            focus_distance_fitted_mm=g.focus_distance_fit_mm,
+            focus_distance_config_mm=g.focus_distance_config_mm,
+            focus_fit_spread_mm=None if g.focus is None else g.focus.spread_mm,
+            ray_residual_mean_mm=res_mean,
+            ray_residual_std_mm=res_std,
+            ray_residual_count=res_count,
+            pixels=len(fl),
+            pixels_usable=int(r.usable.sum()),
+            pixels_few_depths=int(((fl & FLAG_FEW_DEPTHS) > 0).sum()),
+            pixels_outlier_removed=int(((fl & FLAG_OUTLIER) > 0).sum()),
+            pixels_bad_fit=int(((fl & FLAG_BAD_FIT) > 0).sum()),
+            depths_mm=g.centroids.depths_mm.tolist(),
+            samples=self.config.samples,
+            nodes=[len(self.node_v), len(self.node_u)],
+            nodes_filled=self.filled_nodes,
+            aperture_half_width_mm=self.grid.half_width_mm,
+            aperture_cells=self.grid.cells,
+            camera_matrix_known=g.camera_matrix is not None,
+            notes=list(g.notes),
+            camera_rotation_deg=rotation,
+        )
+
+
+@dataclass(frozen=True)
+class LensSummary:
+    """What the lens derivation measured (``ltc lens --json``, the lens file's
+    ``summary_at_fit``, docs/formats.md). Positions in the station frame, mm; ``*_std_mm``
+    standard errors, mm; None where not measured."""
+
+    optical_centre_mm: list[float]
+    optical_centre_std_mm: list[float]
+    optical_centre_method: str
+    principal_ray_intersection_mm: list[float]
+    principal_ray_intersection_std_mm: list[float]
+    focus_plane_z_mm: float
+    focus_distance_mm: float
+    focus_distance_fitted_mm: float | None
+    focus_distance_config_mm: float | None
+    focus_fit_spread_mm: float | None
+    ray_residual_mean_mm: float | None
+    ray_residual_std_mm: float | None
+    ray_residual_count: int
+    pixels: int
+    pixels_usable: int
+    pixels_few_depths: int
+    pixels_outlier_removed: int
+    pixels_bad_fit: int
+    depths_mm: list[float]
+    samples: int
+    nodes: list[int]  # (rows, columns)
+    nodes_filled: int
+    aperture_half_width_mm: float
+    aperture_cells: int
+    camera_matrix_known: bool
+    notes: list[str]
+    camera_rotation_deg: float | None = None  # with the pinhole centre only
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON fields (``camera_rotation_deg`` only where measured)."""
+        out = asdict(self)
+        if out["camera_rotation_deg"] is None:
+            del out["camera_rotation_deg"]
         return out
 
 
-def _residual_stats(rays) -> tuple[float | None, float | None, int]:
+def _residual_stats(rays: PrincipalRays) -> tuple[float | None, float | None, int]:
     """Mean, std (None without any) and count of the usable rays' residual lengths (float32)
     of the points in their fits, in pixel blocks: the values numpy's float64 ``mean`` and
     ``std`` give of them in this order, with one float64 array of the lengths (no (D, N)

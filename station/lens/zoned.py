@@ -3,6 +3,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from typing import Any
+
 import numpy as np
 
 from sim.optics.measured_lens import aim_depths
@@ -14,6 +17,7 @@ from station.lens.rayfit import sample_moment
 from station.lens.result import node_positions
 from station.ltc.parallel import Engine, run_ordered
 from station.ltc.store import LtcVolume
+
 
 def shift_zones(zones: np.ndarray, fit: dict, shift_mm: float) -> tuple[np.ndarray, dict]:
     """The focus per pupil zone seen from an optical centre ``shift_mm`` farther along z:
@@ -73,15 +77,16 @@ def zoned_centre(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
     good = np.zeros(len(pix), dtype=bool)
     z_plane = geom.focus_distance_mm
 
-    def focus(x_mm, y_mm):
+    def focus(x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray | float:
         return aim_depths(zones, z_plane, x_mm, y_mm)
 
-    def tasks():
+    def tasks() -> Iterator[tuple[np.ndarray, Callable[..., dict[str, np.ndarray]],
+                                  tuple[Any, ...]]]:
         for sel, tile in tile_groups(volume, pix):
             p = pix[sel]
             yield sel, aperture_block, (volume, job, *tile, p, pixel_inputs(geom, p, cfg))
 
-    def on_result(sel, res) -> None:
+    def on_result(sel: np.ndarray, res: dict[str, np.ndarray]) -> None:
         ok = res["ok"] & res["w"].any(axis=1)
         x, wk = res["x"], np.where(ok[:, None], res["w"], 1.0)
         # the samples' mean is the node's target mean (match_moments keeps it exactly)
@@ -101,7 +106,8 @@ def zoned_centre(volume: LtcVolume, geom: LensGeometry, grid: ap.ApertureGrid,
     for a0 in range(0, len(idx), GRID_PIXELS):
         blk = idx[a0:a0 + GRID_PIXELS]
         uv = np.stack([blk % w, blk // w], axis=1).astype(np.float64)
-        xn[a0:a0 + len(blk)] = pixel_to_normalized(uv, geom.camera_matrix, geom.dist_coeffs)
+        xn[a0:a0 + len(blk)] = pixel_to_normalized(uv, geom.known_camera_matrix(),
+                                                   geom.dist_coeffs)
         bias[a0:a0 + len(blk)] = (_cubic_terms(blk, w, h) @ coef) @ job.rot2  # to station
     plane_var = (geom.focus.plane_std_mm**2 if geom.focus is not None
                  and geom.focus_distance_config_mm is None else 0.0)  # as fit_geometry's

@@ -20,6 +20,8 @@ pupil radius within 0.01 mm.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 from scipy.optimize import least_squares
 
@@ -96,8 +98,8 @@ def fit_focus_zones(volume: LtcVolume, centre_z_mm: float, K: np.ndarray,
         offs = ((np.arange(pixel_samples) + 0.5) / pixel_samples - 0.5) * fp_px[i]
         # each model ray's own share of the pupil, so the binning is continuous
         spread = max(radius * np.sqrt(np.pi / len(x)) * abs(1 - z[i] * c0) / pitch, 1e-3)
-        ox = sum(_overlap(x + o, spread, cells) for o in offs)
-        oy = sum(_overlap(y + o, spread, cells) for o in offs)
+        ox = cast(np.ndarray, sum(_overlap(x + o, spread, cells) for o in offs))
+        oy = cast(np.ndarray, sum(_overlap(y + o, spread, cells) for o in offs))
         return oy.T @ ox / (len(x) * pixel_samples**2)
 
     def resid(p: np.ndarray, single: bool = False) -> np.ndarray:

@@ -6,11 +6,19 @@ their phases pixel by pixel (Fig. 14). Lengths mm, phases rad."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from station.validation.folder import CadArtefact, RealScanError
+from station.validation.folder import AnyArtefact, CadArtefact, RealScanError, SphereArtefact
 from station.validation.locate import ArtefactFit, pixel_keys
+
+if TYPE_CHECKING:
+    from trimesh import Trimesh
+
+    from sim.fpp.cloud import PointCloud
+    from sim.metrology.spheres import SphereFit
+    from sim.render.fringe_patterns import GrayCodeSet, PhaseShiftSet
 
 
 @dataclass(frozen=True)
@@ -27,7 +35,7 @@ class ImageStats:
     phase_mean_rad: float
     phase_rms_rad: float
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return asdict(self)
 
 
@@ -50,7 +58,7 @@ class TwinComparison:
     cad_rmse_mm: float | None
     images: tuple[ImageStats, ...]
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         d["images"] = [i.to_json() for i in self.images]
         return d
@@ -63,10 +71,11 @@ class TwinComparison:
         return (self.size_shared_mm - self.size_shared_real_mm) * 1e3
 
 
-def finest_phase(images: np.ndarray, patterns, projector_size) -> tuple[np.ndarray, np.ndarray]:
+def finest_phase(images: np.ndarray, patterns: PhaseShiftSet | GrayCodeSet,
+                 projector_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Wrapped phase (H, W) rad and modulation of the finest phase-shift group."""
-    descs = [d for d in patterns.descriptors(tuple(projector_size)) if d.kind == "phase"]
-    p = min(d.period_px for d in descs)
+    descs = [d for d in patterns.descriptors(projector_size) if d.kind == "phase"]
+    p = min(d.period_px for d in descs if d.period_px is not None)
     idx = [d.index for d in sorted(descs, key=lambda d: d.shift or 0) if d.period_px == p]
     x = np.asarray(images, np.float64)[idx]
     a = 2 * np.pi * np.arange(len(idx)) / len(idx)
@@ -74,8 +83,9 @@ def finest_phase(images: np.ndarray, patterns, projector_size) -> tuple[np.ndarr
     return np.arctan2(s, c), 2 * np.hypot(s, c) / len(idx)
 
 
-def image_differences(real: np.ndarray, twin: np.ndarray, lit: np.ndarray, patterns,
-                      projector_size, camera: int) -> tuple[ImageStats, np.ndarray, np.ndarray]:
+def image_differences(real: np.ndarray, twin: np.ndarray, lit: np.ndarray,
+                      patterns: PhaseShiftSet | GrayCodeSet, projector_size: tuple[int, int],
+                      camera: int) -> tuple[ImageStats, np.ndarray, np.ndarray]:
     """Fig. 14's numbers of one camera: stats, the finest fringe image's difference map
     (twin - real, DN, NaN where not compared) and the wrapped phase difference map (rad)."""
     pr, br = finest_phase(real, patterns, projector_size)
@@ -85,8 +95,8 @@ def image_differences(real: np.ndarray, twin: np.ndarray, lit: np.ndarray, patte
     if not mask.any():
         raise RealScanError(f"camera {camera}: no pixel lit in both the real and the twin's "
                             "images")
-    descs = [d for d in patterns.descriptors(tuple(projector_size)) if d.kind == "phase"]
-    p = min(d.period_px for d in descs)
+    descs = [d for d in patterns.descriptors(projector_size) if d.kind == "phase"]
+    p = min(d.period_px for d in descs if d.period_px is not None)
     k = [d.index for d in descs if d.period_px == p and (d.shift or 0) == 0][0]
     diff = np.asarray(twin[k], np.float64) - np.asarray(real[k], np.float64)
     dp = np.angle(np.exp(1j * (pv - pr)))
@@ -97,8 +107,8 @@ def image_differences(real: np.ndarray, twin: np.ndarray, lit: np.ndarray, patte
     return stats, np.where(mask, diff, np.nan), np.where(mask, dp, np.nan)
 
 
-def shared_sizes(cloud, own: ArtefactFit, real, real_own: ArtefactFit, artefact, name: str
-                 ) -> tuple[float, float, int]:
+def shared_sizes(cloud: PointCloud, own: ArtefactFit, real: PointCloud, real_own: ArtefactFit,
+                 artefact: AnyArtefact, name: str) -> tuple[float, float, int]:
     """Both clouds' sizes refitted on the pixels both scanners' own fits kept (no further
     trimming): twin size, real size (mm) and the points used."""
     from sim.metrology.spheres import fit_sphere
@@ -118,7 +128,7 @@ def shared_sizes(cloud, own: ArtefactFit, real, real_own: ArtefactFit, artefact,
         fits_r.append(fit_sphere(pr[ir], reject_sigma=None))
         count += both.size
 
-    def size(fits) -> float:
+    def size(fits: list[SphereFit]) -> float:
         if len(fits) == 1:
             return float(fits[0].diameter)
         return float(np.linalg.norm(fits[0].centre - fits[1].centre))
@@ -126,16 +136,19 @@ def shared_sizes(cloud, own: ArtefactFit, real, real_own: ArtefactFit, artefact,
     return size(fits_v), size(fits_r), count
 
 
-def nominal_size(artefact) -> float | None:
+def nominal_size(artefact: AnyArtefact) -> float | None:
     """The artefact's nominal size: a sphere's diameter, a ball bar's centre distance, mm."""
     if isinstance(artefact, CadArtefact):
         return None
-    return getattr(artefact, "diameter_mm", None) or artefact.centre_distance_mm
+    if isinstance(artefact, SphereArtefact):
+        return artefact.diameter_mm
+    return artefact.centre_distance_mm
 
 
-def compare_twin(twin: str, cloud, real, real_fit: ArtefactFit, own_fit: ArtefactFit | None,
-                 artefact, name: str, images: list[tuple[ImageStats, np.ndarray, np.ndarray]],
-                 world_mesh=None) -> TwinComparison:
+def compare_twin(twin: str, cloud: PointCloud, real: PointCloud, real_fit: ArtefactFit,
+                 own_fit: ArtefactFit | None, artefact: AnyArtefact, name: str,
+                 images: list[tuple[ImageStats, np.ndarray, np.ndarray]],
+                 world_mesh: Trimesh | None = None) -> TwinComparison:
     """Every number of one twin at one position (see ``TwinComparison``)."""
     from sim.metrology.compare import compare_by_pixel, compare_clouds, mesh_signed_distance
 

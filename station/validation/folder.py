@@ -21,12 +21,18 @@ import json
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar, cast
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from station.errors import StationError
+
+if TYPE_CHECKING:
+    from sim.optics.rig import Rig
+    from sim.render.fringe_patterns import GrayCodeSet, PhaseShiftSet
+
+_M = TypeVar("_M", bound=BaseModel)
 
 SCAN_FILE = "scan.toml"
 POSITION_FILE = "position.toml"
@@ -105,6 +111,7 @@ class CadArtefact(BaseModel):
 
 Artefact = Annotated[SphereArtefact | BallBarArtefact | CadArtefact,
                      Field(discriminator="kind")]
+AnyArtefact = SphereArtefact | BallBarArtefact | CadArtefact  # for annotations
 
 
 class PositionFile(BaseModel):
@@ -125,7 +132,7 @@ class RealPosition:
     folder: Path
     spec: PositionFile
 
-    def images(self, rig, patterns) -> list[np.ndarray]:
+    def images(self, rig: Rig, patterns: PhaseShiftSet | GrayCodeSet) -> list[np.ndarray]:
         """Both cameras' image stacks (n, H, W), checked against the rig and pattern set."""
         return read_position_images(self, rig, patterns)
 
@@ -136,8 +143,8 @@ class RealScan:
 
     folder: Path
     spec: ScanFile
-    rig: object
-    patterns: object
+    rig: Rig
+    patterns: PhaseShiftSet | GrayCodeSet
     positions: tuple[RealPosition, ...]
 
     def position(self, name: str) -> RealPosition:
@@ -148,7 +155,7 @@ class RealScan:
                             f"(positions: {', '.join(p.name for p in self.positions)})")
 
 
-def _read_toml_or_json(path: Path, what: str) -> dict:
+def _read_toml_or_json(path: Path, what: str) -> dict[str, Any]:
     try:
         text = path.read_text(encoding="utf-8")
         return json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
@@ -156,13 +163,13 @@ def _read_toml_or_json(path: Path, what: str) -> dict:
         raise RealScanError(f"{path}: {what} not readable: {exc}") from exc
 
 
-def _model(cls, data: dict, where: str):
+def _model(cls: type[_M], data: dict[str, Any], where: str) -> _M:
     from sim.validation import format_validation_error
 
     try:
         return cls.model_validate(data)
     except ValidationError as exc:
-        raise RealScanError(format_validation_error(where, exc).replace("\n", "; ")) from exc
+        raise RealScanError(format_validation_error(where, exc)) from exc
 
 
 def load_real_scan(folder: str | Path, names: list[str] | None = None) -> RealScan:
@@ -186,7 +193,9 @@ def load_real_scan(folder: str | Path, names: list[str] | None = None) -> RealSc
         raise RealScanError(f"{folder / spec.rig}: {len(rig.cameras)} cameras; a real scan is "
                             "stereo (2 cameras)")
     try:
-        patterns = load_pattern_set(folder / spec.patterns, tuple(rig.projector.size))
+        size = (int(rig.projector.size[0]), int(rig.projector.size[1]))
+        patterns = cast("PhaseShiftSet | GrayCodeSet",
+                        load_pattern_set(folder / spec.patterns, size))
     except ScanInputError as exc:
         raise RealScanError(f"{path}: field 'patterns': {exc}") from exc
     root = folder / POSITIONS
@@ -215,14 +224,15 @@ def load_real_scan(folder: str | Path, names: list[str] | None = None) -> RealSc
     return RealScan(folder, spec, rig, patterns, tuple(positions))
 
 
-def read_position_images(pos: RealPosition, rig, patterns) -> list[np.ndarray]:
+def read_position_images(pos: RealPosition, rig: Rig, patterns: PhaseShiftSet | GrayCodeSet
+                         ) -> list[np.ndarray]:
     """Both cameras' stacks (n, H, W) of one position, as ``ltc scan`` reads them; refuses a
     missing camera folder, images of differing sizes, a stack whose count is not the pattern
     set's, and images whose size is not the rig camera's, each naming position and camera."""
     from sim.fpp.scan_input import ScanInputError, _read_stack
 
     stacks = []
-    count = len(patterns.descriptors(tuple(rig.projector.size)))
+    count = len(patterns.descriptors(rig.projector.size))
     for i, cam in enumerate(rig.cameras):
         where = f"position {pos.name}, camera {i}"
         sub = pos.folder / f"camera_{i}"
@@ -280,7 +290,8 @@ def write_position(folder: Path, name: str, spec: PositionFile, stacks: list[np.
     return out
 
 
-def write_scan_file(folder: Path, rig, patterns, *, pixel_variance_px2: float = CAMERA_IMAGES,
+def write_scan_file(folder: Path, rig: Rig, patterns: PhaseShiftSet | GrayCodeSet, *,
+                    pixel_variance_px2: float = CAMERA_IMAGES,
                     response: ResponseSpec | None = None) -> None:
     """Write a real-scan folder's ``rig.json``, ``patterns.json`` and ``scan.toml``."""
     import tomli_w

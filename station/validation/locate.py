@@ -11,16 +11,23 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Generic, Protocol, TypeVar
 
 import numpy as np
 
 from station.validation.folder import (
+    AnyArtefact,
     BallBarArtefact,
     CadArtefact,
     Pose,
     RealScanError,
     SphereArtefact,
 )
+
+if TYPE_CHECKING:
+    from trimesh import Trimesh
+
+    from sim.fpp.cloud import PointCloud
 
 SHELL_MM = 2.0  # points this close to a located ball go to its fit
 MIN_BALL_POINTS = 20
@@ -42,11 +49,11 @@ class ArtefactFit:
     pose: Pose
     size_mm: float
     rms_mm: float
-    kept: tuple = field(default=())
+    kept: tuple[np.ndarray, ...] = field(default=())
     pose_centres: np.ndarray | None = None
 
 
-def pixel_keys(cloud) -> np.ndarray:
+def pixel_keys(cloud: PointCloud) -> np.ndarray:
     """One integer per point naming its rig pixel (camera, v, u) (n,)."""
     f = cloud.fields
     return ((np.asarray(f["camera"], np.int64) * 1_000_000 + np.asarray(f["v"], np.int64))
@@ -65,7 +72,7 @@ def bar_pose(c0: np.ndarray, c1: np.ndarray) -> Pose:
     return Pose(R=tuple(map(tuple, R.tolist())), t=tuple(((c0 + c1) / 2).tolist()))
 
 
-def ball_centres(artefact, pose: Pose) -> np.ndarray:
+def ball_centres(artefact: AnyArtefact, pose: Pose) -> np.ndarray:
     """The artefact's ball centres (k, 3) mm at ``pose``."""
     t = np.asarray(pose.t)
     if isinstance(artefact, BallBarArtefact):
@@ -75,7 +82,8 @@ def ball_centres(artefact, pose: Pose) -> np.ndarray:
     return t[None, :]
 
 
-def _fit_balls(cloud, artefact, centres: np.ndarray, name: str) -> ArtefactFit:
+def _fit_balls(cloud: PointCloud, artefact: SphereArtefact | BallBarArtefact,
+               centres: np.ndarray, name: str) -> ArtefactFit:
     from sim.metrology.spheres import fit_sphere
 
     pts = np.asarray(cloud.points, np.float64)
@@ -119,7 +127,8 @@ def fixed_radius_centre(points: np.ndarray, start: np.ndarray, radius_mm: float,
     return c
 
 
-def locate(cloud, artefact, name: str, mesh=None) -> ArtefactFit:
+def locate(cloud: PointCloud, artefact: AnyArtefact, name: str, mesh: Trimesh | None = None
+           ) -> ArtefactFit:
     """Find the artefact in a cloud knowing only its nominal size: a sphere (RANSAC on the
     nominal radius, then a fit), a ball bar (two such balls, ordered by world x), or a CAD
     part (``mesh`` in its object frame; the position file's rough pose, else the centroids
@@ -130,7 +139,8 @@ def locate(cloud, artefact, name: str, mesh=None) -> ArtefactFit:
     pts = np.asarray(cloud.points, np.float64)
     if isinstance(artefact, (SphereArtefact, BallBarArtefact)):
         count = 1 if isinstance(artefact, SphereArtefact) else 2
-        d = artefact.diameter_mm if count == 1 else artefact.ball_diameter_mm
+        d = (artefact.diameter_mm if isinstance(artefact, SphereArtefact)
+             else artefact.ball_diameter_mm)
         try:
             found = find_spheres(pts, count, d / 2)
         except ValueError as exc:
@@ -144,11 +154,14 @@ def locate(cloud, artefact, name: str, mesh=None) -> ArtefactFit:
     return _locate_cad(pts, artefact, name, mesh)
 
 
-def _locate_cad(pts: np.ndarray, artefact: CadArtefact, name: str, mesh) -> ArtefactFit:
+def _locate_cad(pts: np.ndarray, artefact: CadArtefact, name: str, mesh: Trimesh | None
+                ) -> ArtefactFit:
     import trimesh
 
     from sim.metrology.compare import icp, mesh_signed_distance
 
+    if mesh is None:
+        raise TypeError("a CAD part is located with its mesh")
     start = artefact.pose or Pose(t=tuple((pts.mean(axis=0) - mesh.centroid).tolist()))
     R0, t0 = np.asarray(start.R), np.asarray(start.t)
     lo, hi = mesh.bounds
@@ -174,7 +187,8 @@ def _locate_cad(pts: np.ndarray, artefact: CadArtefact, name: str, mesh) -> Arte
                                                    t=tuple(t.tolist())), float("nan"), rms)
 
 
-def fit_near(cloud, artefact, pose: Pose, name: str, mesh=None) -> ArtefactFit:
+def fit_near(cloud: PointCloud, artefact: AnyArtefact, pose: Pose, name: str,
+             mesh: Trimesh | None = None) -> ArtefactFit:
     """The artefact's fit in ``cloud`` near a known ``pose`` (the same rule for every
     scanner: each ball refitted to the points within ``SHELL_MM`` of it; a CAD part by ICP
     from ``pose``)."""
@@ -192,7 +206,7 @@ def pose_correction(real: ArtefactFit, virtual: ArtefactFit) -> np.ndarray:
     return real.centres - virtual.centres
 
 
-def corrected_pose(artefact, pose: Pose, delta: np.ndarray) -> Pose:
+def corrected_pose(artefact: AnyArtefact, pose: Pose, delta: np.ndarray) -> Pose:
     """``pose`` moved by the centre corrections ``delta`` (k, 3) mm: a sphere's or CAD part's
     origin translated; a ball bar's two centres each moved, the bar's length kept nominal."""
     if isinstance(artefact, BallBarArtefact):
@@ -201,27 +215,37 @@ def corrected_pose(artefact, pose: Pose, delta: np.ndarray) -> Pose:
     return pose.model_copy(update={"t": tuple((np.asarray(pose.t) + delta[0]).tolist())})
 
 
+class Scanned(Protocol):
+    """What a twin's scan at a pose offers the refinement: its cloud."""
+
+    @property
+    def cloud(self) -> PointCloud: ...
+
+
+S = TypeVar("S", bound=Scanned)
+
+
 @dataclass
-class Refinement:
+class Refinement(Generic[S]):
     """A refined pose: ``pose``, the corrections (um) of every step, whether the last was
     below ``CONVERGED_MM``, and the twin's scan at ``pose`` (``last``)."""
 
     pose: Pose
     steps_um: list[float]
     converged: bool
-    last: object = None
+    last: S
 
 
-def refine_pose(artefact, real: ArtefactFit, start: Pose,
-                scan_at: Callable[[Pose], object], name: str, mesh=None,
-                max_steps: int = MAX_REFINE) -> Refinement:
+def refine_pose(artefact: AnyArtefact, real: ArtefactFit, start: Pose,
+                scan_at: Callable[[Pose], S], name: str, mesh: Trimesh | None = None,
+                max_steps: int = MAX_REFINE) -> Refinement[S]:
     """Analysis by synthesis: scan the artefact with the twin at ``start`` (``scan_at(pose)``
     returns an object with ``.cloud``), fit it, move the pose by ``fit(real) - fit(virtual)``;
     until the correction is below ``CONVERGED_MM``. A correction that does not shrink (the
     fit jumps as limb pixels come and go) is halved from the best pose so far, as often as
     needed. Returns the pose with the smallest correction and the twin's scan there."""
     pose, steps = start, []
-    best: tuple[float, Pose, object, np.ndarray] | None = None
+    best: tuple[float, Pose, S, np.ndarray] | None = None
     damping = 1.0
     for _ in range(max_steps):
         last = scan_at(pose)
@@ -238,10 +262,12 @@ def refine_pose(artefact, real: ArtefactFit, start: Pose,
         if size < CONVERGED_MM:
             return Refinement(pose, steps, True, last)
         pose = corrected_pose(artefact, best[1], damping * best[3])
+    if best is None:
+        raise ValueError(f"max_steps {max_steps}: the refinement needs at least one step")
     return Refinement(best[1], steps, False, best[2])
 
 
-def pose_offset_um(a: Pose, b: Pose, artefact) -> float:
+def pose_offset_um(a: Pose, b: Pose, artefact: AnyArtefact) -> float:
     """Largest distance (um) between the artefact's ball centres (or origins) at two poses."""
     return float(np.max(np.linalg.norm(ball_centres(artefact, a) - ball_centres(artefact, b),
                                        axis=1)) * 1e3)

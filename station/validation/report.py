@@ -6,10 +6,16 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from station.validation.folder import write_durable
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from station.validation.run import ValidationResult
 
 
 def _um(x: float | None, sign: bool = True) -> str:
@@ -18,14 +24,14 @@ def _um(x: float | None, sign: bool = True) -> str:
     return f"{x * 1e3:+.1f}" if sign else f"{x * 1e3:.1f}"
 
 
-def _save(fig, path: Path) -> str:
+def _save(fig: Figure, path: Path) -> str:
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
     write_durable(path, buf.getvalue())
     return str(path)
 
 
-def fringe_figure(name: str, twins: list[str], maps: dict, path: Path) -> str:
+def fringe_figure(name: str, twins: list[str], maps: dict[str, np.ndarray], path: Path) -> str:
     """Fig. 14 for one position, camera 0: the real finest fringe image and each twin's, each
     twin's intensity difference (DN) and wrapped phase difference (rad)."""
     from matplotlib.figure import Figure
@@ -50,7 +56,7 @@ def fringe_figure(name: str, twins: list[str], maps: dict, path: Path) -> str:
     return _save(fig, path)
 
 
-def summary_figure(rows: list[dict], twins: list[str], path: Path) -> str:
+def summary_figure(rows: list[dict[str, Any]], twins: list[str], path: Path) -> str:
     """Per position each twin's mean and RMSE against real (by pixel, unaligned), um."""
     from matplotlib.figure import Figure
 
@@ -69,7 +75,8 @@ def summary_figure(rows: list[dict], twins: list[str], path: Path) -> str:
     return _save(fig, path)
 
 
-def write_report(result, maps: dict[str, dict], out: Path) -> list[str]:
+def write_report(result: ValidationResult, maps: dict[str, dict[str, np.ndarray]], out: Path
+                 ) -> list[str]:
     """Write ``out/report.md`` and its figures; returns the figures' paths."""
     rows, twins = result.positions, result.twins
     figs = [summary_figure(rows, twins, out / "figures" / "summary.png")]

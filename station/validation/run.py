@@ -19,6 +19,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -32,6 +33,11 @@ from station.validation.folder import (
     load_real_scan,
     write_durable,
 )
+
+if TYPE_CHECKING:
+    from sim.fpp.decode import DecodeSettings
+    from sim.optics.lens import LensModel
+    from station.validation.twin import TwinScan
 
 Log = Callable[[str], None]
 DEFAULT_PIXEL_SAMPLES = 4  # subpixels per axis of a twin of area-integrating camera pixels
@@ -61,7 +67,7 @@ class PositionResult:
     twins: dict[str, dict]
     seconds: dict[str, float] = field(default_factory=dict)
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return asdict(self)
 
 
@@ -78,7 +84,7 @@ class ValidationResult:
     seconds: dict[str, float]
     figures: list[str] = field(default_factory=list)
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return asdict(self)
 
 
@@ -125,7 +131,7 @@ def _start(out: Path, record: dict, force: bool) -> bool:
     return False
 
 
-def _decode(pixel_variance_px2: float):
+def _decode(pixel_variance_px2: float) -> DecodeSettings:
     from sim.fpp.decode import DecodeSettings
 
     return DecodeSettings(pixel_variance_px2=pixel_variance_px2)
@@ -147,7 +153,7 @@ def validate_position(scan: RealScan, pos: RealPosition, twins: dict[str, tuple]
     from station.validation.twin import estimate_response, render_scan, scene_at
 
     rig, patterns, art = scan.rig, scan.patterns, pos.spec.artefact
-    psize = tuple(rig.projector.size)
+    psize = rig.projector.size
     t0 = time.perf_counter()
     stacks = pos.images(rig, patterns)
     try:
@@ -175,8 +181,8 @@ def validate_position(scan: RealScan, pos: RealPosition, twins: dict[str, tuple]
     decode_twin = _decode(0.0 if pixel_samples == 1 else scan.spec.pixel_variance_px2)
     render_s: dict[str, float] = {}
 
-    def scan_at(lenses, name):
-        def run(pose: Pose):
+    def scan_at(lenses: tuple[LensModel, ...], name: str) -> Callable[[Pose], TwinScan]:
+        def run(pose: Pose) -> TwinScan:
             s = render_scan(rig, lenses, patterns, scene_at(art, pose, pos.name, mesh_path),
                             pos.name, None, decode_twin, projector=projector,
                             pixel_samples=pixel_samples)
@@ -216,8 +222,8 @@ def validate_position(scan: RealScan, pos: RealPosition, twins: dict[str, tuple]
         for i in range(len(rig.cameras)):
             counts = response.apply(s.radiance[i], i, rng)
             imgs.append(image_differences(stacks[i], counts, s.lit[i], patterns, psize, i))
-        own = None if mesh is not None else fit_near(s.cloud, art, pose, pos.name)
-        c = compare_twin(n, s.cloud, real, real_fit, own, art, pos.name, imgs, world_mesh)
+        own_fit = None if mesh is not None else fit_near(s.cloud, art, pose, pos.name)
+        c = compare_twin(n, s.cloud, real, real_fit, own_fit, art, pos.name, imgs, world_mesh)
         results[n] = c.to_json() | {"scan": s.report.to_json()}
         from sim.metrology.compare import compare_by_pixel
 
@@ -259,7 +265,8 @@ def _save(folder: Path, res: PositionResult, maps: dict[str, np.ndarray]) -> Non
     import io
 
     buf = io.BytesIO()
-    np.savez(buf, **maps)
+    arrays: dict[str, Any] = dict(maps)  # names and arrays for np.savez
+    np.savez(buf, **arrays)
     write_durable(folder / f"{res.name}.npz", buf.getvalue())
     write_durable(folder / f"{res.name}.json", json.dumps(res.to_json(), indent=1).encode())
 

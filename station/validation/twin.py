@@ -18,15 +18,30 @@ import time
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from station.validation.folder import BallBarArtefact, CadArtefact, Pose, RealScanError
+from station.validation.folder import (
+    BallBarArtefact,
+    CadArtefact,
+    Pose,
+    RealScanError,
+    SphereArtefact,
+)
+
+if TYPE_CHECKING:
+    from sim.fpp.cloud import PointCloud
+    from sim.fpp.decode import DecodeSettings, ScanReport
+    from sim.optics.lens import LensModel
+    from sim.optics.rig import DeviceCalibration, Rig
+    from sim.render.fringe_patterns import GrayCodeSet, PhaseShiftSet
+    from sim.render.scene import Scene
 
 LIT_FRACTION = 0.2  # pixels whose rendered B exceeds this fraction of its 99th percentile
 
 
-def load_lens_arg(path: str | Path, camera, index: int):
+def load_lens_arg(path: str | Path, camera: DeviceCalibration, index: int) -> LensModel:
     """One camera's lens from ``--lenses``: a measured lens ``.npz`` (checked against the rig
     camera: ``lens_camera_mismatch``) or a TOML / JSON lens spec."""
     from sim.optics.measured_lens import LensFileError, lens_camera_mismatch, load_lens
@@ -55,15 +70,16 @@ def load_lens_arg(path: str | Path, camera, index: int):
         raise RealScanError(f"{where}: field 'kind': {kind!r}, expected one of thin, aberrated, "
                             "gaussian, pinhole (or a measured lens .npz)")
     try:
-        spec = LENS_KINDS[kind].model_validate(raw)
+        spec: Any = LENS_KINDS[kind].model_validate(raw)  # type: ignore[attr-defined]
     except ValueError as exc:
         raise RealScanError(f"{where}: {' '.join(str(exc).split())}") from exc
-    return spec.lens() if isinstance(spec, ThinLensSpec) else spec
+    model: LensModel = spec.lens() if isinstance(spec, ThinLensSpec) else spec
+    return model
 
 
-def build_twins(rig, lens_paths: list[str | Path], gaussian_sigma_mm: float | None = None,
+def build_twins(rig: Rig, lens_paths: list[str | Path], gaussian_sigma_mm: float | None = None,
                 gaussian_samples: int | None = None, smoothing_nodes: float = 0.0
-                ) -> dict[str, tuple]:
+                ) -> dict[str, tuple[LensModel, ...]]:
     """Per twin name the lens of each rig camera (see the module docstring); the first twin
     is the primary one, whose refined pose every twin is rendered at."""
     from sim.optics.lens import GaussianLens, PinholeLens
@@ -74,19 +90,20 @@ def build_twins(rig, lens_paths: list[str | Path], gaussian_sigma_mm: float | No
                             f"{len(rig.cameras)} cameras; give one per camera")
     lenses = [load_lens_arg(p, c, i)
               for i, (p, c) in enumerate(zip(lens_paths, rig.cameras, strict=True))]
-    measured = [isinstance(x, MeasuredLens) for x in lenses]
-    if any(measured) and not all(measured):
+    ms = [x for x in lenses if isinstance(x, MeasuredLens)]
+    if ms and len(ms) != len(lenses):
         raise RealScanError("--lenses: give measured lenses for both cameras or specs for both")
-    twins: dict[str, tuple] = {}
-    if all(measured):
+    twins: dict[str, tuple[LensModel, ...]] = {}
+    if ms:
         twins["ltc"] = tuple(smoothed_lens(m, smoothing_nodes) if smoothing_nodes else m
-                             for m in lenses)
+                             for m in ms)
         if gaussian_sigma_mm is None:
-            twins["gaussian"] = tuple(gaussian_equivalent(m, gaussian_samples) for m in lenses)
+            twins["gaussian"] = tuple(gaussian_equivalent(m, gaussian_samples) for m in ms)
     else:
         kinds = {getattr(x, "kind", "lens") for x in lenses}
         name = "thin" if kinds == {"aberrated"} and all(
-            x.spherical_mm == 0 and x.vignetting_shift_mm == 0 for x in lenses) else \
+            getattr(x, "spherical_mm", 0) == 0 and getattr(x, "vignetting_shift_mm", 0) == 0
+            for x in lenses) else \
             "_".join(sorted(kinds))
         twins[name] = tuple(lenses)
     if gaussian_sigma_mm is not None:
@@ -99,14 +116,16 @@ def build_twins(rig, lens_paths: list[str | Path], gaussian_sigma_mm: float | No
     return twins
 
 
-def scene_at(artefact, pose: Pose, name: str, mesh_path: Path | None = None):
+def scene_at(artefact: SphereArtefact | BallBarArtefact | CadArtefact, pose: Pose, name: str,
+             mesh_path: Path | None = None) -> Scene:
     """The ``sim`` scene of the artefact at ``pose``."""
     from sim.render.scene import BallBarObject, MeshObject, Scene, SphereObject
 
     p = {"t": list(pose.t), "R": [list(r) for r in pose.R]}
     if isinstance(artefact, BallBarArtefact):
-        obj = BallBarObject(name=name, diameter_mm=artefact.ball_diameter_mm,
-                            centre_distance_mm=artefact.centre_distance_mm, pose=p)
+        obj: BallBarObject | MeshObject | SphereObject = BallBarObject(
+            name=name, diameter_mm=artefact.ball_diameter_mm,
+            centre_distance_mm=artefact.centre_distance_mm, pose=p)
     elif isinstance(artefact, CadArtefact):
         obj = MeshObject(name=name, path=mesh_path, smooth_angle_deg=30.0, pose=p)
     else:
@@ -127,7 +146,7 @@ class Response:
     bits: int | None
     source: str
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return {"gain": list(self.gain), "offset": list(self.offset),
                 "read_noise_dn": list(self.read_noise_dn), "shot_dn": list(self.shot_dn),
                 "bits": self.bits, "source": self.source}
@@ -145,18 +164,20 @@ class Response:
         return x
 
 
-def _ab(images: np.ndarray, patterns, projector_size) -> tuple[np.ndarray, np.ndarray, float]:
+def _ab(images: np.ndarray, patterns: PhaseShiftSet | GrayCodeSet,
+        projector_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Background A and modulation B (H, W) over the phase-shift groups, and the residual
     variance per image of the N-step model (DN^2, per pixel (H, W))."""
     from collections import defaultdict
 
-    descs = patterns.descriptors(tuple(projector_size))
-    groups = defaultdict(list)
+    descs = patterns.descriptors(projector_size)
+    groups: dict[tuple[str | None, float | None], list[int]] = defaultdict(list)
     for d in sorted(descs, key=lambda d: d.shift or 0):
         if d.kind == "phase":
             groups[(d.direction, d.period_px)].append(d.index)
-    A, B, R, dof = 0.0, 0.0, 0.0, 0
     x = np.asarray(images, np.float64)
+    A = B = R = np.zeros(x.shape[1:])
+    dof = 0
     for idx in groups.values():
         n = len(idx)
         s = x[idx]
@@ -173,7 +194,8 @@ def _ab(images: np.ndarray, patterns, projector_size) -> tuple[np.ndarray, np.nd
 
 
 def estimate_response(real: list[np.ndarray], rendered_radiance: list[np.ndarray],
-                      patterns, projector_size, dark: list[np.ndarray] | None = None,
+                      patterns: PhaseShiftSet | GrayCodeSet, projector_size: tuple[int, int],
+                      dark: list[np.ndarray] | None = None,
                       bits: int | None = None) -> Response:
     """Camera response per camera from the real images (n, H, W) and the noise-free rendered
     radiance at the refined pose: gain and offset by least squares over the pixels lit in the
@@ -219,15 +241,15 @@ class TwinScan:
     """One twin's render and scan at one pose: ``cloud``, ``report`` (``ScanReport``),
     per camera the noise-free ``radiance`` (n, H, W) and the truth maps' ``lit``, seconds."""
 
-    cloud: object
-    report: object
-    radiance: list
-    lit: list
+    cloud: PointCloud
+    report: ScanReport
+    radiance: list[np.ndarray]
+    lit: list[np.ndarray]
     render_s: float
     scan_s: float
 
 
-def supersampled(rig, f: int):
+def supersampled(rig: Rig, f: int) -> Rig:
     """The rig with every camera pixel split into ``f`` x ``f`` subpixels (same field of view,
     pixel centres at integer coordinates: ``c' = f c + (f - 1) / 2``)."""
     from sim.optics.rig import DeviceCalibration, Rig
@@ -258,8 +280,10 @@ def binned(a: np.ndarray, f: int) -> np.ndarray:
     return a.reshape(*lead, h // f, f, w // f, f).mean(axis=(-3, -1))
 
 
-def render_scan(rig, lenses, patterns, scene, name: str, response: Response | None,
-                decode, seed: int = 0, projector=None, pixel_samples: int = 1) -> TwinScan:
+def render_scan(rig: Rig, lenses: tuple[LensModel, ...], patterns: PhaseShiftSet | GrayCodeSet,
+                scene: Scene, name: str, response: Response | None, decode: DecodeSettings,
+                seed: int = 0, projector: dict[str, Any] | None = None,
+                pixel_samples: int = 1) -> TwinScan:
     """Render a twin at a scene (radiance, noise-free), apply ``response`` (None: the
     radiance itself) and scan as ``ltc scan`` does with ``decode``. ``pixel_samples``: each
     camera pixel integrates ``pixel_samples`` x ``pixel_samples`` subpixels (as a camera's

@@ -102,3 +102,45 @@ def test_a_second_writer_of_a_sequence_folder_is_refused_naming_the_holder(tmp_p
         with pytest.raises(StoreLockedError, match=f"locked by another writer .*PID {os.getpid()}"):
             Sequence(config, out, progress=False).run()
     assert sorted(p.name for p in out.iterdir()) == []  # nothing written under another's lock
+
+
+def test_a_renamed_output_is_recorded_under_its_final_path(tmp_path):
+    """A step written under a temporary name and renamed into place (the LTC store) records
+    the final path, never the temporary one."""
+    from station.sequence import _atomic
+
+    final = tmp_path / "ltc.zarr"
+
+    def write(tmp):
+        tmp.mkdir()
+        return {"run": str(tmp_path / "run.zarr"), "out": str(tmp), "pixels": 12}
+
+    got = _atomic(final, write)
+    assert got == {"run": str(tmp_path / "run.zarr"), "out": str(final), "pixels": 12}
+    assert final.is_dir() and not (tmp_path / "ltc.partial.zarr").exists()
+
+
+def test_the_summary_round_trips_through_its_json(tmp_path, monkeypatch):
+    """``summary.json`` is ``SequenceSummary.to_json()``: every step's record, the status,
+    read back equal."""
+    from station.sequence import SequenceSummary
+
+    cfg = ExperimentConfig()
+    config = station_config(cfg, build_rig(cfg), 0)
+
+    def fake(step):
+        def run(self):
+            for p in self.outputs(step):
+                p.mkdir() if p.suffix == "" else p.write_text(step)
+            return {"step": step}
+        return run
+
+    for step in ("check", "acquire", "reconstruct", "lens"):
+        monkeypatch.setattr(Sequence, f"_{step}", fake(step))
+    out = tmp_path / "seq"
+    summary = Sequence(config, out, progress=False).run()
+    data = json.loads((out / "summary.json").read_text())
+    assert data == summary.to_json()
+    assert SequenceSummary.from_json(data) == summary
+    assert summary.status == "complete" and summary.steps["lens"].result == {"step": "lens"}
+    assert data["steps"]["align"] == {"status": "skipped", "reason": "not asked for by [sequence]"}

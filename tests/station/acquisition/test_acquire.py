@@ -581,7 +581,8 @@ def test_fake_example_acquire_and_reconstruct_recover_the_true_ltc(tmp_path, cap
         # better than the whole window
         assert near < full and normalised <= 3.0
     # the whole station: the lens derived from this run against the fake bench's truth
-    assert main(["lens", str(ltc), "--out", str(tmp_path / "lens.npz"), "--json"]) == 0
+    assert main(["lens", str(ltc), "--out", str(tmp_path / "lens.npz"), "--json",
+                 "--basic"]) == 0
     lens = json.loads(capsys.readouterr().out)
     assert "fake_truth" not in lens  # the station reports what it measured, nothing more
     truth = lens_truth(dict(zarr.open_group(str(ltc), mode="r").attrs["config"]))

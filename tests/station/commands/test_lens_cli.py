@@ -37,7 +37,7 @@ def store(tmp_path_factory, bench):
 def test_lens_json_figures_and_file(tmp_path, store, bench, capsys):
     out, figs = tmp_path / "lens.npz", tmp_path / "figs"
     assert main(["lens", str(store), "--out", str(out), "--json", "--figures", str(figs),
-                 "--grid-step", "2"]) == 0
+                 "--grid-step", "2", "--basic"]) == 0
     report = json.loads(capsys.readouterr().out)
     lens = load_lens(out)
     assert report["out"] == str(out) and report["samples"] == 32 == lens.samples
@@ -58,7 +58,7 @@ def test_lens_json_figures_and_file(tmp_path, store, bench, capsys):
 def test_lens_options_and_text_report(tmp_path, store, capsys):
     out = tmp_path / "lens.npz"
     rc = main(["lens", str(store), "--out", str(out), "--samples", "12", "--grid-step", "10",
-               "--interpolation", "nearest", "--focus-mm", "250"])
+               "--interpolation", "nearest", "--focus-mm", "250", "--basic"])
     text = capsys.readouterr().out
     assert rc == 0
     lens = load_lens(out)
@@ -66,7 +66,7 @@ def test_lens_options_and_text_report(tmp_path, store, capsys):
     np.testing.assert_array_equal(lens.node_u, [0, 10, 20, 30, 39])
     np.testing.assert_array_equal(lens.node_v, [0, 10, 20, 29])
     assert lens.focus_distance_mm == pytest.approx(250.0)
-    assert "optical centre" in text and "configured 250.0" in text
+    assert "optical centre" in text and "configured 250.000 mm" in text
     assert "focus distance: configured 250.000 mm (used), fitted" in text
 
 
@@ -114,3 +114,43 @@ def test_errors_are_reported_not_raised(tmp_path, store, capsys):
     assert main(["lens", str(store), "--out", str(out), "--focus-mm", "250",
                  "--centre", "rays", "--grid-step", "10"]) == 0
     assert load_lens(out).focus_distance_mm == pytest.approx(250.0)
+
+
+def test_the_recommended_settings_are_the_defaults_everywhere():
+    """``ltc lens`` without options, ``ltc run`` without [sequence] lens_* and the experiment
+    all derive with ``LensFitConfig()``: the recommended settings."""
+    from station.api import lens_config
+    from station.experiment.bench import build_rig, station_config
+    from station.experiment.config import ExperimentConfig
+    from station.lens.geometry import LensFitConfig
+
+    rec = LensFitConfig()
+    assert (rec.samples, rec.grid_step, rec.aperture_cells, rec.deconvolve_iterations,
+            rec.support_floor, rec.focus_zones, rec.aim_offset_sigma_px) == (
+        256, 4, 64, 20, 0.1, True, 8.0)
+    assert lens_config() == rec
+    cfg = ExperimentConfig()
+    seq = station_config(cfg, build_rig(cfg), 0).sequence
+    assert lens_config(samples=seq.lens_samples, grid_step=seq.lens_grid_step,
+                       pixel_samples=seq.lens_pixel_samples, **seq.lens_settings) == rec
+    basic = LensFitConfig.basic()
+    assert (basic.samples, basic.grid_step, basic.focus_zones) == (32, 1, False)
+
+
+def test_the_text_report_formats_every_figure_with_units():
+    from station.commands.lens import text
+
+    r = {"optical_centre_mm": [1.0, 2.0, -100.0], "optical_centre_std_mm": [0.001] * 3,
+         "optical_centre_method": "pinhole", "principal_ray_intersection_mm": [1.0, 2.0, -99.0],
+         "focus_plane_z_mm": 150.0, "focus_distance_mm": 250.0,
+         "focus_distance_fitted_mm": None, "focus_distance_config_mm": 250.0,
+         "ray_residual_mean_mm": None, "ray_residual_std_mm": None, "ray_residual_count": 0,
+         "pixels_usable": 10, "pixels": 12, "pixels_few_depths": 1,
+         "pixels_outlier_removed": 0, "pixels_bad_fit": 1, "samples": 256, "nodes": [3, 4],
+         "nodes_filled": 0, "aperture_cells": 64, "aperture_half_width_mm": 4.5,
+         "camera_rotation_deg": 0.25, "notes": [], "figures": [], "out": "lens.npz"}
+    out = text(r)
+    assert "None" not in out
+    assert "fitted n/a, configured 250.000 mm" in out
+    assert "mean n/a, std n/a over 0 points" in out
+    assert "(1.0000, 2.0000, -100.0000) mm" in out and "0.250 deg" in out

@@ -11,8 +11,9 @@ from scipy.ndimage import gaussian_filter
 from fakes.bench import BenchConfig, FakeBench
 from ltc_stores import write_true_ltc_store
 from sim.optics.projection import pixel_to_normalized
-from station.api import derive_lens
+from station.api import derive_lens, lens_config
 from station.lens.derive import aim_offsets, local_ray_slopes, sample_moment
+from station.lens.geometry import LensFitConfig
 
 DEPTHS = [0.0, 30.0, 60.0, 250.0, 290.0, 320.0]
 
@@ -37,8 +38,8 @@ def implied_slopes(lens, uv):
 
 def test_aim_offsets_bring_the_principal_rays_to_the_true_slopes(bench_store):
     bench, path = bench_store
-    plain = derive_lens(path, progress=False)
-    aimed = derive_lens(path, progress=False, settings={"aim_offset_sigma_px": 2.0})
+    plain = derive_lens(path, LensFitConfig.basic(), progress=False)
+    aimed = derive_lens(path, LensFitConfig.basic(aim_offset_sigma_px=2.0), progress=False)
     assert plain.lens.aim_offset is None
     e = aimed.lens.aim_offset
     assert e.shape == plain.lens.weights.shape[:2] + (2,)
@@ -104,6 +105,6 @@ def test_unknown_or_bad_lens_settings_are_refused_by_name(bench_store):
 
     _, path = bench_store
     with pytest.raises(UsageError, match="aim_offset_sigma"):
-        derive_lens(path, progress=False, settings={"aim_offset_sigma": 2.0})
+        lens_config(aim_offset_sigma=2.0)
     with pytest.raises(UsageError, match="aim_offset_sigma_px"):
-        derive_lens(path, progress=False, settings={"aim_offset_sigma_px": -1.0})
+        lens_config(aim_offset_sigma_px=-1.0)

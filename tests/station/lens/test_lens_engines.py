@@ -10,6 +10,7 @@ from fakes.bench import BenchConfig, FakeBench
 from ltc_stores import write_true_ltc_store
 from sim.optics.measured_lens import load_lens, read_lens_nodes
 from station.api import derive_lens
+from station.lens.geometry import LensFitConfig
 
 P = 24
 DEPTHS = [0.0, 30.0, 60.0, 250.0, 290.0]
@@ -29,10 +30,12 @@ def store(tmp_path_factory):
 
 
 def test_streamed_and_dask_lenses_equal_the_in_memory_one(store, tmp_path):
-    ref = derive_lens(store, progress=False, workers=1)
+    cfg = LensFitConfig.basic()  # every pixel a node
+    ref = derive_lens(store, cfg, progress=False, workers=1)
     assert ref.filled_nodes == 1
-    a = derive_lens(store, progress=False, workers=1, out=tmp_path / "serial.npz")
-    b = derive_lens(store, progress=False, workers=2, dask=True, out=tmp_path / "dask.npz")
+    a = derive_lens(store, cfg, progress=False, workers=1, out=tmp_path / "serial.npz")
+    b = derive_lens(store, cfg, progress=False, workers=2, dask=True,
+                    out=tmp_path / "dask.npz")
     assert a.lens is None and a.lens_path == tmp_path / "serial.npz"
     assert not (tmp_path / "serial.npz.partial").exists()
     la, lb = load_lens(a.lens_path), load_lens(b.lens_path)

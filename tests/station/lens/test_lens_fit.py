@@ -115,13 +115,13 @@ def make_volume(bench, truth, seed: int | None = None, offset: float = 0.0, K=Tr
 @pytest.fixture(scope="module")
 def clean(bench, truth):
     vol = make_volume(bench, truth)
-    return vol, derive_lens(vol)
+    return vol, derive_lens(vol, LensFitConfig.basic())
 
 
 @pytest.fixture(scope="module")
 def noisy(bench, truth):
     vol = make_volume(bench, truth, seed=7)
-    return vol, derive_lens(vol, LensFitConfig(grid_step=4))
+    return vol, derive_lens(vol, LensFitConfig.basic(grid_step=4))
 
 
 def true_pupil(bench, grid: ApertureGrid, uv, centre_mm, sub: int = 8) -> np.ndarray:
@@ -145,7 +145,7 @@ def overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def test_optical_centre_noise_free(bench, clean):
     _, r = clean
-    s = r.summary()
+    s = r.summary().to_json()
     err = np.linalg.norm(r.geometry.centre.position - bench.optical_centre_station_mm())
     print(f"\nnoise-free: centre {np.round(s['optical_centre_mm'], 4)} true "
           f"{bench.optical_centre_station_mm()} error {err:.4f} mm; ray residual mean "
@@ -157,7 +157,7 @@ def test_optical_centre_noise_free(bench, clean):
 
 def test_optical_centre_with_default_noise(bench, noisy):
     _, r = noisy
-    s = r.summary()
+    s = r.summary().to_json()
     err = np.linalg.norm(r.geometry.centre.position - bench.optical_centre_station_mm())
     print(f"\ndefault noise: centre {np.round(s['optical_centre_mm'], 4)} +- "
           f"{np.round(s['optical_centre_std_mm'], 4)} error {err:.4f} mm; ray residual mean "
@@ -221,7 +221,7 @@ def test_fusing_depths_beats_the_best_single_depth(bench, noisy):
 
 
 def test_stage_offset_cancels(bench, truth):
-    cfg = LensFitConfig(grid_step=3)
+    cfg = LensFitConfig.basic(grid_step=3)
     a = derive_lens(make_volume(bench, truth, seed=3), cfg)
     b = derive_lens(make_volume(bench, truth, seed=3, offset=123.4), cfg)
     for name in ("aperture_x_mm", "aperture_y_mm", "weights", "transmittance"):
@@ -298,7 +298,7 @@ def test_flagged_pixels_are_not_used_and_their_nodes_filled(bench, truth, clean)
     vol = make_volume(bench, truth)
     ltc = np.array(vol.ltc)
     ltc[:4, 5, 5] = np.nan  # pixel (5, 5): signal at 2 of 6 depths
-    r = derive_lens(dataclasses.replace(vol, ltc=ltc), LensFitConfig(grid_step=5))
+    r = derive_lens(dataclasses.replace(vol, ltc=ltc), LensFitConfig.basic(grid_step=5))
     assert r.geometry.rays.flags[5 * 40 + 5] == FLAG_FEW_DEPTHS
     assert r.filled_nodes == 1
     nodes = r.lens.aperture_x_mm
@@ -334,7 +334,7 @@ def test_errors(bench, truth):
     nu, nv = node_positions(40, 2), node_positions(30, 2)
     ltc[:, nv[:, None], nu[None, :]] = np.nan  # every node of a grid_step-2 lens: no signal
     with pytest.raises(LensFitError, match="no node pixel has a usable LTC"):
-        derive_lens(dataclasses.replace(vol, ltc=ltc), LensFitConfig(grid_step=2))
+        derive_lens(dataclasses.replace(vol, ltc=ltc), LensFitConfig.basic(grid_step=2))
 
 
 def test_aperture_helper_errors():
@@ -502,7 +502,7 @@ def test_zoned_lens_follows_the_true_blur_and_finds_the_centre(bench, clean):
     error (one focus: -76 um, the vignetted principal rays' miss taken for a scale), the
     blur's centroid and its skew across focus are all at most half of one focus's."""
     vol, single = clean
-    zoned = derive_lens(vol, LensFitConfig(focus_zones=True))
+    zoned = derive_lens(vol, LensFitConfig.basic(focus_zones=True))
     true_c = bench.optical_centre_station_mm()
     err = {name: float(r.geometry.centre.position[2] - true_c[2]) * 1e3
            for name, r in (("single", single), ("zoned", zoned))}
