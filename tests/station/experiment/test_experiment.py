@@ -11,7 +11,7 @@ import pytest
 
 from station.cli import main
 from station.errors import StationError, UsageError
-from station.experiment.run import ExperimentConfig, cad_part_mesh, run_experiment
+from station.experiment.run import ExperimentConfig, PositionRow, cad_part_mesh, run_experiment
 
 # the demo's rig scale (0.1: scale 0.05 leaves too few pixels on a defocused ball for the
 # stereo checks) and station (LCD pitch, six depths), with a narrower camera, 64 aperture
@@ -222,8 +222,15 @@ def test_the_experiment_goes_through_the_real_scan_path(reduced, tmp_path):
 
     out, res = reduced
     real = load_real_scan(out / "real")
-    assert [p.name for p in real.positions] == sorted(r["name"] for r in res["rows"])
+    assert [p.name for p in real.positions] == sorted(r.name for r in res["rows"])
     assert res["real_scan_folder"] == str(out / "real")
+    # every row carries the validation's figures, typed, and results.json holds them
+    saved = json.loads((out / "results.json").read_text())
+    for r, data in zip(res["rows"], saved["rows"], strict=True):
+        assert r.validation is not None and r.validation.true_offsets_um is not None
+        assert set(r.validation.images) == {"ltc", "gaussian", "pinhole"}
+        assert PositionRow.from_json(data) == PositionRow.from_json(r.to_json())
+    assert saved["pose_refinement"] == res["pose_refinement"]
     pose = res["pose_refinement"]
     assert pose["positions"] == ["S2", "B1"], pose
     assert pose["ltc_refined_worst_um"] <= 10.0, pose
