@@ -12,8 +12,6 @@ and 30 px), 12 images, fringes along u.
 
 from __future__ import annotations
 
-import os
-import platform
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field

@@ -18,6 +18,9 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from sim.storage.durable import durable_file  # noqa: E402
+
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 
 
@@ -39,12 +42,8 @@ def write_results(script: str | Path, title: str, body: str, *, command: str | N
     if command:
         parts += ["Made by:", "", f"    {command}", ""]
     parts += [body.strip(), ""]
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
+    with durable_file(path) as f:  # the project's one durable write (sim.storage)
         f.write("\n".join(parts))
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
     return path
 
 

@@ -72,7 +72,7 @@ def peak_mb() -> float:
 
 def stage(name: str, out: Path, rows: int, workers: int | None, depths: int = 2) -> dict:
     from station.api import acquire, load_config, open_bench
-    from station.ltc.parallel import default_workers
+    from station.compute import default_workers
     from station.acquisition.acquire import pattern_plan
 
     cfg_path = out / "bench.toml"
@@ -111,7 +111,7 @@ def stage(name: str, out: Path, rows: int, workers: int | None, depths: int = 2)
         res["read_seconds"] = time.perf_counter() - t
         res["read_mb_s"] = nbytes / 1e6 / res["read_seconds"]
     elif name == "reconstruct":
-        from station.ltc.spi import reconstruct
+        from station.ltc.tiles import reconstruct
 
         s = reconstruct(out / "run.zarr", out / "ltc.zarr", progress=False, workers=workers)
         res.update(reconstruct_seconds=s["seconds"], pixels_per_second=s["pixels_per_second"],

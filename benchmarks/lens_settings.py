@@ -33,7 +33,7 @@ from station.acquisition.acquire import acquire
 from station.acquisition.config import example_config
 from station.api import derive_lens
 from station.lens.geometry import LensFitConfig
-from station.ltc.spi import reconstruct
+from station.ltc.tiles import reconstruct
 
 HELD_OUT_MM = 100.0  # a stage reading between the example's depths (40, 70, 130, 160 mm)
 RESULTS = Path(__file__).parent / "results" / "lens_settings.md"

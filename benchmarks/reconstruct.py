@@ -5,7 +5,7 @@ Synthetic run stores are written into a temporary directory: every camera pixel 
 Gaussian LTC (sigma ``--blur`` LCD pixels) at an LCD point that moves 1.3 LCD pixels per camera
 pixel, with vignetting, shot and read noise, 12-bit frames. Measured per size, median of
 ``--repeats``: reading every frame once (whole frames), reading every frame tile by tile
-(the reconstruction's access pattern, no maths), and ``station.ltc.spi.reconstruct``; peak
+(the reconstruction's access pattern, no maths), and ``station.ltc.tiles.reconstruct``; peak
 traced memory (tracemalloc: numpy and Python allocations) of one more reconstruction.
 
     .venv/bin/python benchmarks/reconstruct.py [--period 24] [--sizes 128x96 256x192]
@@ -30,7 +30,7 @@ from scipy import ndimage
 
 from station.acquisition.patterns import StationPatternPlan
 from station.acquisition.run_store import FrameMeta, RunStore
-from station.ltc.spi import reconstruct
+from station.ltc.tiles import reconstruct
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 

@@ -22,7 +22,9 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "scanner": "Scanner SphereMeasurement BallBarMeasurement DistanceMeasurement",
     "optics.rig": "Rig DeviceCalibration",
     "optics.lens": "PinholeLens GaussianLens AberratedLens LensModel",
-    "optics.measured_lens": "MeasuredLens load_lens save_lens gaussian_equivalent",
+    "optics.measured_lens": "MeasuredLens",
+    "optics.lens_file": "load_lens save_lens",
+    "optics.lens_moments": "gaussian_equivalent",
     "render.scene": "Scene load_scene_file",
     "render.fringe_patterns": "PhaseShiftSet GrayCodeSet",
     "render.images": "RenderSettings RenderResult",
@@ -31,4 +33,6 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "fpp.scan_input": "load_scan_input",
     "metrology.spheres": "fit_sphere find_spheres measure_ball_bar",
     "metrology.compare": "compare_clouds",
+    "calibration.calibrator": "calibrate CalibrationResult",
+    "calibration.errors": "CalibrationError",
 })

@@ -24,7 +24,7 @@ from __future__ import annotations
 from sim._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
-    "api": "Bench open_bench load_config acquire reconstruct_ltc derive_lens lens_config",
+    "api": "Bench open_bench load_config acquire reconstruct_ltc derive_lens lens_config verify_store",
     "sequence": "run_sequence SequenceSummary StepRecord",
     "experiment.run": "ExperimentConfig load_experiment_config run_experiment",
     "experiment.demo": "run_demo",

@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from station.acquisition.config import StationConfig
     from station.lens.derive import LensResult
     from station.lens.geometry import LensFitConfig
+    from station.ltc.verify import StoreReport
 
 
 def load_config(path: str | Path) -> StationConfig:
@@ -107,7 +108,7 @@ def reconstruct_ltc(run: str | Path, out: str | Path, *, tile_px: int | None = N
     workers : worker processes (default every core; 1: this process); dask : on a local
     Dask cluster of ``workers`` processes; scheduler : on an existing Dask cluster's
     address. Every choice gives the same store, bit for bit."""
-    from station.ltc.spi import reconstruct
+    from station.ltc.tiles import reconstruct
 
     return reconstruct(run, out, tile_px=tile_px, progress=progress, resume=resume,
                        workers=workers, dask=dask, scheduler=scheduler)
@@ -146,20 +147,35 @@ def derive_lens(ltc: str | Path, config: LensFitConfig | None = None, *,
         Dask cluster of ``workers`` processes; scheduler : an existing Dask cluster's
         address. Every choice gives the same lens, bit for bit.
     """
+    import contextlib
+
+    from sim.storage.lock import StoreLock
+    from station.compute import Engine
     from station.lens.derive import derive_lens as _derive
     from station.lens.figures import write_figures
     from station.lens.geometry import LensFitConfig
-    from station.ltc.parallel import Engine
     from station.ltc.store import open_ltc_volume
 
     cfg = config if config is not None else LensFitConfig()
-    volume = open_ltc_volume(ltc)
-    K, dist = _rig_camera(rig, rig_camera, volume.camera_size)
-    with Engine(workers, dask=dask, scheduler=scheduler) as engine:
-        result = _derive(volume, cfg, K, dist, progress=progress, engine=engine, out=out)
+    with contextlib.ExitStack() as held:
+        if out is not None:  # one writer per lens file: a second is refused, naming this one
+            held.enter_context(StoreLock.for_file(out))
+        volume = open_ltc_volume(ltc)
+        K, dist = _rig_camera(rig, rig_camera, volume.camera_size)
+        with Engine(workers, dask=dask, scheduler=scheduler) as engine:
+            result = _derive(volume, cfg, K, dist, progress=progress, engine=engine, out=out)
     if figures is not None:
         result.figures = write_figures(volume, result, figures)
     return result
+
+
+def verify_store(path: str | Path) -> StoreReport:
+    """Check a run store, an LTC store or a lens file for damage without changing it:
+    every checksummed byte is read; the report names each damaged frame, chunk or member
+    (``report.ok`` False when any is damaged)."""
+    from station.ltc.verify import verify_store as _verify
+
+    return _verify(path)
 
 
 def _rig_camera(rig: str | Path | None, name: str | None,

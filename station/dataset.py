@@ -1,7 +1,7 @@
 """Fringe data sets at scale: ``ltc dataset CONFIG --out DIR --samples N`` from Python.
 
 The samples and the format are ``sim.dataset``'s; this module runs them on the project's
-compute engine (``station.ltc.parallel``: every local core by default, one process, or Dask)
+compute engine (``station.compute``: every local core by default, one process, or Dask)
 and keeps the run whole:
 
 - bad input is refused before anything is written: a missing or unreadable mesh, an empty
@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from station.errors import UsageError
-from station.ltc.parallel import Engine, run_ordered
+from station.compute import Engine, run_ordered
 
 MANIFEST_EVERY_S = 30.0  # the manifest is rewritten at most this often during a run
 

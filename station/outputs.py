@@ -107,6 +107,18 @@ LENS_FILE = OutputKind("lens file", _is_lens_file, False)
 PLY_FILE = OutputKind("PLY point cloud", _starts_with(b"ply"), False)
 PNG_FILE = OutputKind("PNG image", _starts_with(b"\x89PNG\r\n\x1a\n"), False)
 CHECK_FOLDER = OutputKind("ltc check folder", _is_check_folder, True)
+
+
+def _is_calibration_capture(path: Path) -> bool:
+    """``capture.json`` and nothing but ``pose_<n>`` folders beside it."""
+    if not path.is_dir() or not (path / "capture.json").is_file():
+        return False
+    return all(p.name == "capture.json"
+               or (p.name.startswith("pose_") and p.name[5:].isdigit() and p.is_dir())
+               for p in path.iterdir())
+
+
+CALIBRATION_CAPTURE = OutputKind("calibration capture", _is_calibration_capture, True)
 def _is_lut(path: Path) -> bool:
     """A display LUT as ``ltc gamma`` writes it: ``.npy``, or text of one integer per line."""
     if _starts_with(b"\x93NUMPY")(path):
@@ -302,7 +314,7 @@ def staged(path: str | os.PathLike, kind: OutputKind, always: bool = False) -> I
             raise
         return
     if kind.folder and (path / "writer.lock").exists():
-        from station.acquisition.lock import StoreLock  # the store's own writer lock
+        from sim.storage.lock import StoreLock  # the store's own writer lock
 
         with StoreLock(path, force=True):  # refuses an output a live writer holds
             pass

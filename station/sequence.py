@@ -20,22 +20,21 @@ from the LTC store, and nothing before it is redone (``config.toml`` takes the n
 
 from __future__ import annotations
 
-import contextlib
 import datetime as _dt
 import json
 import logging
-import os
 import shutil
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import tomli_w
 
+from sim.storage.durable import durable_file, publish, write_json
+from sim.storage.lock import LOCK_NAME, StoreLock
 from station.acquisition.config import StationConfig, load_config, parse_config
-from station.acquisition.lock import LOCK_NAME, StoreLock
 from station.errors import StationError, UsageError, describe_os_error
 
 STEPS = ("check", "gamma", "align", "acquire", "reconstruct", "lens")
@@ -45,29 +44,6 @@ log = logging.getLogger("station.sequence")
 
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-@contextlib.contextmanager
-def durable_file(path: Path, mode: str = "w") -> Iterator[IO]:
-    """A file written durably: the block writes a temporary file beside ``path`` (text modes
-    UTF-8), which is fsynced and renamed to ``path`` when the block completes, removed if it
-    raises."""
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, mode, encoding=None if "b" in mode else "utf-8") as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
-def write_json(path: Path, data: dict) -> None:
-    """Write JSON durably (``durable_file``)."""
-    with durable_file(path) as f:
-        json.dump(data, f, indent=2)
 
 
 def _remove(path: Path) -> None:
@@ -215,7 +191,7 @@ class Sequence:
         """Run every step not yet done; returns the summary (``status`` "complete" or the
         step that failed). Raises the failing step's error after recording it. One sequence
         per folder at a time: a second is refused, naming the holder (``writer.lock``; a
-        killed run's lock is taken over with ``force``)."""
+        killed run's lock is free, :mod:`sim.storage.lock`)."""
         with StoreLock(self.out, force=self.force):
             self._take_config()
             return self._run_steps()
@@ -316,7 +292,7 @@ class Sequence:
                        force=self.force)
 
     def _reconstruct(self) -> dict:
-        from station.ltc.spi import reconstruct
+        from station.ltc.tiles import reconstruct
 
         return _atomic(self.out / "ltc.zarr", lambda tmp: reconstruct(
             self.out / "run.zarr", tmp, progress=self.progress))
@@ -340,13 +316,13 @@ class Sequence:
 
 
 def _atomic(final: Path, write: Callable[[Path], dict | None], suffix: str = "") -> dict:
-    """Write an output under a temporary name, then rename it into place; the result names
-    the final path wherever the writer named the temporary one."""
+    """Write an output under a temporary name, then put it in place of any old one
+    (:func:`sim.storage.durable.publish`); the result names ``final`` wherever the writer
+    named the temporary path."""
     tmp = final.with_name(final.stem + ".partial" + (suffix or final.suffix))
     _remove(tmp)
     result = write(tmp)
-    _remove(final)
-    os.replace(tmp, final)
+    publish(tmp, final, replace=True)
     if not isinstance(result, dict):
         return {"out": str(final)}
     return {k: str(final) if isinstance(v, str) and v == str(tmp) else v

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.errors import SimInputError
+from sim.storage.durable import durable_file
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -76,7 +77,7 @@ def write_ply(path: str | Path, cloud: PointCloud) -> None:
               f"element vertex {len(pts)}"]
     header += [f"property {names[t]} {name}" for name, t in fields]
     header.append("end_header")
-    with open(path, "wb") as f:
+    with durable_file(path, "wb") as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
         f.write(rec.tobytes())
 

@@ -166,7 +166,6 @@ def scan_files(images: str | Path, rig_path: str | Path, out: str | Path, *,
     ``out``; returns the summary (with ``report``: the ``ScanReport`` of what each check
     rejected, and its ``report_lines``). ``pixel_variance_px2`` None: 0 for our renderer's output
     (pixel centres), 1/12 for camera images (square pixels average their area)."""
-    import time
 
     from sim.fpp.cloud import write_ply
     from sim.fpp.decode import DecodeSettings, scan_with_report

@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from sim.errors import SimInputError
 from sim.metrology.spheres import finite_points
+from sim.storage.durable import durable_figure
 from sim.tolerances import BALL_QUERY_SLACK_MM, ICP_RCOND, QUADRIC_RIDGE
 
 
@@ -307,5 +308,5 @@ def distance_colormap_png(
     ax.set_ylabel("mm")
     ax.set_title(title)
     fig.colorbar(sc, ax=ax, label="mm")
-    fig.savefig(path)
+    durable_figure(fig, path)
     return lim

@@ -8,8 +8,10 @@ from sim._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "lens": "RayBundle LensModel PinholeLens AberratedLens GaussianLens sunflower_disk hit_plane",
-    "measured_lens": "MeasuredLens LensFileError save_lens load_lens centre_moments "
-                     "gaussian_equivalent smoothed_lens sample_moments sym_sqrtm match_moments",
+    "measured_lens": "MeasuredLens LensFileError",
+    "lens_file": "save_lens load_lens LensFileWriter read_lens_nodes",
+    "lens_moments": "centre_moments gaussian_equivalent smoothed_lens sample_moments sym_sqrtm "
+                    "match_moments",
     "plane_ltc": "subpixel_offsets",
     "projection": "pixel_to_normalized normalized_to_pixel project_points camera_to_world "
                   "directions_to_world",

@@ -50,6 +50,7 @@ from sim.optics.projection import (
     pixel_to_normalized,
     project_points,
 )
+from sim.storage.durable import durable_file
 from sim.tolerances import LOOK_AT_PARALLEL_TOL, ROTATION_TOL
 from sim.validation import format_validation_error
 
@@ -207,7 +208,8 @@ class Rig(BaseModel):
         path = Path(path)
         suffix = path.suffix.lower()
         if suffix == ".json":
-            path.write_text(self.model_dump_json(indent=2))
+            with durable_file(path) as f:
+                f.write(self.model_dump_json(indent=2))
         elif suffix in YAML_SUFFIXES:
             _write_filestorage(self, path)
         else:
@@ -467,3 +469,49 @@ def small_rig(scale: float = 0.04, distortion: bool = True) -> Rig:
     cam = (max(1, round(4096 * scale)), max(1, round(2168 * scale)))
     proj = (max(1, round(1920 * scale)), max(1, round(1080 * scale)))
     return _scaled_rig(cam, proj, scale, distortion)
+
+
+def relative_to_camera_0(rig: Rig) -> Rig:
+    """The same rig with the world frame moved onto camera 0 (its R = I, T = 0)."""
+    R0, T0 = rig.cameras[0].R_array, rig.cameras[0].T_array
+    devs = []
+    for d in [*rig.cameras, rig.projector]:
+        R = d.R_array @ R0.T
+        devs.append(d.model_copy(update={"R": R.tolist(), "T": (d.T_array - R @ T0).tolist()}))
+    return Rig(cameras=devs[:2], projector=devs[2])
+
+
+def save_stereo_calibrate(rig: Rig, path: str | Path) -> None:
+    """Write the rig in ``cv2.stereoCalibrate`` naming (module docstring): ``M1 D1 M2 D2 R T``
+    (camera 0 to camera 1), ``M3 D3 R3 T3`` (camera 0 to the projector), ``image_width
+    image_height`` and ``projector_width projector_height``; the world frame becomes camera 0's.
+    Written to a temporary file beside ``path`` then renamed over it."""
+    import os
+
+    path = Path(path)
+    if path.suffix.lower() not in YAML_SUFFIXES:
+        raise ValueError(f"rig file {path}: stereoCalibrate naming needs .yaml, .yml or .xml")
+    if tuple(rig.cameras[0].size) != tuple(rig.cameras[1].size):
+        raise ValueError(f"rig file {path}: stereoCalibrate naming has one camera size, the "
+                         f"cameras are {rig.cameras[0].size} and {rig.cameras[1].size}")
+    rel = relative_to_camera_0(rig)
+    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
+    fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+    if not fs.isOpened():
+        raise OSError(f"rig file {path}: cannot open {tmp} for writing")
+    c0, c1, p = rel.cameras[0], rel.cameras[1], rel.projector
+    fs.write("image_width", int(c0.width))
+    fs.write("image_height", int(c0.height))
+    fs.write("projector_width", int(p.width))
+    fs.write("projector_height", int(p.height))
+    for key, dev in (("1", c0), ("2", c1), ("3", p)):
+        fs.write(f"M{key}", dev.K_array)
+        fs.write(f"D{key}", dev.dist_array.reshape(1, 5))
+    fs.write("R", c1.R_array)
+    fs.write("T", c1.T_array.reshape(3, 1))
+    fs.write("R3", p.R_array)
+    fs.write("T3", p.T_array.reshape(3, 1))
+    fs.release()
+    with open(tmp, "rb+") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)

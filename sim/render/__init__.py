@@ -9,7 +9,9 @@ from sim._lazy import lazy_exports
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "fringe_patterns": "PatternDescriptor PhaseShiftSet GrayCodeSet",
     "pattern_stack": "PatternStack",
-    "scene": "Pose SphereObject BallBarObject PlaneObject MeshObject Scene ThinLensSpec "
+    "board": "CalibrationBoard PlacedBoard apply_boards",
+    "scene": "Pose SphereObject BallBarObject PlaneObject MeshObject BoardObject Scene "
+             "ThinLensSpec "
              "MeasuredLensSpec SceneFile LoadedScene load_scene_file",
     "trace": "TraceGeometry Transport trace_camera camera_rays normalized_grid",
     "images": "ProjectorResponse CameraResponse RenderSettings CameraImages RenderResult "

@@ -322,6 +322,10 @@ def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
                 kept.append(dark)
             bar.update(len(p))
     for tr in tiles if tiles is not None else _traced_tiles(geom, rig, index, lens, pixels):
+        if tiles is None and geom.boards:  # printed calibration boards (sim.render.board)
+            from sim.render.board import apply_boards
+
+            apply_boards(tr, geom.boards, cam, rig.projector)
         t0 = time.perf_counter()
         gather_into(tr, projected, rad)
         t_gather += time.perf_counter() - t0

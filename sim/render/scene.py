@@ -13,7 +13,8 @@ Scene file (TOML; paths relative to the file; example ``examples/sphere_scene.to
     rig = "rig.yaml"                 # sim.optics.rig file: OpenCV FileStorage YAML or JSON
     [[lenses]]                       # one per rig camera, in order; kind = pinhole | thin |
     kind = "pinhole"                 #   aberrated | gaussian | measured (path = lens file)
-    [[objects]]                      # kind = sphere | ball_bar | plane | mesh (path = PLY/STL/OBJ)
+    [[objects]]                      # kind = sphere | ball_bar | plane | board (calibration
+                                     #   board, sim.render.board) | mesh (path = PLY/STL/OBJ)
     kind = "sphere"
     pose = { t = [0.0, 0.0, 0.0] }
     [patterns]                       # sim.render.fringe_patterns: phase_shift | gray_code
@@ -26,7 +27,7 @@ Scene file (TOML; paths relative to the file; example ``examples/sphere_scene.to
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -42,12 +43,14 @@ from pydantic import (
 )
 
 from sim.errors import SimInputError
+from sim.render.board import CalibrationBoard, PlacedBoard
 from sim.render.fringe_patterns import PatternSet
 from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens
 from sim.render.images import RenderResult, RenderSettings, render_views, write_pngs, write_zarr
 from sim.optics.rig import DeviceCalibration, Rig, _matrix
 from sim.validation import format_validation_error
 from sim.render.trace import TraceGeometry
+from sim.storage.durable import durable_file
 from sim.tolerances import ROTATION_TOL
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
@@ -143,6 +146,23 @@ class PlaneObject(_Object):
         return [trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False)]
 
 
+class BoardObject(_Object):
+    """A printed calibration board (``sim.render.board.CalibrationBoard``) in the ``z = 0``
+    plane of the object frame, covering ``[0, width] x [0, height]`` mm: one quad whose hit
+    points get the board's two-level albedo (``albedo`` is unused)."""
+
+    kind: Literal["board"] = "board"
+    board: CalibrationBoard = Field(description="the board's pattern and sizes")
+
+    def spheres(self) -> np.ndarray:
+        return np.zeros((0, 4))
+
+    def _local(self) -> list[trimesh.Trimesh]:
+        w, h = self.board.size_mm
+        v = np.array([[0.0, 0.0, 0], [w, 0.0, 0], [w, h, 0], [0.0, h, 0]])
+        return [trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False)]
+
+
 class MeshObject(_Object):
     """A mesh file (PLY, STL, OBJ), in ``scale`` mm per file unit; normals are interpolated
     across edges sharper than ``smooth_angle_deg`` no further (those stay sharp)."""
@@ -190,7 +210,7 @@ def load_mesh(path: Path, where: str = "") -> trimesh.Trimesh:
     return mesh
 
 
-SceneObject = Annotated[SphereObject | BallBarObject | PlaneObject | MeshObject,
+SceneObject = Annotated[SphereObject | BallBarObject | PlaneObject | MeshObject | BoardObject,
                         Field(discriminator="kind")]
 
 
@@ -218,15 +238,18 @@ class Scene(BaseModel):
                 faces.append(np.asarray(m.faces) + nv)
                 nv += len(m.vertices)
                 nf = len(m.faces)
-                albedo.append(np.full(nf, o.albedo))
+                albedo.append(np.full(nf, 1.0 if isinstance(o, BoardObject) else o.albedo))
                 obj.append(np.full(nf, i, np.int32))
                 is_sphere = o.kind in ("sphere", "ball_bar")
                 face_sph.append(np.full(nf, len(spheres) + j if is_sphere else -1, np.int64))
             spheres.extend(o.spheres())
+        boards = tuple(PlacedBoard(i, o.board, np.asarray(o.pose.R), np.asarray(o.pose.t))
+                       for i, o in enumerate(self.objects) if isinstance(o, BoardObject))
         try:
-            return self._geometry(verts, faces, normals, albedo, obj, face_sph, spheres)
-        except SimInputError as exc:
-            raise SimInputError(f"{where}: {exc}") from exc
+            geom = self._geometry(verts, faces, normals, albedo, obj, face_sph, spheres)
+            return replace(geom, boards=boards) if boards else geom
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from exc
 
     @staticmethod
     def _geometry(verts, faces, normals, albedo, obj, face_sph, spheres) -> TraceGeometry:
@@ -367,7 +390,8 @@ class LoadedScene:
                  "patterns": [d.model_dump(mode="json") for d in descriptors],
                  "png_note": "12-bit images are stored unscaled (0..4095) in 16-bit PNG"}
         write_zarr(out / "render.zarr", result, attrs, radiance=radiance)
-        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        with durable_file(out / "summary.json") as f:
+            f.write(json.dumps(summary, indent=2))
         return summary
 
     def _summary(self, result: RenderResult, out: Path, png_dirs: list[str | None]) -> dict:

@@ -45,7 +45,9 @@ class TraceGeometry:
     vertices (V, 3) float64 mm; faces (F, 3) int; vertex_normals (V, 3) unit;
     face_albedo (F,) in [0, 1]; face_object (F,) int, the scene object of each face;
     spheres (S, 4) float64, exact spheres ``(cx, cy, cz, r)`` mm; face_sphere (F,) int, the
-    exact sphere a face approximates (-1: none), so hits on it are refined onto the sphere.
+    exact sphere a face approximates (-1: none), so hits on it are refined onto the sphere;
+    boards: calibration boards (``sim.render.board.PlacedBoard``) whose faces carry albedo 1
+    and whose printed albedo ``sim.render.images.render_camera`` applies to each traced tile.
     """
 
     vertices: np.ndarray
@@ -55,6 +57,7 @@ class TraceGeometry:
     face_object: np.ndarray
     spheres: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     face_sphere: np.ndarray | None = None
+    boards: tuple = ()  # sim.render.board.PlacedBoard: albedo evaluated where rays hit them
 
     def __post_init__(self) -> None:
         v, f = np.asarray(self.vertices), np.asarray(self.faces)

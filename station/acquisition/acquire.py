@@ -16,7 +16,7 @@ disk (fsync), so a killed run loses at most the frames in flight (queued or bein
 and ``resume=True`` takes up the first frame not done, refusing a store made with another
 config. A writer error (a full disk, say) stops the run at the next frame with one
 :class:`AcquisitionError` naming the frame; frames written before it stay done. The run holds
-the store's writer lock (:class:`station.acquisition.lock.StoreLock`) throughout; a store is
+the store's writer lock (:class:`sim.storage.lock.StoreLock`) throughout; a store is
 created atomically (:meth:`RunStore.create`). Teardown (blank display,
 stop the stage after a failure, close the devices, record the run's status) always runs; a
 failed cleanup is logged and attached to the run's error as a note, never raised in its
@@ -51,10 +51,14 @@ from drivers.frame_code import (
     stamp_frame_code,
 )
 from drivers.interfaces import Frame, ShownFrame
+from sim.storage.lock import StoreLock
 from station.acquisition.backend import Hardware, load_lut, open_hardware
 from station.acquisition.config import StationConfig
-from station.acquisition.frame_writer import WRITER_QUEUE_FRAMES, AcquisitionError, FrameWriter
-from station.acquisition.lock import StoreLock
+from station.acquisition.frame_writer import (
+    WRITER_QUEUE_FRAMES,
+    AcquisitionError,
+    FrameWriter,
+)
 from station.acquisition.patterns import StationPatternPlan, apply_lut
 from station.acquisition.run_store import FrameMeta, RunStore, RunStoreError
 
@@ -331,11 +335,12 @@ def acquire(
 
     hw : opened hardware to use (left open); by default the config's backend is opened and
         closed here. before_event : called before each event (e.g. to trigger a fake's fault).
-    force : with ``resume``, take over the writer lock left by a process that is gone.
+    force : accepted with ``resume`` (a lock left by a process that is gone is free anyway:
+        :mod:`sim.storage.lock`).
     writer_queue : frames captured ahead of the store writer's thread (0: write serially).
     Returns a JSON-able summary. Raises :class:`AcquisitionError` (or the device's error)
     when the run cannot start or go on; frames already done stay done. A store locked by
-    another writer is refused (:class:`station.acquisition.lock.StoreLockedError`).
+    another writer is refused (:class:`sim.storage.lock.StoreLockedError`).
     """
     out = Path(out)
     lut = load_lut(config.display.lut_path) if config.display.lut_path else None
@@ -399,6 +404,7 @@ def _acquire(config: StationConfig, out: Path, store: RunStore | None, record: d
     seconds = time.perf_counter() - t0
     return {
         "run": str(out), "status": status, "resumed": resume, "frames_written": len(todo),
+        "frames_recaptured": store.recaptured,
         "frames_total": int(store.done().size), "depths_mm": store.depths_mm,
         "patterns_per_depth": store.n_patterns, "retries": dict(engine.retries),
         "saturated_frames": engine.saturated_frames,
@@ -436,6 +442,14 @@ def _open_for_resume(out: Path, record: dict) -> RunStore:
     if diffs:
         raise AcquisitionError(f"{out}: refusing to resume: the config differs from the run's: "
                                + "; ".join(diffs))
+    damaged = store.damaged_frames()  # every done frame read back against its checksums
+    if damaged:
+        which = ", ".join(f"(depth {d}, pattern {p})" for d, p, _ in damaged[:20])
+        more = f" and {len(damaged) - 20} more" if len(damaged) > 20 else ""
+        log.warning("%s: %d done frame(s) are damaged and will be recaptured: %s%s "
+                    "(first: %s)", out, len(damaged), which, more, damaged[0][2])
+        store.mark_not_done([(d, p) for d, p, _ in damaged])
+    store.recaptured = [[d, p] for d, p, _ in damaged]
     return store
 
 

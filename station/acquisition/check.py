@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.storage.durable import durable_figure
 from station.acquisition.backend import Hardware, open_hardware
 from station.acquisition.config import StationConfig
 
@@ -190,7 +191,7 @@ def write_contact_sheet(images: list[tuple[str, np.ndarray]], path: Path) -> Pat
         ax.set_title(label, fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    durable_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 

@@ -17,6 +17,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from drivers.errors import CameraError, CameraTimeout
+from sim.storage.durable import durable_file
 from station.acquisition.backend import Hardware, open_hardware
 from station.acquisition.config import StationConfig
 from station.errors import StationError, StationInputError
@@ -95,10 +96,11 @@ def save_lut(path: str | Path, lut: np.ndarray) -> Path:
     what ``station.acquisition.backend.load_lut`` (``display.lut_path``) reads."""
     path = Path(path)
     lut = np.asarray(lut, dtype=np.uint8)
-    if path.suffix == ".npy":
-        np.save(path, lut, allow_pickle=False)
-    else:
-        np.savetxt(path, lut, fmt="%d")
+    with durable_file(path, "wb") as f:
+        if path.suffix == ".npy":
+            np.save(f, lut, allow_pickle=False)
+        else:
+            np.savetxt(f, lut, fmt="%d")
     return path
 
 

@@ -68,7 +68,7 @@ SHARED: dict[str, tuple[tuple[str, ...], dict[str, Any], str]] = {
     "force": (("--force",), {"action": "store_true"}, "overwrite --out if it exists"),
     "json": (("--json",), {"action": "store_true"}, "print one JSON object"),
     "quiet": (("--quiet",), {"action": "store_true"}, "no progress bars"),
-    # the compute engines (station.ltc.parallel)
+    # the compute engines (station.compute)
     "workers": (("--workers",), {"type": at_least(1), "default": None, "metavar": "N"},
                 "worker processes (default: every core; 1: in this process)"),
     "dask": (("--dask",), {"action": "store_true"},

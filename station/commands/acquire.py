@@ -14,8 +14,8 @@ from station.errors import UsageError
 
 OPTIONS = {"config": None, "out": "run store to create (RUN.zarr)",
            "force": "replace the run store in --out with a new run (the old one stays until the "
-                    "new one is complete; only a run store is replaced); with --resume, take "
-                    "over the writer lock left by a killed run (never a live writer's)",
+                    "new one is complete; only a run store is replaced; never one a live "
+                    "writer holds)",
            "json": None, "quiet": None}
 
 
@@ -54,4 +54,7 @@ def run(args: argparse.Namespace) -> dict:
 def text(s: dict) -> str:
     return (f"ltc acquire: {s['status']}: {s['frames_written']} frames in {s['seconds']:.1f} s "
             f"({s['frames_per_second']:.1f}/s) -> {s['out']}; retries {s['retries'] or 'none'}; "
-            f"saturated frames {s['saturated_frames']}")
+            f"saturated frames {s['saturated_frames']}"
+            + (f"; recaptured {len(s['frames_recaptured'])} damaged frame(s) "
+               f"{[tuple(f) for f in s['frames_recaptured']]}"
+               if s.get("frames_recaptured") else ""))

@@ -21,7 +21,8 @@ if TYPE_CHECKING:
 
 OPTIONS = {"out": "new (or empty) output folder, or an interrupted experiment's folder to "
            "resume it (same config)",
-           "force": "take over the writer lock a killed run left (never a live writer's)",
+           "force": "accepted for scripts; a lock a killed run left is free anyway (never a live "
+                    "writer's)",
            "json": None, "quiet": None}
 
 

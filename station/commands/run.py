@@ -2,8 +2,8 @@
 
 Run the station sequence into one folder: bench check, gamma calibration (if [sequence] gamma
 = true), alignment report, acquisition at every depth, LTC reconstruction and lens derivation.
-Re-running with the same config and --out continues where it stopped (after a crash or a
-kill, add --force to take over the lock the dead run left on its run store). DIR/run.log logs every
+Re-running with the same config and --out continues where it stopped (also after a crash or
+a kill: the lock a dead run leaves is free). DIR/run.log logs every
 step, DIR/summary.json records every step's outcome.
 """
 
@@ -14,7 +14,8 @@ from pathlib import Path
 
 OPTIONS = {"config": None,
            "out": "sequence folder (created, or continued when it holds this config's earlier run)",
-           "force": "take over the writer lock a killed run left (never a live writer's)",
+           "force": "accepted for scripts; a lock a killed run left is free anyway (never a live "
+                    "writer's)",
            "json": None, "quiet": None}
 
 

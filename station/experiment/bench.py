@@ -154,7 +154,7 @@ def scanner_lenses(cfg: ExperimentConfig,
     the deblurred samples by a few per cent, an artefact of the smoothing, not of the
     measurement)."""
     from sim.optics.lens import PinholeLens
-    from sim.optics.measured_lens import gaussian_equivalent, smoothed_lens
+    from sim.optics.lens_moments import gaussian_equivalent, smoothed_lens
 
     return {"real": tuple(truth_lens(cfg, i, cfg.real_samples) for i in range(2)),
             "ltc": tuple(smoothed_lens(m, cfg.lens_smoothing_nodes) for m in measured),

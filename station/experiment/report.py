@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sim.storage.durable import durable_figure, durable_file
 from station.experiment.acceptance import size_vs_real_um
 from station.experiment.config import (
     BALLBAR_LENGTH_MM,
@@ -83,7 +84,7 @@ def fringe_figure(images: dict[str, Any], path: Path) -> Path:
         ax.set_xticks([])
         ax.set_yticks([])
     fig.suptitle(f"position {images['name']} ({images['defocus']} defocus)")
-    fig.savefig(path)
+    durable_figure(fig, path)
     return path
 
 
@@ -108,7 +109,7 @@ def distance_map_figure(name: str, maps: Maps, path: Path) -> Path:
         ax.set_xlabel("world x, mm")
         ax.set_ylabel("world y, mm")
         fig.colorbar(sc, ax=ax, shrink=0.8, label="um (its 1st-99th percentile)")
-    fig.savefig(path)
+    durable_figure(fig, path)
     return path
 
 
@@ -140,7 +141,7 @@ def cad_figure(maps: Maps, path: Path) -> Path:
         sc = _distance_map(ax, pts, d, lim, 1, f"{LABELS[n]} - CAD\nmean {d.mean() * 1e3:+.0f} "
                            f"um, RMSE {np.sqrt(np.mean(d * d)) * 1e3:.0f} um")
         fig.colorbar(sc, ax=ax, location="bottom", shrink=0.8, label="um")
-    fig.savefig(path)
+    durable_figure(fig, path)
     return path
 
 
@@ -172,7 +173,7 @@ def summary_figure(rows: list[PositionRow], path: Path) -> Path:
         ax.set_title(t)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    fig.savefig(path)
+    durable_figure(fig, path)
     return path
 
 
@@ -373,5 +374,6 @@ def write_report(results: dict[str, Any], cfg: ExperimentConfig, rig: Rig,
             lines += [f"- camera {i}: " + ", ".join(
                 f"[{Path(p).stem}]({rel(p)})" for p in s["figures"])]
     lines += ["", "Every number: `results.json`.", ""]
-    (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
+    with durable_file(out / "report.md") as f:
+        f.write("\n".join(lines))
     return [str(p) for p in paths]

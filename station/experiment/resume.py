@@ -9,13 +9,13 @@ from typing import Any
 
 import numpy as np
 
-from station.acquisition.lock import LOCK_NAME
+from sim.storage.durable import durable_file, write_json
+from sim.storage.lock import LOCK_NAME
 from station.errors import StationError, UsageError
 from station.experiment.config import ExperimentConfig
 from station.experiment.objects import Position
 from station.experiment.rows import PositionRow
 from station.experiment.scan import Maps
-from station.sequence import durable_file, write_json
 
 POSITIONS = "positions"  # one finished position per file pair: NAME.npz, then NAME.json
 

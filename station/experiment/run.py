@@ -41,7 +41,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from station.acquisition.lock import StoreLock
+from sim.storage.durable import durable_file, write_json
+from sim.storage.lock import StoreLock
 from station.errors import StationError, UsageError
 from station.experiment.acceptance import acceptance, position_line, public_row, size_vs_real_um
 from station.experiment.bench import (
@@ -101,7 +102,6 @@ from station.experiment.validated import (
     scan_position_validated,
     start_real_folder,
 )
-from station.sequence import durable_file, write_json
 from station.validation.folder import SCAN_FILE
 
 __all__ = [
@@ -139,7 +139,7 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
     code (``station.experiment.validated``), the path a lab's real scanner takes; each row's
     ``validation`` holds that path's figures (``PoseValidation``)."""
     from sim.optics.lens import GaussianLens
-    from sim.optics.measured_lens import load_lens
+    from sim.optics.lens_file import load_lens
 
     out = Path(out)
     t_start = time.perf_counter()

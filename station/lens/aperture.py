@@ -64,7 +64,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sim.optics.measured_lens import sym_sqrtm
+from sim.optics.lens_moments import sym_sqrtm
 
 SQRT_2_OVER_PI = float(np.sqrt(2.0 / np.pi))
 EDGE_L1_PER_SIGMA = 0.8  # L1 error of a blurred step edge per unit blur std and edge length

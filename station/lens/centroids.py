@@ -37,7 +37,7 @@ from station.lens.kernels import stats_kernel
 from station.ltc.store import LtcVolume, LtcVolumeError
 
 if TYPE_CHECKING:
-    from station.ltc.parallel import Engine
+    from station.compute import Engine
 
 STATUS_OK = 0
 STATUS_NO_SIGNAL = 1  # NaN window, or no weight above the noise threshold
@@ -173,7 +173,7 @@ def compute_centroids(volume: LtcVolume, rows_per_tile: int | None = None,
     and columns (default: the store's chunk; ``rows_per_tile`` overrides the rows) per
     task, ``WINDOWS_PER_BATCH`` windows at once, so memory does not grow with the sensor
     and each stored chunk is decoded once. engine : where the tasks run
-    (``station.ltc.parallel.Engine``; default: in this process), bit-identical results
+    (``station.compute.Engine``; default: in this process), bit-identical results
     whatever the engine. ``progress``: a bar over the tasks. (The lens derivation runs
     this pass with its ray fit: ``station.lens.geometry.centroids_and_rays``.)"""
 
@@ -208,7 +208,7 @@ def run_centroid_blocks(volume: LtcVolume, tasks: list[tuple[int, int, int, int,
     """Compute ``centroid_rows`` of every (depth, r0, r1, c0, c1) in ``tasks`` on ``engine``
     (default: in this process), calling ``on_result(task, part)`` as each finishes; closes
     the progress ``bar`` and any engine it started."""
-    from station.ltc.parallel import Engine, run_ordered
+    from station.compute import Engine, run_ordered
 
     own = engine is None
     engine = engine or Engine(1)

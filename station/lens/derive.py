@@ -33,7 +33,8 @@ import numpy as np
 from scipy import ndimage
 from tqdm import tqdm
 
-from sim.optics.measured_lens import LensFileWriter, MeasuredLens, aim_depths
+from sim.optics.lens_file import LensFileWriter
+from sim.optics.measured_lens import MeasuredLens, aim_depths
 from sim.optics.projection import pixel_to_normalized
 from station.lens import aperture as ap
 from station.lens.centroids import STATUS_OK
@@ -68,8 +69,8 @@ from station.lens.result import (
     node_positions,
 )
 from station.lens.zoned import CENTRE_PIXELS, MISS_TERMS, shift_zones, zoned_centre
+from station.compute import Engine, run_ordered
 from station.lens.zones import fit_focus_zones
-from station.ltc.parallel import Engine, run_ordered
 from station.ltc.store import LtcVolume
 
 __all__ = [
@@ -90,7 +91,7 @@ def derive_lens(volume: LtcVolume, config: LensFitConfig | None = None,
     """The measured lens of an LTC volume (see the module docstrings for every step);
     ``progress`` shows bars over the centroid and aperture passes.
 
-    engine : where the centroid and aperture blocks are computed (``station.ltc.parallel``;
+    engine : where the centroid and aperture blocks are computed (``station.compute``;
     default: in this process); every engine gives the same lens bit for bit.
     out : write the lens file there as nodes are produced (``LensFileWriter``) instead of
     building it in memory: memory then does not grow with the number of nodes, and the

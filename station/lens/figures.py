@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from sim.storage.durable import durable_figure
 from station.lens.centroids import centroid_rows
 from station.lens.derive import LensResult, aperture_set
 from station.lens.rays import UNUSABLE
@@ -76,7 +77,7 @@ def ltc_depths_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path
             ax.tick_params(labelsize=6)
     fig.suptitle("LTC at each depth (LCD pixels); + centroid, x principal ray", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path)
+    durable_figure(fig, path)
     return path
 
 
@@ -106,7 +107,7 @@ def rays_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path:
         ax.legend(fontsize=7, loc="best")
     fig.suptitle("Principal rays", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path)
+    durable_figure(fig, path)
     return path
 
 
@@ -136,7 +137,7 @@ def aperture_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path:
     fig.suptitle(f"LTC at the optical centre (z_f = {g.focus_distance_mm:.2f} mm); "
                  f"circles: {result.config.samples} samples", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path)
+    durable_figure(fig, path)
     return path
 
 
@@ -161,7 +162,7 @@ def residuals_figure(result: LensResult, path: Path) -> Path:
     ax.set_xlabel("u, px")
     ax.set_ylabel("v, px")
     fig.tight_layout()
-    fig.savefig(path)
+    durable_figure(fig, path)
     return path
 
 

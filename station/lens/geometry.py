@@ -34,7 +34,7 @@ from station.lens.rays import PrincipalRays, RayFitError, fit_principal_rays
 from station.ltc.store import LtcVolume
 
 if TYPE_CHECKING:
-    from station.ltc.parallel import Engine
+    from station.compute import Engine
 
 LCD_BIN_VAR = 1.0 / 12.0  # variance of an LCD pixel box, pitch^2
 TRACE_REL_FLOOR = 0.01  # relative error floor of an LTC second moment in the focus fit
@@ -303,7 +303,7 @@ def fit_geometry(volume: LtcVolume, config: LensFitConfig | None = None,
 
     K, dist : camera matrix and distortion; default: the volume's (``camera_matrix``).
     progress : a progress bar over the centroid pass; engine : where the centroid pass
-    runs (``station.ltc.parallel.Engine``; default: in this process).
+    runs (``station.compute.Engine``; default: in this process).
     """
     cfg = config or LensFitConfig()
     K = volume.camera_matrix if K is None else np.asarray(K, dtype=np.float64)

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from sim.optics.measured_lens import match_moments
+from sim.optics.lens_moments import match_moments
 from station.lens import aperture as ap
 from station.lens.centroids import region_stats
 from station.lens.geometry import LensFitConfig, LensGeometry, footprint_mm

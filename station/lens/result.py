@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from sim.optics.measured_lens import MeasuredLens, read_lens_nodes
+from sim.optics.lens_file import read_lens_nodes
+from sim.optics.measured_lens import MeasuredLens
 from station.lens import aperture as ap
 from station.lens.geometry import LensFitConfig, LensGeometry
 from station.lens.jobs import ApertureSet

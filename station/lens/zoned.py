@@ -15,7 +15,7 @@ from station.lens.geometry import LensFitConfig, LensGeometry
 from station.lens.jobs import GRID_PIXELS, aperture_block, aperture_job, pixel_inputs, tile_groups
 from station.lens.rayfit import sample_moment
 from station.lens.result import node_positions
-from station.ltc.parallel import Engine, run_ordered
+from station.compute import Engine, run_ordered
 from station.ltc.store import LtcVolume
 
 

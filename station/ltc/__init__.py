@@ -6,10 +6,12 @@ from __future__ import annotations
 from sim._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
-    "spi": "LtcBlock reconstruct reconstruct_frames",
+    "spi": "LtcBlock reconstruct_frames reconstruct_tile",
+    "tiles": "reconstruct",
     "localise": "LcdMap lcd_coordinates",
     "store": "LtcStoreError LtcVolume LtcVolumeError create_ltc_store open_ltc_store "
              "open_ltc_volume write_ltc_tile LtcTileWriter mark_depth_complete mark_tile_done "
              "TileRecords",
-    "parallel": "Engine",
+    "checked": "CheckedArray LtcChunkError",
+    "verify": "StoreReport verify_store",
 })

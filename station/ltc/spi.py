@@ -21,41 +21,30 @@ propagates to one normalised LTC weight as
 
 from __future__ import annotations
 
-import concurrent.futures as cf
-import datetime as _dt
-import threading
-import time
-import uuid
 from dataclasses import dataclass, fields
 from functools import lru_cache
-from pathlib import Path
 
-import numba
 import numpy as np
 import scipy.fft
-from tqdm import tqdm
 
-from station.ltc.localise import lcd_coordinates
-from station.ltc.parallel import Engine, run_ordered
-from station.ltc.store import (
-    TILE_STATS,
-    LtcStoreError,
-    TileRecords,
-    centred_origins,
-    create_ltc_store,
-    incomplete_depths,
-    mark_depth_complete,
-    open_ltc_store,
-    LtcTileWriter,
-)
+from sim.storage.durable import aligned_empty
 from station.acquisition.patterns import (
     FourierPatternSet,
     StationPatternPlan,
     apply_lut,
     shown_luminance,
 )
-from station.acquisition.run_store import (RunStore, RunStoreError, aligned_empty,
-                                           software_versions)
+from station.ltc.localise import lcd_coordinates
+from station.ltc.spi_kernels import (
+    _apply_level_inverse,
+    _block_scalars,
+    _demodulate_kernel,
+    _half_spectrum,
+    _window,
+)
+from station.ltc.store import (
+    TILE_STATS,
+)
 
 PIXELS_PER_BLOCK = 128  # pixels reconstructed at once: bounds memory whatever the tile size;
 # 128 keeps a block's spectrum planes (1.2 MB) in a core's L2 cache (2 MB here): 8 % less CPU
@@ -139,68 +128,6 @@ def _demod_tables(plan: StationPatternPlan) -> tuple:
     for a in out:
         a.flags.writeable = False
     return out + (2.0 / (f.steps * f.amplitude), 1.0 / (2.0 * f.amplitude))
-
-
-@numba.njit(cache=True, nogil=True)
-def _demodulate_kernel(d, j0, reg_idx, sc_idx, e_re, e_im, here, mirror, sc_flat, rest, pp,
-                       f_reg, f_sc, planes, sigma):  # pragma: no cover - compiled
-    """See :func:`_demodulate`; d (patterns, N) C-contiguous, pixels ``j0 : j0 + n``;
-    fills planes (2 P^2, n) (re rows, then im rows: every row written, no zeroing pass)
-    and sigma (n,) (the operations of :func:`_noise_from_means` in numpy's order);
-    pattern-major loops (rows contiguous)."""
-    n = planes.shape[1]
-    m, steps = reg_idx.shape
-    means = np.empty((m, n))
-    acc_r, acc_i, acc_s = np.empty(n), np.empty(n), np.empty(n)
-    for fi in range(m):
-        # the first step initialises the sums (0.0 + x, as a zeroed sum would give: -0.0
-        # becomes 0.0); each row a contiguous slice: these loops are vectorised (4x faster
-        # than indexing the frame row at j0 + j)
-        row = d[reg_idx[fi, 0], j0 : j0 + n]
-        er, ei = e_re[0], e_im[0]
-        for j in range(n):
-            v = np.float64(row[j])
-            acc_r[j] = 0.0 + v * er
-            acc_i[j] = 0.0 + v * ei
-            acc_s[j] = 0.0 + v
-        for st in range(1, steps):
-            row = d[reg_idx[fi, st], j0 : j0 + n]
-            er, ei = e_re[st], e_im[st]
-            for j in range(n):
-                v = np.float64(row[j])
-                acc_r[j] += v * er
-                acc_i[j] += v * ei
-                acc_s[j] += v
-        h, mi = here[fi], mirror[fi]
-        for j in range(n):
-            gr, gi = f_reg * acc_r[j], f_reg * acc_i[j]
-            planes[h, j] = gr
-            planes[pp + h, j] = gi
-            planes[mi, j] = gr
-            planes[pp + mi, j] = -gi
-            means[fi, j] = acc_s[j] / steps
-    for si in range(sc_idx.shape[0]):
-        plus, minus = d[sc_idx[si, 0], j0 : j0 + n], d[sc_idx[si, 1], j0 : j0 + n]
-        q = sc_flat[si]
-        for j in range(n):
-            planes[q, j] = (np.float64(plus[j]) - np.float64(minus[j])) * f_sc
-            planes[pp + q, j] = 0.0
-    for q in rest:
-        for j in range(n):
-            planes[q, j] = 0.0
-            planes[pp + q, j] = 0.0
-    mu, ss = np.zeros(n), np.zeros(n)
-    for fi in range(m):
-        for j in range(n):
-            mu[j] += means[fi, j]
-    for j in range(n):
-        mu[j] = mu[j] / m
-    for fi in range(m):
-        for j in range(n):
-            dv = means[fi, j] - mu[j]
-            ss[j] += dv * dv
-    for j in range(n):
-        sigma[j] = np.sqrt(steps * (ss[j] / (m - 1)))
 
 
 def _noise_from_means(means: np.ndarray, steps: int) -> np.ndarray:
@@ -375,32 +302,6 @@ def _plan_tables(fourier: FourierPatternSet) -> _PlanTables:
     return tables
 
 
-@numba.njit(cache=True, nogil=True)
-def _apply_level_inverse(planes, start, source, weight, here,
-                         mirror):  # pragma: no cover - compiled
-    """In place on planes (2 P^2, n) (re rows, then im rows): the regular rows ``here``
-    (and their conjugates at ``mirror``) replaced by the sparse map of
-    :class:`_LevelInverse` of the planes (its sources index the planes' rows directly)."""
-    pp2, n = planes.shape
-    pp = pp2 // 2
-    m = here.shape[0]
-    out = np.zeros((2 * m, n))
-    for r in range(2 * m):
-        o = out[r]
-        for q in range(start[r], start[r + 1]):
-            w = weight[q]
-            x = planes[source[q]]
-            for j in range(n):
-                o[j] += w * x[j]
-    for i in range(m):
-        h, mi = here[i], mirror[i]
-        for j in range(n):
-            planes[h, j] = out[i, j]
-            planes[pp + h, j] = out[m + i, j]
-            planes[mi, j] = out[i, j]
-            planes[pp + mi, j] = -out[m + i, j]
-
-
 def fold(spectrum: np.ndarray) -> np.ndarray:
     """Folded LTC (n, P, P) float64 ``[y mod P, x mod P]`` from the Hermitian spectrum
     (n, P, P) (real inverse DFT of its non-negative-k half)."""
@@ -457,91 +358,6 @@ def unfold(folded: np.ndarray, origin: np.ndarray) -> np.ndarray:
     rows = (o[:, 1, None] + np.arange(p)) % p
     cols = (o[:, 0, None] + np.arange(p)) % p
     return folded[np.arange(n)[:, None, None], rows[:, :, None], cols[:, None, :]]
-
-
-@numba.njit(cache=True, nogil=True)
-def _window(folded, origin, gain, valid, ltc):  # pragma: no cover - compiled
-    """:func:`unfold` divided by the gain (times its reciprocal) into ``ltc`` (n, P, P),
-    float64 or float32 (each value computed in float64, then rounded), NaN where not
-    ``valid``; returns the windows' outer-ring masses (n,) float64: folded (P, P, n)
-    pixel-minor (as the batched inverse DFT leaves it), origin (n, 2) int (x, y), gain (n,),
-    valid (n,) bool. Pixel after pixel: the P^2 cache lines of ``folded`` a pixel reads hold
-    the next pixels' values too and stay in the L1 cache (36 kB at P = 24, double); each
-    window row is two contiguous runs (no modulo per weight); a multiply per weight, not a
-    divide (0.7 against 2.1 us per pixel)."""
-    p, n = folded.shape[0], folded.shape[2]
-    ring = np.empty(n)
-    for j in range(n):
-        if not valid[j]:
-            ltc[j] = np.nan
-            ring[j] = np.nan
-            continue
-        ox, oy = origin[j, 0] % p, origin[j, 1] % p
-        inv = 1.0 / gain[j]
-        for r in range(p):
-            yy = (oy + r) % p
-            for c in range(p - ox):
-                ltc[j, r, c] = folded[yy, ox + c, j] * inv
-            for c in range(p - ox, p):
-                ltc[j, r, c] = folded[yy, c - (p - ox), j] * inv
-        edge = 0.0  # the outer ring, in the order of a full r-major, c-minor pass
-        for r in range(p):
-            yy = (oy + r) % p
-            if r == 0 or r == p - 1:
-                for c in range(p):
-                    edge += folded[yy, (ox + c) % p, j] * inv
-            else:
-                edge += folded[yy, ox, j] * inv
-                edge += folded[yy, (ox + p - 1) % p, j] * inv
-        ring[j] = edge
-    return ring
-
-
-@numba.njit(cache=True, nogil=True)
-def _block_scalars(planes, sigma_d, lcd_xy, p, amplitude, noise_factor, min_snr,
-                   min_harmonic, gain, noise, centre, valid,
-                   origin):  # pragma: no cover - compiled
-    """Per pixel of planes (2 P^2, n), frame noise sigma_d (n,) and coarse centres lcd_xy
-    (n, 2): the gain ``G(0, 0)``, the LTC weight noise (:func:`ltc_noise`), the refined
-    centre (:func:`_refine`), validity and window origin (:func:`centred_origins`), each
-    with the numpy functions' operations in their order, into the given arrays."""
-    pp = p * p
-    n = planes.shape[1]
-    snr_den = np.sqrt(2.0) * amplitude
-    half = p // 2
-    for j in range(n):
-        g0 = planes[0, j]
-        gain[j] = g0
-        sigma = sigma_d[j]
-        noise[j] = noise_factor * sigma / g0 if g0 > 0 else np.nan
-        ok = True
-        for axis in range(2):
-            row = 1 if axis == 0 else p
-            gr, gi = planes[row, j], planes[pp + row, j]
-            c = lcd_xy[j, axis]
-            xp = (-np.arctan2(gi, gr) * p / (2 * np.pi)) % p
-            fine = xp + p * np.round((c - xp) / p)
-            v = c
-            if np.hypot(gr, gi) >= min_harmonic * g0 and np.isfinite(c):
-                v = fine
-            centre[j, axis] = v
-            ok = ok and np.isfinite(v)
-        ok = ok and g0 > 0 and g0 > min_snr * sigma / snr_den
-        valid[j] = ok
-        for axis in range(2):
-            origin[j, axis] = np.int32(np.floor(centre[j, axis] + 0.5) - half) if ok else 0
-
-
-@numba.njit(cache=True, nogil=True)
-def _half_spectrum(planes, p, half):  # pragma: no cover - compiled
-    """The non-negative-k half (P, P // 2 + 1, n) complex of the spectrum in planes
-    (2 P^2, n), frequency-major (what the batched real inverse DFT reads)."""
-    pp, q, n = p * p, half.shape[1], planes.shape[1]
-    for l in range(p):
-        for k in range(q):
-            re, im, out = planes[l * p + k], planes[pp + l * p + k], half[l, k]
-            for j in range(n):
-                out[j] = complex(re[j], im[j])
 
 
 def reconstruct_frames(
@@ -640,210 +456,6 @@ def reconstruct_tile(
     return blk, stats
 
 
-BAND_BYTES = 128 * 2**20  # frames a worker reads at once (one band of tiles side by side):
-# 13 tiles at P = 24, 4-step, uint16; one open and one read per frame serve twice the pixels
-# of 64 MiB (6 tiles): read CPU 1.0-1.2 instead of 1.1-1.5 us per pixel (page cache)
-
-_OPEN_STORES: dict[str, tuple[str, LtcTileWriter]] = {}  # per worker: path -> (token, writer)
-_RUN_STORES: dict[str, tuple[str, RunStore]] = {}  # per worker process: run path -> (token, store)
-_BUFFERS = threading.local()  # per worker thread: the band buffer, reused from band to band
-
-
-def _band_job(run_path: str, token: str, depth: int, row0: int, col0: int, n_tiles: int,
-              tile_px: int, todo: list[int], plan: StationPatternPlan, lut: np.ndarray | None,
-              min_snr: float, code_mask: np.ndarray, out_path: str) -> list[np.ndarray]:
-    """Read one band of tiles (``n_tiles`` of ``tile_px`` side by side from camera pixel
-    (row0, col0)) from the run store and reconstruct and write the tiles at band indices
-    ``todo``; returns their statistics in that order. Run by a worker (or in process): the
-    frames go from the store to the worker without passing through the caller. ``token``
-    names one reconstruction, so a store reopened at the same path is never a stale one.
-    code_mask : (rows, cols) bool over the band."""
-    import zarr
-
-    held = _RUN_STORES.get(run_path)
-    if held is None or held[0] != token:
-        held = _RUN_STORES[run_path] = (token, RunStore.open(run_path))
-    store = held[1]
-    opened = _OPEN_STORES.get(out_path)
-    if opened is None or opened[0] != token:
-        opened = _OPEN_STORES[out_path] = (token, LtcTileWriter(zarr.open_group(out_path,
-                                                                                mode="r+")))
-    out = opened[1]
-    if tile_px == store.tile_px:
-        shape = (n_tiles, store.n_patterns, tile_px, tile_px)
-        buf = getattr(_BUFFERS, "frames", None)
-        if buf is None or buf.dtype != store.dtype or buf.size < np.prod(shape):
-            buf = _BUFFERS.frames = np.empty(shape, store.dtype)
-        tiles = store.read_tile_row(depth, row0, col0, n_tiles,
-                                    check_index=row0 == 0 and col0 == 0, out=buf)
-    else:
-        w, _ = store.camera_size
-        tiles = [store.read_tile(depth, row0, c0, tile_px, tile_px,
-                                 check_index=row0 == 0 and c0 == 0)
-                 for c0 in range(col0, min(col0 + n_tiles * tile_px, w), tile_px)]
-    p = plan.fourier.period
-    stats = []
-    writing = None  # the previous tile's write, in the writer thread while this one computes
-    try:
-        for i in todo:
-            tile = tiles[i]
-            _, th, tw = tile.frames.shape
-            c0 = tile.col0 - col0
-            blk, st = reconstruct_tile(tile.frames, plan, lut, min_snr,
-                                       code_mask[:th, c0 : c0 + tw])
-            if writing is not None:
-                writing.result()  # at most one tile waits to be written: memory stays flat
-            writing = _writer().submit(
-                out.write, depth, tile.row0, tile.col0, ltc=blk.ltc.reshape(th, tw, p, p),
-                origin=blk.origin.reshape(th, tw, 2), gain=blk.gain.reshape(th, tw),
-                noise=blk.noise.reshape(th, tw), lcd_xy=blk.lcd_xy.reshape(th, tw, 2))
-            stats.append(st)
-    finally:
-        if writing is not None:  # every tile reported is written (an error is raised here)
-            writing.result()
-    return stats
-
-
-def _writer() -> cf.ThreadPoolExecutor:
-    """This thread's tile writer: one thread, so a tile's LTC (9.4 MB at P = 24, written
-    into the page cache, or waiting while the kernel throttles dirty pages) is written
-    while the next tile is computed; :func:`_band_job` waits for every write before it
-    returns the tiles' statistics, so a tile is recorded done only once written."""
-    pool = getattr(_BUFFERS, "writer", None)
-    if pool is None:
-        pool = _BUFFERS.writer = cf.ThreadPoolExecutor(1, thread_name_prefix="ltc-writer")
-    return pool
-
-
-def reconstruct(
-    run_path: str | Path, out_path: str | Path, tile_px: int | None = None,
-    progress: bool = True, *, min_snr: float = 10.0, resume: bool = False,
-    workers: int | None = None, dask: bool = False, scheduler: str | None = None,
-) -> dict:
-    """Reconstruct every depth of a complete run store into an LTC store, tile by tile.
-
-    tile_px : camera tile edge (default: the run store's inner chunk); memory depends on it,
-        on the pattern count and on the workers, not on the sensor size.
-    resume : finish the LTC store ``out_path`` a killed reconstruction of this run left
-        (tiles recorded done are kept; the result equals an uninterrupted run bit for bit).
-    workers, dask, scheduler : where tiles are computed (``station.ltc.parallel.Engine``):
-        default every core in local processes; 1 in this process; ``dask`` a Dask
-        LocalCluster of ``workers`` processes; ``scheduler`` an existing Dask cluster.
-        Every engine gives bit-identical stores.
-    Each worker reads its bands of tiles (``BAND_BYTES`` of frames, one open and read per
-    frame) straight from the run store, then computes them, writing each tile in a writer
-    thread while it computes the next: only tile positions and statistics pass through this
-    process, and the reads run on every worker at once. This process asks the kernel to
-    read each band and the next ahead (``RunStore.prefetch_tile_row``), so the disk works
-    while the workers compute.
-    Returns a JSON-able summary; per-depth statistics come from the store's per-tile
-    records (``tile_stats``), so a resumed run reports what an uninterrupted one does.
-    """
-    t_start = time.perf_counter()
-    store = RunStore.open(run_path)
-    todo = store.first_incomplete()
-    if todo is not None:
-        raise RunStoreError(f"{store.path}: run is incomplete (first frame not done: depth "
-                            f"{todo[0]}, pattern {todo[1]}); finish it with --resume first")
-    plan, p, lut = store.plan, store.plan.fourier.period, store.display_lut
-    t = store.tile_px if tile_px is None else int(tile_px)
-    if t < 1:
-        raise RunStoreError(f"{store.path}: tile_px must be >= 1, got {tile_px}")
-    w, h = store.camera_size
-    out_path = Path(out_path)
-    if resume and out_path.exists():
-        out = _open_for_resume(out_path, store, t)
-    else:
-        out = create_ltc_store(
-            out_path, depths_mm=store.depths_mm, camera_size=store.camera_size, period=p,
-            pitch_mm=store.lcd_pitch_mm, lcd_size=store.lcd_size, tile_px=t,
-            attrs={"run_store": str(store.path), "pattern_set": plan.model_dump(mode="json"),
-                   "camera_matrix": store.config.get("camera", {}).get("matrix"),
-                   "config": store.config,
-                   "software": software_versions(),
-                   "created": _dt.datetime.now(_dt.timezone.utc).isoformat()},
-        )
-    records = TileRecords(out)
-    done = records.done.copy()
-    n_left = int((~done).sum())
-    per_tile = len(plan) * t * t * store.dtype.itemsize
-    band = max(1, BAND_BYTES // per_tile)  # tiles a worker reads and computes per task
-    token = uuid.uuid4().hex
-    px_done = [0]
-    with Engine(workers, dask=dask, scheduler=scheduler) as engine, \
-            tqdm(total=done.size, initial=done.size - n_left, desc="reconstruct", unit="tile",
-                 disable=None if progress else True) as bar:
-        bar.set_postfix_str(engine.describe(), refresh=False)
-        for di in range(store.n_depths):
-            if done[di].all():
-                if di in incomplete_depths(out):
-                    mark_depth_complete(out, di)
-                continue
-            code_mask = store.code_mask(di)
-
-            def tasks(di=di, code_mask=code_mask):
-                bands = [(r0, b0, min(band, -(-(w - b0) // t)))
-                         for r0 in range(0, h, t) for b0 in range(0, w, band * t)
-                         if not done[di, r0 // t, b0 // t : b0 // t + band].all()]
-                for i, (r0, b0, n) in enumerate(bands):
-                    # the disk reads this band and the next while the workers compute
-                    # the ones before (for the stored tile size; a hint, nothing else)
-                    for r1, b1, n1 in bands[(i > 0) + i : i + 2] if t == store.tile_px else ():
-                        store.prefetch_tile_row(di, r1, b1, n1)
-                    tr = r0 // t
-                    todo = [k for k in range(n) if not done[di, tr, b0 // t + k]]
-                    for k in todo:
-                        px_done[0] += min(t, h - r0) * min(t, w - b0 - k * t)
-                    cm = np.ascontiguousarray(code_mask[r0 : r0 + t, b0 : b0 + n * t])
-                    yield ((di, tr, [b0 // t + k for k in todo]), _band_job,
-                           (str(store.path), token, di, r0, b0, n, t, todo, plan, lut,
-                            float(min_snr), cm, str(out_path)))
-
-            def finished(key, stats) -> None:
-                di_, tr, cols = key
-                records.mark(di_, tr, cols, stats)
-                bar.update(len(cols))
-
-            run_ordered(engine, tasks(), finished)
-            mark_depth_complete(out, di)
-        used = engine.describe()
-    stats_all = np.asarray(out["tile_stats"][...])
-    per_depth = []
-    for di in range(store.n_depths):
-        st = stats_all[di].reshape(-1, len(TILE_STATS))
-        per_depth.append({
-            "depth_mm": store.depths_mm[di],
-            "valid_fraction": float(np.nansum(st[:, 0])) / (w * h),
-            "gain_median_adu": _median(st[:, 1]),
-            "noise_median": _median(st[:, 2]),
-            "edge_mass_p95": _max(st[:, 3]),
-        })
-    out.attrs["noise_median"] = [q["noise_median"] for q in per_depth]
-    seconds = time.perf_counter() - t_start
-    return {
-        "run": str(store.path), "out": str(out_path), "camera_size": list(store.camera_size),
-        "lcd_size": list(store.lcd_size), "period": p, "steps": plan.fourier.steps,
-        "patterns_per_depth": len(plan), "tile_px": t, "depths": per_depth,
-        "engine": used, "tiles_computed": n_left, "resumed": bool(resume and n_left < done.size),
-        "seconds": seconds, "pixels_per_second": px_done[0] / max(seconds, 1e-9),
-    }
-
-
-def _open_for_resume(out_path: Path, store: RunStore, tile_px: int):
-    """The LTC store a killed reconstruction of ``store`` left, checked to be that one."""
-    out = open_ltc_store(out_path, mode="r+")
-    a = out.attrs
-    if a.get("run_store") != str(store.path):
-        raise LtcStoreError(f"{out_path}: was reconstructed from {a.get('run_store')!r}, not "
-                            f"{str(store.path)!r}; cannot resume it from this run")
-    if int(a.get("tile_px", -1)) != tile_px:
-        raise LtcStoreError(f"{out_path}: was written with tile_px {a.get('tile_px')}, not "
-                            f"{tile_px}; resume with --tile {a.get('tile_px')}")
-    if a.get("pattern_set") != store.plan.model_dump(mode="json"):
-        raise LtcStoreError(f"{out_path}: pattern set differs from the run store's")
-    return out
-
-
 def _exclude(blk: LtcBlock, mask: np.ndarray) -> LtcBlock:
     """The block with the pixels in ``mask`` (n,) bool made invalid (LTC NaN, origin 0), in
     place: the block's arrays are its caller's own (:func:`reconstruct_tile`)."""
@@ -852,15 +464,3 @@ def _exclude(blk: LtcBlock, mask: np.ndarray) -> LtcBlock:
         blk.origin[mask] = 0
         blk.valid[mask] = False
     return blk
-
-
-def _median(values: np.ndarray) -> float | None:
-    v = np.asarray(values, dtype=np.float64)
-    v = v[np.isfinite(v)]
-    return float(np.median(v)) if v.size else None
-
-
-def _max(values: np.ndarray) -> float | None:
-    v = np.asarray(values, dtype=np.float64)
-    v = v[np.isfinite(v)]
-    return float(v.max()) if v.size else None

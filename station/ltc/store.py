@@ -20,6 +20,12 @@ Layout (ARCHITECTURE.md, issue 3):
   (NaN when none); attribute ``tile_px``; attribute ``depths_complete`` (list of bool per
   depth), set True once every tile of the depth is done. Readers of a whole store
   (``open_ltc_volume``) refuse one with an incomplete depth, naming it.
+* checksums (format version 3): ``tile_crc32c[depth, tile_row, tile_col, 5]`` int64, the
+  crc32c of each done tile's chunk file of ``ltc``, ``origin``, ``gain``, ``noise`` and
+  ``lcd_xy`` (:mod:`station.ltc.checked`), recorded with the tile's done flag; every read
+  through ``open_ltc_volume`` verifies them. Attribute ``run_id``: the identity of the run
+  store reconstructed (``RunStore.identity``), which ``--resume`` compares.
+* ``writer.lock``: held by the one writer (:mod:`sim.storage.lock`).
 
 Writing: ``create_ltc_store``, ``write_ltc_tile``, ``mark_tile_done`` (``TileRecords``) and
 ``mark_depth_complete``. Reading for the lens derivation: ``open_ltc_volume`` gives an
@@ -28,8 +34,6 @@ Writing: ``create_ltc_store``, ``write_ltc_tile``, ``mark_tile_done`` (``TileRec
 
 from __future__ import annotations
 
-import os
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,12 +42,27 @@ import numpy as np
 import scipy.sparse as sp
 import zarr
 
-from station.acquisition.run_store import aligned_empty, write_new_file
-from station.acquisition.store_attrs import LtcStoreAttrs, check_attrs, open_zarr_group
+from sim.storage.attrs import LtcStoreAttrs, check_attrs, open_zarr_group
+from sim.storage.checksum import NO_CRC, crc32c, readonly
+from sim.storage.durable import (
+    aligned_empty,
+    publish,
+    sync_tree,
+    temporary_name,
+    write_new_file,
+)
 from station.errors import StationError
+from station.ltc.checked import (  # noqa: F401 - LtcChunkError, CheckedArray: store names
+    CHECKED_ARRAYS,
+    CRC_ARRAY,
+    CheckedArray,
+    LtcChunkError,
+    checked_arrays,
+    seal_tiles,
+)
 
 FORMAT = "ltc-store"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 TILE_STATS = ("valid_px", "gain_median_adu", "noise_median", "edge_mass_p95")
 ARRAYS = ("ltc", "origin", "gain", "noise")
 OPTIONAL_ARRAYS = ("lcd_xy",)
@@ -64,16 +83,15 @@ def create_ltc_store(
     tile_px: int = 64,
     attrs: dict | None = None,
 ) -> zarr.Group:
-    """Create an empty LTC store; refuses to overwrite an existing path."""
+    """Create an empty LTC store, atomically (built under a temporary name beside ``path``,
+    flushed and renamed); refuses to overwrite an existing path."""
     path = Path(path)
     if path.exists():
         raise LtcStoreError(f"{path}: already exists; refusing to overwrite an LTC store")
     w, h = camera_size
     d = len(depths_mm)
     # built under a temporary name and renamed: a writer killed here leaves no store at path
-    tmp = path.with_name(f".{path.name}.creating-{os.getpid()}")
-    if tmp.exists():
-        shutil.rmtree(tmp)
+    tmp = temporary_name(path, "creating")
     g = zarr.open_group(str(tmp), mode="w-", zarr_format=3)
     t = (1, min(tile_px, h), min(tile_px, w))
     # uncompressed: noisy float32 windows compress to 0.93 with zstd, whose encoding cost
@@ -97,6 +115,9 @@ def create_ltc_store(
     g.create_array("tile_stats", shape=(d,) + tiles + (len(TILE_STATS),),
                    chunks=(1,) + tiles + (len(TILE_STATS),), dtype="float64",
                    fill_value=np.nan, compressors=None)
+    g.create_array(CRC_ARRAY, shape=(d,) + tiles + (len(CHECKED_ARRAYS),),
+                   chunks=(1,) + tiles + (len(CHECKED_ARRAYS),), dtype="int64",
+                   fill_value=NO_CRC, compressors=None)
     g.attrs.update(
         {
             "format": FORMAT,
@@ -111,7 +132,15 @@ def create_ltc_store(
             **(attrs or {}),
         }
     )
-    os.rename(tmp, path)
+    try:
+        sync_tree(tmp)
+        publish(tmp, path)
+    except FileExistsError as exc:
+        import shutil
+
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise LtcStoreError(f"{path}: appeared while creating the LTC store; refusing to "
+                            "overwrite it") from exc
     return zarr.open_group(str(path), mode="r+")
 
 
@@ -124,12 +153,16 @@ def open_ltc_store(path: str | Path, mode: str = "r") -> zarr.Group:
     if g.attrs.get("format") != FORMAT:
         raise LtcStoreError(f"{path}: attribute 'format' is {g.attrs.get('format')!r}, "
                             f"expected {FORMAT!r}")
+    if g.attrs.get("format_version") == 2:
+        raise LtcStoreError(f"{path}: attribute 'format_version' is 2, a layout without chunk "
+                            f"checksums this software does not read (it reads {FORMAT_VERSION})"
+                            "; reconstruct it again (`ltc reconstruct`)")
     if g.attrs.get("format_version") != FORMAT_VERSION:
         raise LtcStoreError(f"{path}: attribute 'format_version' is "
                             f"{g.attrs.get('format_version')!r}, expected {FORMAT_VERSION}; "
                             "reconstruct it again with this version (`ltc reconstruct`)")
     check_attrs(path, g.attrs, LtcStoreAttrs, LtcStoreError)
-    missing = [a for a in ARRAYS + ("tile_done", "tile_stats") if a not in g]
+    missing = [a for a in ARRAYS + ("tile_done", "tile_stats", CRC_ARRAY) if a not in g]
     if missing:
         raise LtcStoreError(f"{path}: missing array(s) {missing}")
     return g
@@ -137,31 +170,41 @@ def open_ltc_store(path: str | Path, mode: str = "r") -> zarr.Group:
 
 def mark_tile_done(group: zarr.Group, depth: int, tile_row: int, tile_col: int,
                    stats: np.ndarray) -> None:
-    """Record a written tile: its statistics (``TILE_STATS``), then its done flag."""
+    """Record a written tile: its statistics (``TILE_STATS``) and the checksums of its chunk
+    files as they are now, then its done flag."""
     group["tile_stats"][depth, tile_row, tile_col] = np.asarray(stats, dtype=np.float64)
+    group[CRC_ARRAY][depth, tile_row, tile_col] = seal_tiles(group, depth,
+                                                             [(tile_row, tile_col)])[0]
     group["tile_done"][depth, tile_row, tile_col] = True
 
 
 class TileRecords:
-    """The completion records (``tile_stats``, ``tile_done``) of an LTC store held by its one
-    writer: read once, then each :meth:`mark` rewrites the depth's two chunks (statistics
-    first, then done flags; each chunk file written whole and renamed into place, as zarr
-    writes it) without reading them back."""
+    """The completion records (``tile_stats``, ``tile_crc32c``, ``tile_done``) of an LTC store
+    held by its one writer: read once, then each :meth:`mark` rewrites the depth's three
+    chunks (statistics and checksums first, then done flags; each chunk file written whole
+    and renamed into place, as zarr writes it) without reading them back."""
 
     def __init__(self, group: zarr.Group) -> None:
         self.group = group
         self.stats = np.asarray(group["tile_stats"][...], dtype=np.float64)
+        self.crcs = np.asarray(group[CRC_ARRAY][...], dtype=np.int64)
         self.done = np.asarray(group["tile_done"][...], dtype=bool)
 
     def mark(self, depth: int, tile_row: int, tile_cols: list[int],
-             stats: list[np.ndarray]) -> None:
-        """Record written tiles of one tile row: their statistics, then their done flags."""
+             stats: list[np.ndarray], crcs: list[np.ndarray] | None = None) -> None:
+        """Record written tiles of one tile row: their statistics and chunk checksums
+        (``crcs`` per tile, in ``CHECKED_ARRAYS`` order; None: computed from the files now),
+        then their done flags."""
         cols = np.asarray(tile_cols, dtype=np.int64)
         self.stats[depth, tile_row, cols] = np.asarray(stats, np.float64).reshape(len(cols), -1)
+        if crcs is None:
+            crcs = list(seal_tiles(self.group, depth, [(tile_row, int(c)) for c in cols]))
+        self.crcs[depth, tile_row, cols] = np.asarray(crcs, np.int64).reshape(len(cols), -1)
         self.done[depth, tile_row, cols] = True
-        for name, values in (("tile_stats", self.stats), ("tile_done", self.done)):
+        for name, values in (("tile_stats", self.stats), (CRC_ARRAY, self.crcs),
+                             ("tile_done", self.done)):
             arr = self.group[name]
-            if not _write_raw_chunk(self.group, arr, depth, 0, 0, values[depth]):
+            if _write_raw_chunk(self.group, arr, depth, 0, 0, values[depth]) is None:
                 arr[depth] = values[depth]
 
 
@@ -170,6 +213,9 @@ def mark_depth_complete(group: zarr.Group, depth: int, all_tiles: bool = False) 
     all_tiles : first mark every tile done (a writer that filled the whole depth at once)."""
     done = np.asarray(group["tile_done"][depth])
     if all_tiles:
+        tiles = [(int(r), int(c)) for r, c in np.argwhere(np.ones_like(done))]
+        group[CRC_ARRAY][depth] = seal_tiles(group, depth, tiles).reshape(
+            done.shape + (len(CHECKED_ARRAYS),))
         group["tile_done"][depth] = np.ones_like(done)
     elif not done.all():
         raise LtcStoreError(f"{group.store}: depth {depth} has {int((~done).sum())} tile(s) "
@@ -222,8 +268,10 @@ class LtcTileWriter:
         self.group = group
         self._arrays: dict[str, zarr.Array] = {}
 
-    def write(self, depth: int, row0: int, col0: int, **arrays: np.ndarray) -> None:
-        """See :func:`write_ltc_tile`."""
+    def write(self, depth: int, row0: int, col0: int, **arrays: np.ndarray) -> np.ndarray:
+        """See :func:`write_ltc_tile`; returns the tile's chunk checksums in
+        ``CHECKED_ARRAYS`` order (what :meth:`TileRecords.mark` records)."""
+        crcs = {}
         for name, value in arrays.items():
             if name not in ARRAYS + OPTIONAL_ARRAYS:
                 raise LtcStoreError(f"{self.group.store}: no LTC store array named {name!r}; "
@@ -232,19 +280,32 @@ class LtcTileWriter:
             if arr is None:
                 arr = self._arrays[name] = self.group[name]
             v = np.asarray(value)
-            if not _write_raw_chunk(self.group, arr, depth, row0, col0, v):
+            crc = _write_raw_chunk(self.group, arr, depth, row0, col0, v)
+            if crc is None:
                 arr[depth, row0 : row0 + v.shape[0], col0 : col0 + v.shape[1]] = \
                     v.astype(arr.dtype)
+            crcs[name] = crc
+        ch, cw = self.group["ltc"].chunks[1:3]
+        sealed = None
+        out = np.empty(len(CHECKED_ARRAYS), np.int64)
+        for k, name in enumerate(CHECKED_ARRAYS):
+            if crcs.get(name) is None:
+                if sealed is None:
+                    sealed = seal_tiles(self.group, depth, [(row0 // ch, col0 // cw)])[0]
+                out[k] = sealed[k]
+            else:
+                out[k] = crcs[name]
+        return out
 
 
 def _write_raw_chunk(group: zarr.Group, arr: zarr.Array, depth: int, row0: int, col0: int,
-                     v: np.ndarray) -> bool:
+                     v: np.ndarray) -> int | None:
     """Write ``v`` as the one whole chunk ``arr[depth, row0:, col0:]`` it covers, as the file
     zarr would write (uncompressed little-endian bytes, edge chunks padded with the fill
     value, written to a temporary name and renamed, as the run store writes its files), when
     the array is stored that way on a local folder and ``v`` is exactly one chunk (clipped at
-    the sensor's edge); else False. 3x faster than zarr's write path for the ``ltc`` array
-    (9.4 MB per 64 x 64 tile at P = 24)."""
+    the sensor's edge), returning the file's crc32c; else None. 3x faster than zarr's write
+    path for the ``ltc`` array (9.4 MB per 64 x 64 tile at P = 24)."""
     from zarr.codecs import BytesCodec
     from zarr.codecs.bytes import Endian
     from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
@@ -256,13 +317,13 @@ def _write_raw_chunk(group: zarr.Group, arr: zarr.Array, depth: int, row0: int, 
             and isinstance(arr.serializer, BytesCodec)
             and arr.serializer.endian in (None, Endian.little)
             and isinstance(enc, DefaultChunkKeyEncoding) and enc.separator == "/"):
-        return False
+        return None
     th, tw = v.shape[:2]
     ch, cw = chunks[1], chunks[2]
     if chunks[0] != 1 or chunks[3:] != shape[3:] or v.shape[2:] != shape[3:] or \
             row0 % ch or col0 % cw or th != min(ch, shape[1] - row0) or \
             tw != min(cw, shape[2] - col0):
-        return False
+        return None
     dtype = np.dtype(arr.dtype).newbyteorder("<")
     if (th, tw) == (ch, cw):
         data = np.ascontiguousarray(v, dtype)
@@ -274,7 +335,7 @@ def _write_raw_chunk(group: zarr.Group, arr: zarr.Array, depth: int, row0: int, 
     path = Path(group.store.root) / arr.path / "c" / "/".join(str(k) for k in key)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_new_file(path, [data])  # atomic; an OSError names the file
-    return True
+    return crc32c(readonly(data))
 
 
 def windows_from_sparse(
@@ -384,12 +445,14 @@ class LtcVolume:
 
 
 def open_ltc_volume(path: str | Path) -> LtcVolume:
-    """An ``LtcVolume`` reading from an LTC store (``station/ltc/store.py``) on demand.
+    """An ``LtcVolume`` reading from an LTC store (``station/ltc/store.py``) on demand, every
+    chunk verified against its recorded crc32c (:class:`station.ltc.checked.CheckedArray`).
 
     Optional attributes ``camera_matrix`` (3x3) and ``dist_coeffs`` (5) give the camera's K.
     """
     g = open_ltc_store(path)
     require_complete(g, path)
+    checked = checked_arrays(Path(path), g)
     a = g.attrs
     for key in ("depths_mm", "pitch_mm"):
         if key not in a:
@@ -397,7 +460,8 @@ def open_ltc_volume(path: str | Path) -> LtcVolume:
     k = a.get("camera_matrix")
     d = a.get("dist_coeffs")
     return LtcVolume(
-        ltc=g["ltc"], origin=g["origin"], gain=g["gain"], noise=g["noise"],
+        ltc=checked["ltc"], origin=checked["origin"], gain=checked["gain"],
+        noise=checked["noise"],
         depths_mm=np.asarray(a["depths_mm"], dtype=np.float64), pitch_mm=float(a["pitch_mm"]),
         camera_matrix=None if k is None else np.asarray(k, dtype=np.float64),
         dist_coeffs=None if d is None else np.asarray(d, dtype=np.float64),

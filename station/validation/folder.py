@@ -260,9 +260,9 @@ def write_json_model(path: Path, model: BaseModel) -> None:
 
 
 def write_durable(path: Path, data: bytes) -> None:
-    """The one place this package writes a file: durably (temporary file, fsync, rename).
-    ``sim.storage``'s durable write replaces it once it is in main."""
-    from station.sequence import durable_file
+    """The one place this package writes a file: durably, through ``sim.storage``'s durable
+    write (temporary file, fsync, rename, fsync of the folder)."""
+    from sim.storage.durable import durable_file
 
     path.parent.mkdir(parents=True, exist_ok=True)
     with durable_file(path, "wb") as f:

@@ -320,7 +320,7 @@ def validate(real_dir: str | Path, lenses: list[str | Path], out: str | Path, *,
              log: Log = print) -> ValidationResult:
     """Validate the twins of ``lenses`` against the real-scan folder ``real_dir`` into
     ``out`` (see the module docstring); returns the result (also ``out/results.json``)."""
-    from station.acquisition.lock import StoreLock
+    from sim.storage.lock import StoreLock
     from station.validation.report import write_report
     from station.validation.twin import build_twins
 

@@ -44,7 +44,8 @@ LIT_FRACTION = 0.2  # pixels whose rendered B exceeds this fraction of its 99th 
 def load_lens_arg(path: str | Path, camera: DeviceCalibration, index: int) -> LensModel:
     """One camera's lens from ``--lenses``: a measured lens ``.npz`` (checked against the rig
     camera: ``lens_camera_mismatch``) or a TOML / JSON lens spec."""
-    from sim.optics.measured_lens import LensFileError, lens_camera_mismatch, load_lens
+    from sim.optics.lens_file import load_lens
+    from sim.optics.measured_lens import LensFileError, lens_camera_mismatch
     from sim.render.scene import LENS_KINDS, ThinLensSpec
 
     path = Path(path)
@@ -83,7 +84,8 @@ def build_twins(rig: Rig, lens_paths: list[str | Path], gaussian_sigma_mm: float
     """Per twin name the lens of each rig camera (see the module docstring); the first twin
     is the primary one, whose refined pose every twin is rendered at."""
     from sim.optics.lens import GaussianLens, PinholeLens
-    from sim.optics.measured_lens import MeasuredLens, gaussian_equivalent, smoothed_lens
+    from sim.optics.lens_moments import gaussian_equivalent, smoothed_lens
+    from sim.optics.measured_lens import MeasuredLens
 
     if len(lens_paths) != len(rig.cameras):
         raise RealScanError(f"--lenses: {len(lens_paths)} lens(es) for the rig's "

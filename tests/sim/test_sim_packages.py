@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-PACKAGES = ("sim.optics", "sim.render", "sim.fpp", "sim.metrology", "sim.dataset")
+PACKAGES = ("sim.optics", "sim.render", "sim.fpp", "sim.metrology", "sim.dataset", "sim.calibration")
 
 
 @pytest.mark.parametrize("name", PACKAGES)
@@ -25,7 +25,7 @@ def test_every_public_name_resolves_to_its_definition(name):
 
 
 def test_importing_the_packages_loads_neither_numba_nor_embreex():
-    code = ("import sys, sim.optics, sim.render, sim.fpp, sim.metrology, sim.dataset; "
+    code = ("import sys, sim.optics, sim.render, sim.fpp, sim.metrology, sim.dataset, sim.calibration; "
             "print(sorted(m for m in ('numba', 'embreex') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

@@ -220,7 +220,7 @@ def test_a_full_disk_in_render_names_the_folder_and_leaves_nothing_to_refuse(tmp
 
 
 def test_force_refuses_a_store_a_live_writer_holds(bench, tmp_path, capsys):
-    from station.acquisition.lock import StoreLock
+    from sim.storage.lock import StoreLock
 
     old = tmp_path / "run.zarr"
     shutil.copytree(bench / "run.zarr", old)

@@ -92,7 +92,7 @@ def test_a_changed_lens_setting_derives_the_lens_again_and_nothing_else(tmp_path
 def test_a_second_writer_of_a_sequence_folder_is_refused_naming_the_holder(tmp_path):
     """Two sequences on one folder (a script started twice, or a worker process that
     re-ran its parent's script) would interleave their summaries: the second is refused."""
-    from station.acquisition.lock import StoreLock, StoreLockedError
+    from sim.storage.lock import StoreLock, StoreLockedError
 
     cfg = ExperimentConfig()
     config = station_config(cfg, build_rig(cfg), 0)

@@ -3,7 +3,6 @@ attributes against the frame records, the writer lock, atomic creation, and the 
 frames equal to the serial path's, bit for bit."""
 
 import errno
-import json
 import os
 import re
 import signal
@@ -17,7 +16,7 @@ import zarr
 
 from station.acquisition.acquire import AcquisitionError, Event, acquire
 from station.acquisition.config import example_text, parse_config
-from station.acquisition.lock import LOCK_NAME, StoreLock, StoreLockedError
+from sim.storage.lock import LOCK_NAME
 from station.acquisition.patterns import StationPatternPlan
 from station.acquisition.run_store import FrameCorruptError, FrameMeta, RunStore, RunStoreError
 from station.cli import main
@@ -146,56 +145,6 @@ def test_attributes_that_disagree_with_the_frame_records_are_refused(run, tmp_pa
         RunStore.open(run.path, "r+").write_frame(0, 0, frame(0), meta(0, 41.0))
 
 
-# ---- the writer lock ------------------------------------------------------------------------
-
-HOLD = "import sys, time; from station.acquisition.lock import StoreLock\n" \
-       "with StoreLock(sys.argv[1]):\n    print('held', flush=True); time.sleep(60)\n"
-
-
-def test_second_writer_is_refused_naming_the_holder(tmp_path):
-    store = tmp_path / "s"
-    store.mkdir()
-    proc = subprocess.Popen([sys.executable, "-c", HOLD, str(store)], stdout=subprocess.PIPE,
-                            text=True)
-    try:
-        assert proc.stdout.readline().strip() == "held"
-        for force in (False, True):  # a live holder's lock is never taken over
-            with pytest.raises(StoreLockedError, match=rf"locked by another writer \(host .*, "
-                                                       rf"PID {proc.pid}, since "):
-                StoreLock(store, force=force).acquire()
-    finally:
-        proc.kill()
-        proc.wait()
-    with StoreLock(store, force=True) as lock:  # the killed holder's lock is stale; ours: a second writer is refused
-        held = json.loads((store / LOCK_NAME).read_text())
-        assert held["pid"] == os.getpid() and {"host", "start_time"} <= set(held)
-        with pytest.raises(StoreLockedError, match=f"PID {os.getpid()}"):
-            StoreLock(store).acquire()
-        assert lock.held
-    assert not (store / LOCK_NAME).exists()
-
-
-def test_stale_lock_is_taken_over_only_with_force(tmp_path):
-    store = tmp_path / "s"
-    store.mkdir()
-    proc = subprocess.Popen([sys.executable, "-c", HOLD, str(store)], stdout=subprocess.PIPE,
-                            text=True)
-    assert proc.stdout.readline().strip() == "held"
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
-    with pytest.raises(StoreLockedError, match=rf"stale lock of a process that is gone "
-                                               rf"\(host .*, PID {proc.pid}, .*pass --force"):
-        StoreLock(store).acquire()
-    with StoreLock(store, force=True):
-        assert json.loads((store / LOCK_NAME).read_text())["pid"] == os.getpid()
-    assert not (store / LOCK_NAME).exists()
-    (store / LOCK_NAME).write_text(json.dumps({"host": "elsewhere", "pid": 1,
-                                               "start_time": "x"}))
-    with pytest.raises(StoreLockedError, match=r"host elsewhere, PID 1, .*if that process is "
-                                               r"gone, delete .*writer\.lock"):
-        StoreLock(store, force=True).acquire()
-
-
 # ---- acquisition: atomic creation, writer queue, writer errors --------------------------------
 
 
@@ -224,14 +173,14 @@ KILL_AT_CREATION = textwrap.dedent("""
     from station.acquisition.acquire import acquire
     from station.acquisition.config import load_config
     out, after_rename = Path(sys.argv[2]), sys.argv[3] == "1"
-    real = rs._fsync
+    real = rs.fsync_path
     def fsync(path):
         real(path)
         if not after_rename and path.name == "zarr.json" and path.parent.name == "frames":
             os.kill(os.getpid(), signal.SIGKILL)  # mid-creation, the temporary store half made
         if after_rename and Path(path) == out.parent:
             os.kill(os.getpid(), signal.SIGKILL)  # just after the rename
-    rs._fsync = fsync
+    rs.fsync_path = fsync
     acquire(load_config(sys.argv[1]), out, progress=False)
 """)
 

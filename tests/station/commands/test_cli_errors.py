@@ -150,21 +150,26 @@ def test_every_error_we_raise_derives_from_a_package_root():
     import sim.fpp.scan_input
     import sim.metrology.measure
     import sim.optics.measured_lens
+    import sim.storage.errors
+    import sim.storage.lock
     import station.acquisition.align
     import station.acquisition.config
     import station.acquisition.gamma
-    import station.acquisition.lock
+    import station.acquisition.run_reader
     import station.acquisition.run_store
     import station.lens.geometry
     import station.lens.rays
+    import station.ltc.checked
     import station.ltc.store
+    import station.ltc.verify
 
     roots = (DeviceError, SimError, StationError)
     modules = [drivers.errors, drivers.frame_code, drivers.stage_errors, drivers.zaber_protocol,
                sim.fpp.scan_input, sim.metrology.measure, sim.optics.measured_lens,
                station.acquisition.align, station.acquisition.config, station.acquisition.gamma,
-               station.acquisition.lock, station.acquisition.run_store, station.lens.geometry,
-               station.lens.rays, station.ltc.store]
+               sim.storage.errors, sim.storage.lock, station.acquisition.run_reader,
+               station.acquisition.run_store, station.lens.geometry, station.lens.rays,
+               station.ltc.checked, station.ltc.store, station.ltc.verify]
     errors = {v for m in modules for v in vars(m).values()
               if isinstance(v, type) and issubclass(v, Exception) and v.__module__ == m.__name__}
     assert len(errors) >= 30

@@ -35,10 +35,12 @@ MISSING = {
     "align": ["align", "{d}/none.toml"],
     "reconstruct": ["reconstruct", "{d}/none.zarr", "--out", "{d}/ltc.zarr"],
     "lens": ["lens", "{d}/none.zarr", "--out", "{d}/lens.npz"],
+    "verify": ["verify", "{d}/none.zarr"],
     "run": ["run", "{d}/none.toml", "--out", "{d}/seq"],
     "render": ["render", "{d}/none.toml", "--out", "{d}/render"],
     "dataset": ["dataset", "{d}/none.toml", "--out", "{d}/ds", "--samples", "1"],
     "scan": ["scan", "{d}/none", "--rig", "{d}/none.yaml", "--out", "{d}/c.ply"],
+    "calibrate": ["calibrate", "{d}/none", "--board", "{d}/none.toml", "--out", "{d}/rig.yaml"],
     "measure": ["measure", "{d}/none.ply", "--sphere"],
     "validate": ["validate", "{d}/none", "--lenses", "{d}/a.toml", "{d}/b.toml", "--out",
                  "{d}/v"],
@@ -47,7 +49,7 @@ MISSING = {
 }
 
 
-NO_INPUT = {"cameras"}  # reads no file and writes none: only the usage and --help rules apply
+NO_INPUT = {"cameras", "patterns"}  # read no file: only the usage, --help (and output) rules apply
 
 
 def test_every_command_is_covered_by_the_rule_tests():
@@ -72,6 +74,8 @@ OUTPUTS = {
     "render": (["render", "{d}/scene.toml", "--out", "{o}"], "--force"),
     "dataset": (["dataset", "{cfg}", "--out", "{od}", "--samples", "1"], "--force"),
     "scan": (["scan", "{d}/images", "--rig", "{d}/rig.yaml", "--out", "{o}"], "--force"),
+    "calibrate": (["calibrate", "{d}/cap", "--board", "{d}/b.toml", "--out", "{o}"], "--force"),
+    "patterns": (["patterns", "--calibration", "--out", "{od}"], "--force"),
     "measure": (["measure", "{d}/c.ply", "--against", "{d}/c2.ply", "--png", "{o}"], "--force"),
     "run": (["run", "{cfg}", "--out", "{od}"], "--out"),
     "experiment": (["experiment", "--out", "{od}"], "--out"),

@@ -203,7 +203,7 @@ def test_a_failed_scan_names_the_position_and_the_scanner(monkeypatch):
 def test_a_second_experiment_on_one_folder_is_refused_naming_the_holder(tmp_path):
     import os
 
-    from station.acquisition.lock import StoreLock, StoreLockedError
+    from sim.storage.lock import StoreLock, StoreLockedError
 
     out = tmp_path / "run"
     out.mkdir()

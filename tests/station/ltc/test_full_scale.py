@@ -17,7 +17,7 @@ import zarr
 from station.api import acquire, load_config
 from station.cli import main as cli_main
 from station.lens.centroids import window_stats
-from station.ltc.spi import reconstruct
+from station.ltc.tiles import reconstruct
 from station.ltc.store import open_ltc_store
 
 from fakes.synthetic import SyntheticBench, parse_synthetic_settings

@@ -19,28 +19,28 @@ import pytest
 from fakes.bench import BenchConfig, FakeBench
 from fakes.camera import FakeCamera, NoiseModel
 from fakes.lcd import PanelResponse
-from station.cli import main as cli_main
 from sim.fpp.phase import gray_to_index
+from station.acquisition.patterns import StationPatternPlan, shown_luminance
+from station.acquisition.run_store import FrameMeta, RunStore, RunStoreError
+from station.cli import main as cli_main
 from station.lens.centroids import REGION_MARGIN_PX, STATUS_NO_SIGNAL, window_stats
 from station.ltc.localise import lcd_coordinates
+from station.ltc.spi import (
+    demodulate,
+    fold,
+    frame_noise,
+    ltc_noise,
+    reconstruct_frames,
+    reconstruct_tile,
+    unfold,
+)
 from station.ltc.store import (
     LtcStoreError,
     open_ltc_store,
     windows_from_sparse,
     write_ltc_tile,
 )
-from station.acquisition.patterns import StationPatternPlan, shown_luminance
-from station.acquisition.run_store import FrameMeta, RunStore, RunStoreError
-from station.ltc.spi import (
-    demodulate,
-    fold,
-    frame_noise,
-    ltc_noise,
-    reconstruct,
-    reconstruct_frames,
-    reconstruct_tile,
-    unfold,
-)
+from station.ltc.tiles import reconstruct
 
 P = 16
 DEPTHS = (40.0, 100.0, 150.0)  # stage mm; 100 is in focus, 40 the most defocused

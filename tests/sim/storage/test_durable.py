@@ -8,8 +8,8 @@ import os
 import numpy as np
 import pytest
 
-from station.acquisition import run_store
-from station.acquisition.run_store import DIRECT_ALIGN, aligned_empty, write_new_file
+from sim.storage import durable as run_store
+from sim.storage.durable import DIRECT_ALIGN, aligned_empty, write_new_file
 
 
 @pytest.fixture

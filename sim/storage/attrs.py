@@ -14,7 +14,6 @@ import zarr
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
 
 
-
 def _finite(v: float) -> float:
     if not math.isfinite(v):
         raise ValueError(f"must be finite, got {v}")

@@ -1,5 +1,5 @@
 """The process engine's workers end with the main process, and SIGTERM stops a command like
-Ctrl-C (``station.ltc.parallel``): one line, exit code 130, the ``--resume`` hint."""
+Ctrl-C (``station.compute``): one line, exit code 130, the ``--resume`` hint."""
 
 from __future__ import annotations
 
@@ -10,16 +10,16 @@ import sys
 import time
 from pathlib import Path
 
-from station.ltc.parallel import _alive
+from station.compute import _alive
 
-ROOT = Path(__file__).resolve().parents[3]
+ROOT = Path(__file__).resolve().parents[2]
 
 # a command whose compute runs in a 2-worker engine, each worker sleeping for a minute; it
 # prints the workers' process ids once they run
 SCRIPT = """
 import sys, time
 import station.api
-from station.ltc.parallel import Engine
+from station.compute import Engine
 def reconstruct_ltc(run, out, **kw):
     with Engine(2) as engine:
         futures = [engine.submit(time.sleep, 60) for _ in range(2)]
