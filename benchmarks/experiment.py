@@ -17,7 +17,7 @@ import json
 import sys
 from pathlib import Path
 
-from station.experiment.report import tables
+from station.experiment.report import pose_table, tables
 from station.experiment.rows import PositionRow
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -65,7 +65,11 @@ def section(res: dict, command: str) -> str:
         f"{gauss_ok}.",
         "- Render time against the pinhole (same positions): " + ", ".join(
             f"{k} {v:.1f} x" for k, v in rt.items()) + ".", ""]
-    lines += tables([PositionRow.from_json(r) for r in res["rows"]])
+    rows = [PositionRow.from_json(r) for r in res["rows"]]
+    lines += tables(rows)
+    pose = pose_table(rows)  # runs through the real-scan folder (rows with "validation")
+    if pose:
+        lines += ["", *pose]
     return "\n".join(lines) + "\n"
 
 

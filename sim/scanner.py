@@ -59,6 +59,12 @@ class Scanner:
                              f"{len(self.rig.cameras)} rig cameras; give one per camera")
         object.__setattr__(self, "lenses", tuple(self.lenses))
         object.__setattr__(self, "_geometry", None)
+        from sim.optics.measured_lens import lens_camera_mismatch
+
+        for i, (lens, cam) in enumerate(zip(self.lenses, self.rig.cameras)):
+            why = lens_camera_mismatch(lens, cam)
+            if why is not None:
+                raise SimInputError(f"{self.where}: camera {i}: {why}")
 
     @classmethod
     def from_scene_file(cls, path: str | Path) -> Scanner:
@@ -71,7 +77,9 @@ class Scanner:
         return s
 
     def with_lenses(self, lenses: Sequence[LensModel]) -> Scanner:
-        """The same scanner and scene with other lenses (the traced geometry is shared)."""
+        """The same scanner and scene with other lenses (the traced geometry is shared); a
+        measured lens must have been measured on its rig camera (same size, K and
+        distortion: ``sim.optics.measured_lens.lens_camera_mismatch``), else ValueError."""
         s = replace(self, lenses=tuple(lenses))
         object.__setattr__(s, "_geometry", self._geometry)
         return s

@@ -1,8 +1,9 @@
 """The one formatter of pydantic validation errors, for every package (station, fakes, sim).
 
-Each error is one line naming where the data came from and the field's path:
+Each error names where the data came from and the field's path:
 ``<source>: field '<a.0.b>': <message>`` (``(root)`` for an error of the whole model), so a
-message points at the file and the key to fix.
+message points at the file and the key to fix; several errors are joined by "; " into one
+line (a CLI error is one line).
 """
 
 from __future__ import annotations

@@ -62,6 +62,7 @@ COMMAND_MODULES = (
     "patterns",
     "calibrate",
     "measure",
+    "validate",
     "experiment",
     "demo",
 )

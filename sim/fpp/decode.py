@@ -9,7 +9,7 @@ against the projector (``sim.fpp.triangulation.camera_projector_cloud``).
 from __future__ import annotations
 
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -101,10 +101,63 @@ class DecodeSettings(BaseModel):
 class DecodedView:
     """One camera's decoded images: ``coord[axis]`` (H, W) projector coordinate in pixels along
     'u' (columns) and/or 'v' (rows), NaN where invalid; ``modulation`` (H, W) the smallest
-    fringe amplitude over the phase sets, image units."""
+    fringe amplitude over the phase sets, image units; ``residual[axis]`` (H, W) the local
+    phase model's RMS residual of the map as decoded, projector px, where the map was then
+    corrected for the pixel footprint (else empty); ``rejected`` the pixels each check
+    dropped (``REJECTION_REASONS``)."""
 
     coord: dict[str, np.ndarray]
     modulation: np.ndarray
+    residual: dict[str, np.ndarray] = field(default_factory=dict)
+    rejected: dict[str, int] = field(default_factory=dict)
+
+
+REJECTION_REASONS = {
+    "modulation": "fringe amplitude below the threshold (or contrast, saturation): dark, "
+                  "shadowed or unlit",
+    "fringe_order": "temporal unwrapping missed the fringe order by more than max_order_error",
+    "projector_edge": "outside the projector's outer pixel centres",
+    "camera_projector_model_residual": "camera against projector: local phase model missing "
+                                       "or rough",
+    "stereo_model_residual": "stereo: local phase model missing or rough (edges, mixed pixels)",
+    "stereo_no_match": "stereo: no same phase found along the epipolar line",
+    "stereo_projector_error": "stereo: the point reprojects too far from the measured phase "
+                              "in the projector",
+    "stereo_left_right": "stereo: the match back from the other camera lands elsewhere",
+    "stereo_range_step": "stereo: a range step to a neighbour, or a neighbour missing "
+                         "(silhouettes, edges)",
+}
+"""Why a pixel was dropped: the keys of ``ScanReport.rejected`` and their meaning."""
+
+
+@dataclass(frozen=True)
+class ScanReport:
+    """What a scan kept and dropped: ``pixels`` per camera, ``decoded`` per camera (pixels with
+    a projector coordinate after every decoding check), ``rejected`` per camera the pixels
+    each check dropped (``REJECTION_REASONS``; each pixel is counted at the first check that
+    drops it; the stereo checks count reference pixels of both matching directions), and
+    ``points`` the cloud's size."""
+
+    pixels: tuple[int, ...]
+    decoded: tuple[int, ...]
+    rejected: tuple[dict[str, int], ...]
+    points: int
+    pixel_variance_px2: float
+
+    def to_json(self) -> dict:
+        """The report as a JSON-able dict."""
+        return {"pixels": list(self.pixels), "decoded": list(self.decoded),
+                "rejected": [dict(r) for r in self.rejected], "points": self.points,
+                "pixel_variance_px2": self.pixel_variance_px2}
+
+    def lines(self) -> list[str]:
+        """One line per camera: decoded pixels and the non-zero rejections, most first."""
+        out = []
+        for i, (n, d, r) in enumerate(zip(self.pixels, self.decoded, self.rejected)):
+            parts = ", ".join(f"{k} {v}" for k, v in sorted(r.items(), key=lambda kv: -kv[1])
+                              if v)
+            out.append(f"camera {i}: {d} of {n} pixels decoded; rejected: {parts or 'none'}")
+        return out
 
 
 def _check_stack(images: np.ndarray, descs: list[PatternDescriptor], where: str) -> np.ndarray:
@@ -236,18 +289,30 @@ def decode_view(
         coord, wps, fine = _decode_phase_shift(images, descs, patterns, projector_size, settings,
                                                where)
     ok, mod = _valid(wps, images, settings, where)
+    rejected = dict.fromkeys(("modulation", "fringe_order", "projector_edge"), 0)
+    residuals = {}
     for axis, c in coord.items():
         extent = projector_size[0] if axis == "u" else projector_size[1]
         # outside the edge pixels' centres the pattern stops varying and the phase is wrong
         inside = (c >= EDGE_MARGIN_PX) & (c <= extent - 1 - EDGE_MARGIN_PX)
+        rejected["modulation"] += int((~ok).sum())
+        rejected["fringe_order"] += int((ok & ~np.isfinite(c)).sum())
+        rejected["projector_edge"] += int((ok & np.isfinite(c) & ~inside).sum())
         coord[axis] = np.where(ok & inside, c, np.nan)
         if settings.pixel_variance_px2 > 0:
-            # only where the local models are trustworthy (not at silhouettes, mixed pixels)
+            # the correction's models only where trustworthy (not at silhouettes, mixed pixels)
             _, residual = local_phase_model(coord[axis])
             usable = usable_pixels(residual, settings.max_model_residual)
-            coord[axis] = pixel_footprint_correction(np.where(usable, coord[axis], np.nan),
-                                                     fine[axis], settings.pixel_variance_px2)
-    return DecodedView(coord, mod)
+            corrected = pixel_footprint_correction(np.where(usable, coord[axis], np.nan),
+                                                   fine[axis], settings.pixel_variance_px2)
+            # where the correction has no full 3 x 3 of usable pixels the pixel is kept as
+            # measured, and the stereo checks judge it as they would with no correction:
+            # dropping it here took a ring of pixels off every region, twice (here and in the
+            # stereo's own local models), 64 % of a 31 px sphere's points
+            # (docs/decisions/0052-pixel-footprint-keeps-points.md)
+            coord[axis] = np.where(np.isfinite(corrected), corrected, coord[axis])
+            residuals[axis] = residual
+    return DecodedView(coord, mod, residuals, rejected)
 
 
 def _check_camera(view_images: np.ndarray, cam: DeviceCalibration, where: str) -> None:
@@ -270,7 +335,31 @@ def scan(
 
     ``camera=None``: stereo between cameras 0 and 1 (both stacks needed); ``camera=i``:
     camera i against the projector (``images`` may hold just that camera's stack).
+    ``scan_with_report`` also says what each check dropped.
     """
+    return scan_with_report(images, patterns, rig, settings, camera)[0]
+
+
+def _report(views: list[DecodedView], stereo: list[dict[str, int]], cloud: PointCloud,
+            settings: DecodeSettings) -> ScanReport:
+    pixels, decoded, rejected = [], [], []
+    for v, r in zip(views, stereo, strict=True):
+        c = next(iter(v.coord.values()))
+        pixels.append(int(c.size))
+        decoded.append(int(np.isfinite(c).sum()))
+        rejected.append({**v.rejected, **r})
+    return ScanReport(tuple(pixels), tuple(decoded), tuple(rejected), len(cloud.points),
+                      settings.pixel_variance_px2)
+
+
+def scan_with_report(
+    images: list[np.ndarray],
+    patterns: PhaseShiftSet | GrayCodeSet,
+    rig: Rig,
+    settings: DecodeSettings | None = None,
+    camera: int | None = None,
+) -> tuple[PointCloud, ScanReport]:
+    """``scan``, and the ``ScanReport`` of what each check rejected."""
     settings = settings or DecodeSettings()
     psize = tuple(rig.projector.size)
     if camera is None:
@@ -286,15 +375,19 @@ def scan(
         views = [decode_view(images[i], patterns, psize, settings, f"camera {i}") for i in range(2)]
         if "u" not in views[0].coord:
             raise SimInputError("stereo matching needs fringes along 'u' (projector columns)")
+        stereo: list[dict[str, int]] = []
         cloud = stereo_cloud(
             views[0].coord["u"], views[1].coord["u"], rig.cameras[0], rig.cameras[1],
             projector=rig.projector, max_projector_error_px=settings.max_projector_error_px,
             quality1=views[0].modulation, quality2=views[1].modulation,
             order=settings.interpolation_order, max_lr_error_px=settings.max_lr_error_px,
             max_model_residual=settings.max_model_residual, max_range_step=settings.max_range_step,
+            residual1=views[0].residual.get("u"), residual2=views[1].residual.get("u"),
+            rejected=stereo,
         )
         top = float(np.percentile(np.concatenate([v.modulation.ravel() for v in views]), 99))
-        return _relative_quality(cloud, top)
+        cloud = _relative_quality(cloud, top)
+        return cloud, _report(views, stereo, cloud, settings)
     if not 0 <= camera < len(rig.cameras):
         raise SimInputError(f"camera must be 0 or 1, got {camera}")
     stack = images[camera] if len(images) == len(rig.cameras) else images[0]
@@ -304,7 +397,11 @@ def scan(
     axis = "u" if "u" in view.coord else "v"
     coord = view.coord[axis]
     _, residual = local_phase_model(coord)
-    coord = np.where(usable_pixels(residual, settings.max_model_residual), coord, np.nan)
+    if axis in view.residual:  # judge the map as measured, not as corrected
+        residual = np.where(np.isfinite(residual), view.residual[axis], np.nan)
+    usable = usable_pixels(residual, settings.max_model_residual)
+    dropped = int((np.isfinite(coord) & ~usable).sum())
+    coord = np.where(usable, coord, np.nan)
     if not np.isfinite(coord).any():
         raise SimInputError(f"camera {camera}: no valid pixel with 8 valid neighbours to "
                             "triangulate")
@@ -319,8 +416,9 @@ def scan(
     sens = np.linalg.norm(moved - pts, axis=1) / SENSITIVITY_PX
     fields = {"camera": np.full(len(pts), float(camera)), "u": uv[:, 0], "v": uv[:, 1],
               "phase_error": residual[iv, iu], "uncertainty_mm": sens * noise[iv, iu]}
-    return _relative_quality(PointCloud(pts, normals, view.modulation[iv, iu], fields),
-                             float(np.percentile(view.modulation, 99)))
+    cloud = _relative_quality(PointCloud(pts, normals, view.modulation[iv, iu], fields),
+                              float(np.percentile(view.modulation, 99)))
+    return cloud, _report([view], [{"camera_projector_model_residual": dropped}], cloud, settings)
 
 
 def _relative_quality(cloud: PointCloud, top: float) -> PointCloud:

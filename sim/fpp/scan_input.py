@@ -163,11 +163,12 @@ def scan_files(images: str | Path, rig_path: str | Path, out: str | Path, *,
                pixel_variance_px2: float | None = None, min_modulation: float = 0.0,
                min_modulation_fraction: float = 0.05, unwrap: str = "auto") -> dict:
     """``ltc scan``: read a scan input and a rig file, decode, triangulate, write the PLY
-    ``out``; returns the summary. ``pixel_variance_px2`` None: 0 for our renderer's output
+    ``out``; returns the summary (with ``report``: the ``ScanReport`` of what each check
+    rejected, and its ``report_lines``). ``pixel_variance_px2`` None: 0 for our renderer's output
     (pixel centres), 1/12 for camera images (square pixels average their area)."""
 
     from sim.fpp.cloud import write_ply
-    from sim.fpp.decode import DecodeSettings, scan
+    from sim.fpp.decode import DecodeSettings, scan_with_report
     from sim.optics.rig import Rig
 
     images, out = Path(images), Path(out)
@@ -181,7 +182,7 @@ def scan_files(images: str | Path, rig_path: str | Path, out: str | Path, *,
                               pixel_variance_px2=pixel_variance_px2,
                               min_modulation_fraction=min_modulation_fraction)
     t_read = time.perf_counter() - t0
-    cloud = scan(stacks, pset, rig, settings, camera=camera)
+    cloud, report = scan_with_report(stacks, pset, rig, settings, camera=camera)
     t1 = time.perf_counter()
     out.parent.mkdir(parents=True, exist_ok=True)
     write_ply(out, cloud)
@@ -189,7 +190,8 @@ def scan_files(images: str | Path, rig_path: str | Path, out: str | Path, *,
         "images": str(images), "rig": str(rig_path), "out": str(out),
         "mode": "stereo" if camera is None else f"camera {camera} + projector",
         "points": len(cloud.points), "pattern_set": pset.model_dump(mode="json"),
-        "pixel_variance_px2": pixel_variance_px2,
+        "pixel_variance_px2": pixel_variance_px2, "report": report.to_json(),
+        "report_lines": report.lines(),
         "timings": {"read_s": t_read, "scan_s": t1 - t0 - t_read,
                     "total_s": time.perf_counter() - t0},
     }

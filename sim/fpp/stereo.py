@@ -106,6 +106,9 @@ def stereo_cloud(
     max_lr_error_px: float = 0.25,
     max_model_residual: float = 5.0,
     max_range_step: float = 8.0,
+    residual1: np.ndarray | None = None,
+    residual2: np.ndarray | None = None,
+    rejected: list[dict[str, int]] | None = None,
 ) -> PointCloud:
     """Point cloud from the projector-coordinate maps (H, W) of two cameras (NaN = invalid).
 
@@ -121,6 +124,13 @@ def stereo_cloud(
     max_range_step : points whose range differs from a neighbour's by more than this many
         pixel footprints, or that lack a neighbour, are dropped (depth steps, edges; 8 passes
         surfaces up to 83 degrees oblique; ``inf`` skips the check).
+    residual1, residual2 : each map's local phase model residual (H, W) projector px as
+        measured, when the maps were corrected afterwards (``pixel_footprint_correction``,
+        whose per-pixel shift estimate roughens the map): which pixels are usable, the
+        phase noise and the ``phase_error`` field then come from the measurement.
+    rejected : if given, filled with one dict per camera: the pixels each check dropped with
+        that camera as the reference (``stereo_model_residual``, ``stereo_no_match``,
+        ``stereo_projector_error``, ``stereo_left_right``, ``stereo_range_step``).
     Returns points in the world frame, from both directions, with normals (facing each point's
     reference camera), quality and per-point fields (see ``PointCloud``).
     """
@@ -132,9 +142,12 @@ def stereo_cloud(
             )
     rect = stereo_rectification(cam1, cam2, np.isfinite(coord1), np.isfinite(coord2))
     sides = []
-    for coord, cam, r, p, cols in ((coord1, cam1, rect.R1, rect.P1, rect.cols1),
-                                   (coord2, cam2, rect.R2, rect.P2, rect.cols2)):
+    for coord, cam, r, p, cols, measured_res in (
+            (coord1, cam1, rect.R1, rect.P1, rect.cols1, residual1),
+            (coord2, cam2, rect.R2, rect.P2, rect.cols2, residual2)):
         coef, res = local_phase_model(coord)
+        if measured_res is not None:
+            res = np.where(np.isfinite(res), measured_res, np.nan)
         sides.append(_Side(np.asarray(coord, dtype=np.float64), cam, r, p, cols, coef, res))
     usable = []
     for s in sides:
@@ -145,6 +158,10 @@ def stereo_cloud(
     noise = [phase_noise_px(s.residual, q) for s, q in zip(sides, (quality1, quality2))]
     # the search model is used at the matched pixel too: mask its coefficients
     sides = [_masked(s, u) for s, u in zip(sides, usable)]
+    tally = [dict.fromkeys(("stereo_model_residual", "stereo_no_match", "stereo_projector_error",
+                             "stereo_left_right", "stereo_range_step"), 0) for _ in sides]
+    for t, s, u in zip(tally, sides, usable):
+        t["stereo_model_residual"] = int(np.isfinite(s.coord).sum() - u.sum())
     results = []
     for a, b in ((0, 1), (1, 0)):
         flat, xy_ref, x_s, uv_s, slope = _match_direction(sides[a], sides[b], rect.rows, order,
@@ -171,6 +188,8 @@ def stereo_cloud(
         chosen = ranked[first]
         if projector is None:
             chosen = chosen[counts == 1]
+        tally[a]["stereo_no_match"] = int(usable[a].sum()) - len(chosen)
+        tally[a]["stereo_projector_error"] = int((~good[chosen]).sum())
         chosen = chosen[good[chosen]]
         ref_pix = np.stack([flat[chosen] % w, flat[chosen] // w], axis=1).astype(np.float64)
         results.append((world[chosen], ref_pix, uv_s[chosen], sens[chosen]))
@@ -182,12 +201,17 @@ def stereo_cloud(
         back = np.full((hs, ws, 2), np.nan)
         back[other[1][:, 1].astype(int), other[1][:, 0].astype(int)] = other[2]
         ok = _lr_consistent(uv_s, ref_pix, back, max_lr_error_px)
+        tally[a]["stereo_left_right"] = int((~ok).sum())
         if np.isfinite(max_range_step):
+            before = int(ok.sum())
             ok[ok] = _continuous(world[ok], ref_pix[ok], sides[a].cam, max_range_step)
+            tally[a]["stereo_range_step"] = before - int(ok.sum())
         node = np.round(uv_s[ok]).astype(np.int64)
         sigma = np.hypot(noise[a][ref_pix[ok][:, 1].astype(int), ref_pix[ok][:, 0].astype(int)],
                          noise[1 - a][node[:, 1], node[:, 0]])
         kept.append((world[ok], ref_pix[ok], sens[ok] * sigma))
+    if rejected is not None:
+        rejected[:] = tally
     if not any(len(k[0]) for k in kept):
         raise SimInputError("stereo matching found no pixel with the same projector coordinate in "
                             "both cameras")

@@ -12,7 +12,13 @@ from pathlib import Path
 import numpy as np
 
 from sim.errors import SimInputError
-from sim.metrology.compare import compare_clouds, distance_colormap_png, icp, mesh_signed_distance
+from sim.metrology.compare import (
+    compare_by_pixel,
+    compare_clouds,
+    distance_colormap_png,
+    icp,
+    mesh_signed_distance,
+)
 from sim.metrology.spheres import find_sphere_unknown, find_spheres, measure_ball_bar, sphere_shell
 
 
@@ -92,20 +98,70 @@ def load_mesh(path: str | Path):
     return mesh
 
 
-def measure_against_mesh(points: np.ndarray, mesh_path: str | Path, align: bool = True) -> tuple[dict, np.ndarray]:
+ICP_MAX_ITERATIONS = 40
+"""Iterations after which cloud-to-CAD ICP counts as not converged."""
+ICP_DIVERGED_FRACTION = 0.02
+"""Cloud-to-CAD ICP whose aligned RMSE exceeds this fraction of the CAD part's bounding-box
+diagonal is refused: it slid off the part (a cloud of two objects went to a 76 mm mean)."""
+
+
+def select_object(points: np.ndarray, mesh, margin_mm: float | None = None) -> np.ndarray:
+    """Which points (n,) bool lie inside the CAD ``mesh``'s bounding box at its given pose,
+    grown by ``margin_mm`` (default: 5 % of its diagonal, at least 2 mm): the object's points,
+    not a neighbouring object's or the backdrop's. Raises ``NotCredible`` when fewer than 20
+    points are inside (the part is not where its pose puts it)."""
+    lo, hi = np.asarray(mesh.bounds, dtype=np.float64)
+    if margin_mm is None:
+        margin_mm = max(2.0, 0.05 * float(np.linalg.norm(hi - lo)))
+    p = np.asarray(points, dtype=np.float64)
+    inside = np.all((p >= lo - margin_mm) & (p <= hi + margin_mm), axis=1)
+    if inside.sum() < 20:
+        raise NotCredible(
+            f"only {int(inside.sum())} of {len(p)} points lie inside the CAD part's bounding box "
+            f"({lo.round(1).tolist()} .. {hi.round(1).tolist()} mm, +{margin_mm:g} mm); give the "
+            "mesh at the part's pose in the cloud's frame (or a rough pose), or --no-select")
+    return inside
+
+
+def measure_against_mesh(points: np.ndarray, mesh_path: str | Path, align: bool = True,
+                         select: bool = True) -> tuple[dict, np.ndarray]:
     """Signed distances (mm, positive outside) of the points to a CAD mesh, after ICP
-    alignment unless ``align`` is False. Returns the report and the distances (n,)."""
+    alignment unless ``align`` is False. ``select``: only the points inside the mesh's
+    bounding box at its given pose (``select_object``) take part; the others are another
+    object's. ICP that ends after ``ICP_MAX_ITERATIONS`` is reported (``warnings``), and one
+    whose aligned RMSE exceeds ``ICP_DIVERGED_FRACTION`` of the part's diagonal is refused
+    (``NotCredible``). Returns the report and the distances (n,) of the selected points."""
     import trimesh
 
     mesh = load_mesh(mesh_path)
     info: dict = {}
+    warnings: list[str] = []
+    if select:
+        keep = select_object(points, mesh)
+        info["points_selected"] = int(keep.sum())
+        info["points_outside_part"] = int(len(keep) - keep.sum())
+        points = np.asarray(points, dtype=np.float64)[keep]
     if align:
         ref, face = trimesh.sample.sample_surface_even(mesh, max(20000, len(points)), seed=0)
-        tf, n_it = icp(points, ref, mesh.face_normals[face])
+        tf, n_it = icp(points, ref, mesh.face_normals[face], max_iterations=ICP_MAX_ITERATIONS)
         points = tf.apply(points)
-        info = {"icp_iterations": n_it, "R": tf.R.tolist(), "t_mm": tf.t.tolist()}
+        converged = n_it < ICP_MAX_ITERATIONS
+        info.update(icp_iterations=n_it, icp_converged=converged, R=tf.R.tolist(),
+                    t_mm=tf.t.tolist())
+        if not converged:
+            warnings.append(f"ICP did not converge in {ICP_MAX_ITERATIONS} iterations")
     d = mesh_signed_distance(points, mesh)
-    return {"kind": "reference", "reference": str(mesh_path), **distance_stats(d), **info}, d
+    if align:
+        diag = float(np.linalg.norm(np.ptp(mesh.bounds, axis=0)))
+        rmse = float(np.sqrt(np.mean(d * d)))
+        if rmse > ICP_DIVERGED_FRACTION * diag:
+            raise NotCredible(
+                f"{mesh_path}: ICP did not converge onto the part: RMSE {rmse:.3g} mm after "
+                f"{info['icp_iterations']} iterations, over {100 * ICP_DIVERGED_FRACTION:g} % of "
+                f"the part's {diag:.1f} mm diagonal; is another object in the cloud (keep the "
+                "selection on), and is the mesh near the part's pose?")
+    return {"kind": "reference", "reference": str(mesh_path), **distance_stats(d), **info,
+            "warnings": warnings}, d
 
 
 def measure_against_cloud(points: np.ndarray, reference, align: bool = True) -> tuple[dict, np.ndarray]:
@@ -115,6 +171,29 @@ def measure_against_cloud(points: np.ndarray, reference, align: bool = True) -> 
     d = res.distances
     icp_info = {k: v for k, v in res.as_dict().items() if k in ("icp_iterations", "R", "t_mm")}
     return {"kind": "against", **distance_stats(d), **icp_info}, d
+
+
+def measure_by_pixel(cloud, reference, align: bool = True) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Two clouds of the same rig compared pixel by pixel (``compare_by_pixel``, the
+    reference's Table 4 metric): the signed distance along the reference normal between the
+    points of each rig pixel both measured, away from silhouettes; unaligned, and with
+    ``align`` also after ICP of the whole clouds (``mean_icp_mm``, ``rmse_icp_mm``). Both
+    clouds need the ``camera``, ``u``, ``v`` fields ``ltc scan`` writes. Returns the report,
+    the compared points of ``cloud`` and their distances (mm)."""
+    for name, c in (("cloud", cloud), ("reference", reference)):
+        missing = [k for k in ("camera", "u", "v") if k not in c.fields]
+        if missing:
+            raise SimInputError(f"{name}: no per-point {', '.join(missing)} fields (scalar_camera, "
+                             "scalar_u, scalar_v): compare by pixel needs clouds written by ltc "
+                             "scan")
+    c = compare_by_pixel(cloud, reference)
+    out = {"kind": "by_pixel", **distance_stats(c.distances),
+           "unmatched_points": list(c.unmatched)}
+    if align:
+        tf = compare_clouds(cloud.points, reference.points, reference.normals, align=True).transform
+        a = compare_by_pixel(cloud, reference, transform=tf)
+        out.update(mean_icp_mm=a.mean, rmse_icp_mm=a.rmse, R=tf.R.tolist(), t_mm=tf.t.tolist())
+    return out, np.asarray(cloud.points)[c.index], c.distances
 
 
 def distance_png(points: np.ndarray, distances: np.ndarray, path: str | Path, title: str) -> dict:

@@ -229,6 +229,29 @@ def _best_fit(p: np.ndarray, c: np.ndarray, r: np.ndarray, score: np.ndarray,
     return best
 
 
+MIN_CAP_SAGITTA = 10.0
+"""A sphere found beyond half the cloud's extent (second pass of ``find_sphere_unknown``) must
+bulge by at least this many ``inlier_mm`` over its points (a plane patch fitted by a large
+sphere bulges by about the inlier band)."""
+MAX_RADIUS_EXTENT = 2.0
+"""Second pass of ``find_sphere_unknown``: largest radius, times the cloud's extent."""
+
+
+def _cap_sagitta(p: np.ndarray, fit: SphereFit, band: float) -> float:
+    """How far (mm) the points of ``p`` within ``band`` of the fitted surface bulge: the
+    radius times (1 - cos) of their largest angle from their mean direction seen from the
+    centre."""
+    d = p - fit.centre
+    n = np.linalg.norm(d, axis=1)
+    on = np.abs(n - fit.radius) <= band
+    if on.sum() < 4:
+        return 0.0
+    u = d[on] / n[on, None]
+    m = u.mean(axis=0)
+    m /= np.linalg.norm(m)
+    return float(fit.radius * (1.0 - np.min(u @ m)))
+
+
 def find_sphere_unknown(
     points: np.ndarray,
     inlier_mm: float = 0.2,
@@ -242,8 +265,12 @@ def find_sphere_unknown(
     spheres larger than half the extent (planes, in effect) or smaller than ``5 inlier_mm`` are
     not candidates; the score is the number of points within ``inlier_mm`` of the surface. The
     best candidate's points within ``max(5 inlier_mm, 0.1 r)`` of its surface go to
-    ``fit_sphere``, as in ``find_spheres``. Raises ``ValueError`` when no credible sphere is found.
-    """
+    ``fit_sphere``, as in ``find_spheres``. When that finds none, a second pass allows radii
+    up to ``MAX_RADIUS_EXTENT`` times the extent, and accepts a fit only if its points bulge
+    by ``MIN_CAP_SAGITTA`` inlier bands: a cap seen from one side can span less than its
+    sphere's diameter (a 424-point cap of the 50.8 mm sphere 40 degrees about its pole spans
+    45 mm), which the first pass refuses. Raises ``ValueError`` when no credible sphere is
+    found."""
     p = finite_points(points, "points", 4)
     rng = np.random.default_rng(0) if rng is None else rng
     sub = p[rng.choice(len(p), size=min(len(p), RANSAC_POINTS), replace=False)]
@@ -260,20 +287,38 @@ def find_sphere_unknown(
         if len(nb) >= 4:
             quads[i] = sub[rng.choice(nb, size=4, replace=False)]
             valid[i] = True
-    c, r = _sphere_through_4(quads[valid])
-    good = np.isfinite(r) & (r < 0.5 * extent) & (r > 5.0 * inlier_mm)
+    c_all, r_all = _sphere_through_4(quads[valid])
+    try:
+        return _unknown_pass(p, sub, c_all, r_all, inlier_mm, 0.5 * extent, "half the cloud")
+    except ValueError as first:
+        try:
+            fit = _unknown_pass(p, sub, c_all, r_all, inlier_mm, MAX_RADIUS_EXTENT * extent,
+                                f"{MAX_RADIUS_EXTENT:g} x the cloud's extent")
+        except ValueError:
+            raise first from None
+        band = max(5.0 * inlier_mm, 0.1 * fit.radius)
+        if _cap_sagitta(p, fit, band) < MIN_CAP_SAGITTA * inlier_mm:
+            raise first from None
+        return fit
+
+
+def _unknown_pass(p: np.ndarray, sub: np.ndarray, c: np.ndarray, r: np.ndarray,
+                  inlier_mm: float, largest: float, what: str) -> SphereFit:
+    """One pass of ``find_sphere_unknown`` over the candidates (c, r) with radii below
+    ``largest`` mm (``what`` names that bound)."""
+    good = np.isfinite(r) & (r < largest) & (r > 5.0 * inlier_mm)
     c, r = c[good], r[good]
     if len(r) == 0:
-        raise SimInputError("no sphere in the points: every candidate was flat or larger than "
-                         "half the cloud")
+        raise SimInputError(f"no sphere in the points: every candidate was flat or larger "
+                            f"than {what}")
     score = _scores(sub, c, r, inlier_mm)
     if score.max() < MIN_SPHERE_SUPPORT:
         raise SimInputError(f"no sphere in the points: the best candidate has {score.max()} points "
                          f"within {inlier_mm:g} mm of its surface")
-    fit = _best_fit(p, c, r, score, None, lambda f: 5.0 * inlier_mm < f.radius < 0.5 * extent)
+    fit = _best_fit(p, c, r, score, None, lambda f: 5.0 * inlier_mm < f.radius < largest)
     if fit is None:
-        raise SimInputError("no sphere in the points: the best candidates' fits are flat or larger "
-                         "than half the cloud")
+        raise SimInputError("no sphere in the points: the best candidates' fits are flat or "
+                            f"larger than {what}")
     return fit
 
 

@@ -224,6 +224,40 @@ class MeasuredLens:
         return RayBundle(origins, d, w)
 
 
+CAMERA_MATRIX_TOL_PX = 1e-3
+"""A measured lens fits a rig camera whose K differs from its ``camera_matrix`` by at most this
+(px, every element); distortion coefficients by at most ``1e-6``."""
+
+
+def lens_camera_mismatch(lens: object, camera) -> str | None:
+    """Why a lens cannot be used on the rig ``camera`` (a ``DeviceCalibration``), or None.
+
+    A measured lens's nodes are pixels of the camera it was measured on, and its rays leave
+    that camera's pixels through that camera's K: on a camera of another size, or with
+    another K or distortion, every pixel would take another pixel's light, so such a use is
+    refused rather than adapted (no adaptation is exact: the optical centre and the pupil
+    samples were fitted against that K). Other lens models are not tied to a camera."""
+    if not isinstance(lens, MeasuredLens):
+        return None
+    if tuple(lens.camera_size) != tuple(camera.size):
+        return (f"the measured lens is for a {lens.camera_size[0]} x {lens.camera_size[1]} "
+                f"camera, rig camera '{camera.name}' is {camera.size[0]} x {camera.size[1]}")
+    if lens.camera_matrix is not None:
+        d = float(np.max(np.abs(lens.camera_matrix - camera.K_array)))
+        if d > CAMERA_MATRIX_TOL_PX:
+            return (f"the measured lens was measured with camera matrix "
+                    f"{np.round(lens.camera_matrix, 3).tolist()}, rig camera '{camera.name}' has "
+                    f"{np.round(camera.K_array, 3).tolist()} (differs by {d:.3g} px): it was "
+                    "measured on another camera, or the rig was recalibrated; measure the lens "
+                    "with this camera's matrix")
+    if lens.dist_coeffs is not None:
+        d = float(np.max(np.abs(np.ravel(lens.dist_coeffs)[:5] - np.ravel(camera.dist)[:5])))
+        if d > 1e-6:
+            return (f"the measured lens's distortion {np.ravel(lens.dist_coeffs).tolist()} is not "
+                    f"rig camera '{camera.name}''s {np.ravel(camera.dist).tolist()}")
+    return None
+
+
 def aim_depths(focus_zones_mm: np.ndarray | None, focus_distance_mm: float,
                x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray | float:
     """Focus distance mm that aperture points (x_mm, y_mm) aim at: by pupil radius from the

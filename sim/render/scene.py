@@ -330,9 +330,11 @@ def _build_lens(spec, base: Path, source: Path, index: int, camera: DeviceCalibr
             lens = load_lens(path)
         except SimInputError as exc:
             raise SimInputError(f"{where}: {exc}") from exc
-        if tuple(lens.camera_size) != tuple(camera.size):
-            raise SimInputError(f"{where}: lens file {path} is for a {lens.camera_size} camera, rig camera "
-                             f"'{camera.name}' is {camera.size} (width, height)")
+        from sim.optics.measured_lens import lens_camera_mismatch
+
+        why = lens_camera_mismatch(lens, camera)
+        if why is not None:
+            raise SimInputError(f"{where}: lens file {path}: {why}")
         return lens
     return spec
 

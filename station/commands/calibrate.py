@@ -13,7 +13,7 @@ import argparse
 import shutil
 from pathlib import Path
 
-from station.errors import UsageError, check_output
+from station.errors import StationError, UsageError, check_output
 
 OPTIONS = {"out": "rig file to write (.yaml, .yml or .xml)", "force": None, "json": None}
 MODELS = ("none", "k1k2", "k1k2p1p2k3")
@@ -43,9 +43,9 @@ def run(args: argparse.Namespace) -> dict:
     if args.report is not None:
         check_output(args.report, args.force, "--report")
     if not args.capture.is_dir():
-        raise ValueError(f"capture folder {args.capture} not found")
+        raise StationError(f"capture folder {args.capture} not found")
     if not args.board.is_file():
-        raise ValueError(f"board file {args.board} not found")
+        raise StationError(f"board file {args.board} not found")
     cam = args.camera_distortion
     result = calibrate(args.capture, args.board,
                        distortion=(cam, cam, args.projector_distortion),

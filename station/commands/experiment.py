@@ -33,6 +33,9 @@ def arguments(p: argparse.ArgumentParser) -> None:
                    "camera's pixel pitch and focal length, cropped to the objects (slow)")
     p.add_argument("--lenses", type=Path, nargs=2, metavar="LENS.npz", help="reuse two "
                    "measured lenses made with this config (skip the station)")
+    p.add_argument("--real-out", type=Path, metavar="DIR", help="write the real scanner's "
+                   "images as a real-scan folder here (default: OUT/real), which ltc validate "
+                   "reads as a lab's")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -42,7 +45,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.paper_size:
         cfg = paper_size_config(**cfg.model_dump(exclude_unset=True))
     return report(run_experiment(cfg, args.out, progress=not args.quiet, log=log(args),
-                                 lenses=args.lenses, force=args.force), args)
+                                 lenses=args.lenses, force=args.force,
+                                 real_out=args.real_out), args)
 
 
 def log(args: argparse.Namespace) -> Callable[[str], None]:

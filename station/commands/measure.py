@@ -7,7 +7,10 @@ best-supported sphere of any size (RANSAC with no radius prior). --ballbar: the 
 (nominal --diameter, required, same refusal) and their centre distance (with --length L also
 the length error). --reference MESH: signed distances to a CAD mesh (positive outside), after
 ICP alignment unless --no-align. --against CLOUD2.ply: ICP-align the cloud to CLOUD2, then
-mean and RMSE of the signed distances of corresponding points. --png FILE writes a colour map
+mean and RMSE of the signed distances of corresponding points; with --by-pixel the points of
+the same rig pixel (the reference's Table 4 metric), unaligned and after ICP. --reference keeps
+only the points inside the mesh's bounding box at its given pose (--no-select: all), and
+refuses an ICP that slid off the part. --png FILE writes a colour map
 of the signed distances (to the fitted spheres, the mesh or the reference cloud). Lengths in
 mm.
 """
@@ -38,6 +41,13 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tolerance", type=positive_float, default=2.0, metavar="PERCENT",
                    help="refuse sphere / ball fits further than this from --diameter (default 2)")
     p.add_argument("--no-align", action="store_true", help="skip the ICP alignment")
+    p.add_argument("--no-select", action="store_true",
+                   help="--reference: align every point, not only those inside the mesh's "
+                        "bounding box at its given pose (the part's, not another object's)")
+    p.add_argument("--by-pixel", action="store_true",
+                   help="--against: compare the points of the same rig pixel (both clouds from "
+                        "ltc scan with one rig; the reference's Table 4 metric), unaligned and, "
+                        "unless --no-align, after ICP")
     p.add_argument("--png", type=Path,
                    help="write a colour map of the signed distances here (to the fitted "
                         "sphere(s), the mesh or the reference cloud)")
@@ -49,6 +59,8 @@ def run(args: argparse.Namespace) -> dict:
     from sim.fpp.cloud import read_ply
     from sim.metrology import measure as m
 
+    if args.by_pixel and args.against is None:
+        raise UsageError("--by-pixel compares with --against CLOUD2")
     if args.ballbar and args.diameter is None:
         raise UsageError("--ballbar needs --diameter (the nominal ball diameter, mm)")
     if args.png is not None:
@@ -64,7 +76,17 @@ def run(args: argparse.Namespace) -> dict:
     elif args.ballbar:
         out, pts, d = m.measure_ballbar(pts, args.diameter, args.length, tol)
     elif args.reference is not None:
-        out, d = m.measure_against_mesh(pts, args.reference, not args.no_align)
+        out, d = m.measure_against_mesh(pts, args.reference, not args.no_align,
+                                        select=not args.no_select)
+        if out["warnings"]:
+            import sys
+
+            for w in out["warnings"]:
+                print(f"ltc measure: warning: {w}", file=sys.stderr)
+    elif args.by_pixel:
+        out, pts, d = m.measure_by_pixel(read_ply(args.cloud), read_ply(args.against),
+                                         not args.no_align)
+        out["against"] = str(args.against)
     else:
         out, d = m.measure_against_cloud(pts, read_ply(args.against), not args.no_align)
         out["against"] = str(args.against)
@@ -96,6 +118,10 @@ def _text(r: dict) -> str:
         s = f"ball bar: length {r['length_mm']:.4f} mm, centres " + ", ".join(
             "({:.4f}, {:.4f}, {:.4f}) mm".format(*b["centre_mm"]) for b in r["spheres"])
         return s + (f", error {1e3 * r['length_error_mm']:+.2f} um" if "length_error_mm" in r else "")
+    if r["kind"] == "by_pixel" and "mean_icp_mm" in r:
+        return (f"by pixel: {r['points']} pixels, mean {1e3 * r['mean_mm']:+.2f} um, RMSE "
+                f"{1e3 * r['rmse_mm']:.2f} um; after ICP mean {1e3 * r['mean_icp_mm']:+.2f} um, "
+                f"RMSE {1e3 * r['rmse_icp_mm']:.2f} um")
     return (f"{r['kind']}: {r['points']} points, mean {1e3 * r['mean_mm']:+.2f} um, "
             f"RMSE {1e3 * r['rmse_mm']:.2f} um, range [{r['min_mm']:.4f}, {r['max_mm']:.4f}] mm")
 

@@ -69,4 +69,5 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def text(s: dict) -> str:
-    return f"{s['points']} points ({s['mode']}) in {s['timings']['total_s']:.2f} s; wrote {s['out']}"
+    head = f"{s['points']} points ({s['mode']}) in {s['timings']['total_s']:.2f} s; wrote {s['out']}"
+    return "\n".join([head, *s.get("report_lines", [])])

@@ -8,7 +8,7 @@ from sim._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "config": "ExperimentConfig LensSpec load_experiment_config paper_size_config",
-    "rows": "DistanceStats ModelNumbers PositionRow",
+    "rows": "DistanceStats ModelNumbers PoseValidation PositionRow",
     "run": "run_experiment",
     "demo": "demo_config run_demo",
 })

@@ -1,6 +1,7 @@
-"""The experiment's numbers of one position (``PositionRow``) and of one scanner there
-(``ModelNumbers``): the rows of ``results.json`` and ``positions/NAME.json`` (docs/formats.md,
-"Experiment"). Lengths in mm, times in s."""
+"""The experiment's numbers of one position (``PositionRow``), of one scanner there
+(``ModelNumbers``) and of the validation path there (``PoseValidation``): the rows of
+``results.json`` and ``positions/NAME.json`` (docs/formats.md, "Experiment"). Lengths in mm,
+times in s, unless named."""
 
 from __future__ import annotations
 
@@ -85,11 +86,58 @@ class ModelNumbers:
 
 
 @dataclass(frozen=True)
+class PoseValidation:
+    """The validation path's figures at one position (``station.experiment.validated``, the
+    numbers of ``ltc validate``'s ``PositionResult``; no timings, so that a resumed position's
+    row is the one first written).
+
+    true_offsets_um : offsets from the true pose, um: ``real_fit`` (the real cloud's own fit),
+    ``refined`` (the pose refined with the first twin, the measured-LTC scanner) and
+    ``refined_TWIN`` (one refinement step with each other twin from there); None without a
+    true pose.
+    refine_steps_um : the analysis-by-synthesis corrections, um; refine_converged : whether
+    the last fell below 1 um.
+    twin_pose_offset_um : per twin its one-step pose's offset from the refined pose, um.
+    response : the camera response (``station.validation.twin.Response.to_json``: per camera
+    ``gain``, ``offset``, ``read_noise_dn``, ``shot_dn``; ``bits``, ``source``).
+    images : per twin, per camera the fringe image and phase differences against real
+    (``station.validation.compare.ImageStats.to_json``).
+    """
+
+    true_offsets_um: dict[str, float] | None
+    refine_steps_um: list[float]
+    refine_converged: bool
+    twin_pose_offset_um: dict[str, float]
+    response: dict[str, Any]
+    images: dict[str, list[dict[str, Any]]]
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> PoseValidation:
+        names = [f.name for f in fields(cls)]
+        if set(data) != set(names):
+            raise ValueError(f"validation: fields {sorted(data)}, expected {sorted(names)}")
+        offsets = data["true_offsets_um"]
+        return cls(
+            true_offsets_um=None if offsets is None
+            else {str(k): float(v) for k, v in offsets.items()},
+            refine_steps_um=[float(x) for x in data["refine_steps_um"]],
+            refine_converged=bool(data["refine_converged"]),
+            twin_pose_offset_um={str(k): float(v)
+                                 for k, v in data["twin_pose_offset_um"].items()},
+            response=dict(data["response"]),
+            images={str(k): [dict(c) for c in v] for k, v in data["images"].items()})
+
+
+@dataclass(frozen=True)
 class PositionRow:
     """One position's numbers: name (S1.., B1.., C1), kind ('sphere', 'ballbar', 'cad'),
     defocus group ('slight', 'large'), defocus_mm (depth along camera 0's axis minus the
     focus distance), the object's world centre (3,) mm, and per scanner (real, ltc,
-    gaussian, pinhole) its ``ModelNumbers``."""
+    gaussian, pinhole) its ``ModelNumbers``; ``validation``: the validation path's figures
+    (``PoseValidation``; None: not validated, left out of the JSON)."""
 
     name: str
     kind: str
@@ -97,15 +145,22 @@ class PositionRow:
     defocus_mm: float
     centre_mm: list[float]
     models: dict[str, ModelNumbers]
+    validation: PoseValidation | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "kind": self.kind, "defocus": self.defocus,
-                "defocus_mm": self.defocus_mm, "centre_mm": list(self.centre_mm),
-                "models": {n: m.to_json() for n, m in self.models.items()}}
+        out: dict[str, Any] = {
+            "name": self.name, "kind": self.kind, "defocus": self.defocus,
+            "defocus_mm": self.defocus_mm, "centre_mm": list(self.centre_mm),
+            "models": {n: m.to_json() for n, m in self.models.items()}}
+        if self.validation is not None:
+            out["validation"] = self.validation.to_json()
+        return out
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> PositionRow:
         return cls(name=str(data["name"]), kind=str(data["kind"]),
                    defocus=str(data["defocus"]), defocus_mm=float(data["defocus_mm"]),
                    centre_mm=[float(x) for x in data["centre_mm"]],
-                   models={n: ModelNumbers.from_json(m) for n, m in data["models"].items()})
+                   models={n: ModelNumbers.from_json(m) for n, m in data["models"].items()},
+                   validation=None if data.get("validation") is None
+                   else PoseValidation.from_json(data["validation"]))

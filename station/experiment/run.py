@@ -25,7 +25,8 @@ a faithful virtual scanner.
 
 Everything is written under one folder ``out``: ``experiment.json`` (the config),
 ``station/cam0``, ``station/cam1`` (sequence folders), ``lenses.json`` (the measured lenses'
-SHA-256), ``cad_part.ply``, ``positions/`` (each finished position's numbers and arrays),
+SHA-256), ``cad_part.ply``, ``real/`` (the real scanner's images as a real-scan folder, or
+``real_out``), ``positions/`` (each finished position's numbers and arrays),
 ``figures/``, ``results.json``, ``report.md``. An interrupted experiment resumes where it
 stopped when run again with the same config and folder.
 """
@@ -36,12 +37,13 @@ import datetime as _dt
 import os
 import platform
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from sim.storage.durable import durable_file, write_json
 from sim.storage.lock import StoreLock
-from station.errors import StationError
+from station.errors import StationError, UsageError
 from station.experiment.acceptance import acceptance, position_line, public_row, size_vs_real_um
 from station.experiment.bench import (
     RENDER,
@@ -85,7 +87,7 @@ from station.experiment.resume import (
     save_position,
     start_or_resume,
 )
-from station.experiment.rows import ModelNumbers, PositionRow
+from station.experiment.rows import ModelNumbers, PoseValidation, PositionRow
 from station.experiment.scan import Maps, Scan, compare_position, scan_position, world_cad_mesh
 from station.experiment.sizes import (
     SizeFit,
@@ -95,12 +97,18 @@ from station.experiment.sizes import (
     size_error_mm,
     size_fit,
 )
+from station.experiment.validated import (
+    pose_summary,
+    scan_position_validated,
+    start_real_folder,
+)
+from station.validation.folder import SCAN_FILE
 
 __all__ = [
     "BALLBAR_BALL_MM", "BALLBAR_LENGTH_MM", "BENCH_SUBPIXELS", "FOCAL_MM", "MIN_BALL_COVERAGE",
     "MODELS", "POSITIONS", "REFERENCE_PITCH_UM", "RENDER", "SHELL_MM", "SPHERE_DIAMETER_MM",
-    "VIRTUAL", "ExperimentConfig", "LensSpec", "Log", "Maps", "ModelNumbers", "Position",
-    "PositionRow", "Scan", "SizeFit",
+    "VIRTUAL", "ExperimentConfig", "LensSpec", "Log", "Maps", "ModelNumbers", "PoseValidation",
+    "Position", "PositionRow", "Scan", "SizeFit",
     "acceptance", "build_rig", "cad_part_mesh", "check_coverage", "check_lenses", "check_views",
     "compare_position", "image_position", "lcd_size", "load_experiment_config", "load_position",
     "machine", "measure_cameras", "on_ball", "paper_size_config", "position_line", "positions",
@@ -112,7 +120,8 @@ __all__ = [
 
 def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = True,
                    log: Log = print, lenses: list[str | Path] | None = None,
-                   force: bool = False) -> dict[str, Any]:
+                   force: bool = False, real_out: str | Path | None = None
+                   ) -> dict[str, Any]:
     """The whole experiment into the folder ``out`` (see the module docstring); returns the
     results (``rows``: one ``PositionRow`` per position; ``out/results.json`` holds the same
     with the rows as JSON objects). ``lenses``: two measured-lens files made with this
@@ -123,9 +132,14 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
     redone; a different config or different lenses are refused. One run writes the folder
     at a time (``writer.lock``, as the stores'). ``force`` takes over the writer locks a
     killed run left (the folder's, the stations', their run stores'; never a live
-    writer's)."""
+    writer's).
+
+    The real scanner's images go into a real-scan folder (``real_out``, default
+    ``out/real``), and the virtual scanners are validated against it by ``ltc validate``'s
+    code (``station.experiment.validated``), the path a lab's real scanner takes; each row's
+    ``validation`` holds that path's figures (``PoseValidation``)."""
     from sim.optics.lens import GaussianLens
-    from sim.optics.measured_lens import load_lens
+    from sim.optics.lens_file import load_lens
 
     out = Path(out)
     t_start = time.perf_counter()
@@ -154,6 +168,11 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
             if not cad_path.exists():
                 with durable_file(cad_path, "wb") as f:
                     cad_mesh.export(f, file_type="ply")
+        real_dir = Path(real_out) if real_out is not None else out / "real"
+        if real_dir.exists() and any(real_dir.iterdir()) and not (real_dir / SCAN_FILE).exists():
+            raise UsageError(f"--real-out {real_dir} exists and is not a real-scan folder; "
+                             "choose a new folder")
+        start_real_folder(real_dir, cfg, rig, cad_path)
         rows: list[PositionRow] = []
         maps: dict[str, Maps] = {}
         images: dict[str, Any] = {}
@@ -165,8 +184,10 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
             t0 = time.perf_counter()
             done = load_position(folder, pos.name)
             if done is None:
-                scans = scan_position(pos, cfg, rig, models, cad_path)
+                scans, checks = scan_position_validated(pos, cfg, rig, models, cad_path,
+                                                        real_dir)
                 row, mp = compare_position(pos, cfg, rig, scans, cad_path, cad_mesh)
+                row = replace(row, validation=checks)
                 pics = {n: scans[n].images for n in MODELS} if pos.name == shown else None
                 save_position(folder, pos.name, row, mp, pics)
                 took = f"{time.perf_counter() - t0:.0f} s"
@@ -188,6 +209,7 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
         gaussian_sigma_mm = [g.sigma_mm for g in models["gaussian"] if isinstance(g, GaussianLens)]
         results = {
             "report": str(out / "report.md"),
+            "real_scan_folder": str(real_dir),
             "positions": [public_row(r) for r in rows],
             "rows": rows,
             "station": station,
@@ -197,6 +219,7 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
             "render_s": render_s,
             "render_vs_pinhole": {n: render_s[n] / render_s["pinhole"] for n in MODELS},
             "acceptance": acceptance(rows),
+            "pose_refinement": pose_summary(rows),
             "seconds": {"total": time.perf_counter() - t_start, "scan": scan_s},
             "resumed": {"resumed": resumed, "positions_from_earlier_runs": earlier},
             "config": cfg.model_dump(mode="json"),

@@ -33,7 +33,8 @@ import numpy as np
 from scipy import ndimage
 from tqdm import tqdm
 
-from sim.optics.measured_lens import LensFileWriter, MeasuredLens, aim_depths
+from sim.optics.lens_file import LensFileWriter
+from sim.optics.measured_lens import MeasuredLens, aim_depths
 from sim.optics.projection import pixel_to_normalized
 from station.lens import aperture as ap
 from station.lens.centroids import STATUS_OK

@@ -1,4 +1,5 @@
-"""sim.validation: one line per pydantic error naming the source and the field path."""
+"""sim.validation: every pydantic error naming the source and the field path, all on one line
+(joined by "; ", as a CLI error is one line)."""
 
 import pytest
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -29,7 +30,8 @@ def _error(data) -> ValidationError:
 
 def test_each_error_names_source_and_field_path():
     msg = format_validation_error("a.toml", _error({"items": [{"n": 0}, {"n": 1, "m": 2}]}))
-    assert msg.splitlines() == [
+    assert "\n" not in msg
+    assert msg.split("; ") == [
         "a.toml: field 'items.0.n': Input should be greater than or equal to 1",
         "a.toml: field 'items.1.m': Extra inputs are not permitted",
     ]

@@ -196,8 +196,9 @@ def test_measured_lens_file_plugs_in(tmp_path):
 def test_measured_lens_errors_name_scene_and_field(tmp_path):
     _measured_thin_lens(tmp_path, (100, 50))
     text = HEAD + '[[lenses]]\nkind = "measured"\npath = "lens.npz"\n' + PINHOLE + PATTERNS + SPHERE
-    with pytest.raises(ValueError, match=r"scene.toml: field 'lenses\[0\].path': lens file .*lens.npz is for "
-                                         r"a \(100, 50\) camera, rig camera 'left' is \(410, 217\)"):
+    with pytest.raises(ValueError, match=r"scene.toml: field 'lenses\[0\].path': lens file .*lens.npz: the "
+                                         r"measured lens is for a 100 x 50 camera, rig camera 'left' is "
+                                         r"410 x 217"):
         load_scene_file(_scene(tmp_path, text))
     (tmp_path / "lens.npz").write_bytes(b"not a zip")
     with pytest.raises(ValueError, match=r"scene.toml: field 'lenses\[0\].path': .*lens.npz: not a readable"):

@@ -42,6 +42,8 @@ MISSING = {
     "scan": ["scan", "{d}/none", "--rig", "{d}/none.yaml", "--out", "{d}/c.ply"],
     "calibrate": ["calibrate", "{d}/none", "--board", "{d}/none.toml", "--out", "{d}/rig.yaml"],
     "measure": ["measure", "{d}/none.ply", "--sphere"],
+    "validate": ["validate", "{d}/none", "--lenses", "{d}/a.toml", "{d}/b.toml", "--out",
+                 "{d}/v"],
     "experiment": ["experiment", "{d}/none.toml", "--out", "{d}/exp"],
     "demo": ["demo", "--config", "{d}/none.toml", "--out", "{d}/demo"],
 }
@@ -77,6 +79,8 @@ OUTPUTS = {
     "measure": (["measure", "{d}/c.ply", "--against", "{d}/c2.ply", "--png", "{o}"], "--force"),
     "run": (["run", "{cfg}", "--out", "{od}"], "--out"),
     "experiment": (["experiment", "--out", "{od}"], "--out"),
+    "validate": (["validate", "{d}/none", "--lenses", "{d}/a.toml", "{d}/b.toml", "--out",
+                  "{od}"], "--out"),
     "demo": (["demo", "--out", "{od}"], "--out"),
 }
 
