@@ -34,6 +34,7 @@ not: their difference is the defocus-induced phase error.
 from __future__ import annotations
 
 import hashlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,6 +56,17 @@ CAMERA_KEYS = ("images", "numerator", "denominator", "wrapped_phase", "backgroun
                "normals", "mask")
 TWO_PI = 2.0 * np.pi
 POISSON_EXACT_BELOW_E = 64.0  # electrons: shot noise drawn exactly below, as a normal above
+
+
+PARALLEL = True
+
+
+class _Done:
+    def __init__(self, v):
+        self.v = v
+
+    def result(self):
+        return self.v
 
 
 @dataclass
@@ -186,8 +198,7 @@ def _labels(radiance: np.ndarray, camera, groups) -> dict[str, np.ndarray]:
         kernels.mean(dn, f32(n), out["background"][j].reshape(-1))
         ph = out["wrapped_phase"][j]
         np.arctan2(out["numerator"][j], out["denominator"][j], out=ph)
-        np.mod(ph, two_pi, out=ph)
-        ph[ph >= two_pi] = 0.0
+        kernels.wrap_phase(ph.reshape(-1), two_pi)
         mod = out["modulation"][j]
         np.hypot(out["numerator"][j], out["denominator"][j], out=mod)
         np.multiply(f32(2.0 / n), mod, out=mod)
@@ -250,21 +261,22 @@ def _camera_arrays(res, cam: DeviceCalibration, scene: SampleScene, groups) -> d
     c = scene.camera
     out = {"images": res.images, **_labels(res.radiance, c, groups)}
     fine = min(p for p, _, _ in groups)
-    u_p = res.projector_map[..., 0]
-    absph = TWO_PI * u_p / fine
-    out["absolute_phase"] = absph.astype(np.float32)
-    order = np.where(np.isfinite(absph), np.floor(absph / TWO_PI), -1)
-    out["fringe_order"] = order.astype(np.int32)
-    out["projector_uv"] = res.projector_map.astype(np.float32)
-    out["depth_mm"] = res.depth.astype(np.float32)
-    xy = _pixel_xy(cam)
-    z = res.depth.astype(np.float32)[..., None]
-    pts = np.concatenate([xy.astype(np.float32) * z, z], axis=-1)
+    w, h = cam.size
+    out["absolute_phase"] = np.empty((h, w), np.float32)
+    out["fringe_order"] = np.empty((h, w), np.int32)
+    out["projector_uv"] = np.empty((h, w, 2), np.float32)
+    out["depth_mm"] = np.empty((h, w), np.float32)
+    out["mask"] = np.empty((h, w), np.uint8)
+    pts = np.empty((h, w, 3), np.float32)
+    xy = np.ascontiguousarray(_pixel_xy(cam), np.float64)
+    kernels.truth(np.ascontiguousarray(res.projector_map, np.float64).reshape(-1, 2),
+                  np.ascontiguousarray(res.depth, np.float64).reshape(-1),
+                  np.ascontiguousarray(res.object_id).reshape(-1),
+                  np.ascontiguousarray(res.lit).reshape(-1), xy.reshape(-1, 2), float(fine),
+                  TWO_PI, out["absolute_phase"].reshape(-1), out["fringe_order"].reshape(-1),
+                  out["projector_uv"].reshape(-1, 2), out["depth_mm"].reshape(-1),
+                  pts.reshape(-1, 3), out["mask"].reshape(-1))
     out["normals"] = _normals(pts, res.object_id)
-    hit = res.object_id >= 0
-    inside = np.isfinite(res.projector_map[..., 0])
-    out["mask"] = np.where(~hit, MASK_NONE, np.where(res.lit, MASK_VALID, np.where(
-        inside, MASK_SHADOWED, MASK_OUTSIDE))).astype(np.uint8)
     return out
 
 
@@ -289,17 +301,28 @@ def render_sample(scene: SampleScene, geometry: TraceGeometry | None = None) -> 
         raise ValueError("the pattern set has no phase-shift images")
     if isinstance(scene.patterns, GrayCodeSet):
         groups = groups[:1]
-    cams = []
     noisy = scene.camera.sensor.noisy
     quiet = scene.camera.model_copy(update={"shot_noise": False, "read_noise_e": 0.0})
-    for i, cam in enumerate(rig.cameras):
-        lens = build_lens(scene.lenses[i], cam)
-        res = render_camera(geom, rig, i, lens, projected, quiet, None,
-                            where=f"sample {scene.index}")
-        if noisy:
-            res.images = _noisy_images(res.radiance, scene.camera,
-                                       np.random.default_rng([*scene.noise_seed, i]))
-        cams.append(_camera_arrays(res, cam, scene, groups))
+
+    def noise(res, i: int) -> np.ndarray:
+        return _noisy_images(res.radiance, scene.camera,
+                             np.random.default_rng([*scene.noise_seed, i]))
+
+    # a camera's noise (its normal deviates: a third of a pinhole sample's time; they release
+    # the GIL) is drawn on a thread while the next camera is traced and its labels computed
+    cams = []
+    with ThreadPoolExecutor(1) as pool:
+        jobs = []
+        for i, cam in enumerate(rig.cameras):
+            lens = build_lens(scene.lenses[i], cam)
+            res = render_camera(geom, rig, i, lens, projected, quiet, None,
+                                where=f"sample {scene.index}")
+            jobs.append((pool.submit(noise, res, i) if PARALLEL else _Done(noise(res, i)))
+                        if noisy else None)
+            cams.append(_camera_arrays(res, cam, scene, groups))
+        for arrays, job in zip(cams, jobs, strict=True):
+            if job is not None:
+                arrays["images"] = job.result()
     return Sample(scene, cams)
 
 
