@@ -34,7 +34,7 @@ not: their difference is the defocus-induced phase error.
 from __future__ import annotations
 
 import hashlib
-from concurrent.futures import ThreadPoolExecutor
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,15 +58,17 @@ TWO_PI = 2.0 * np.pi
 POISSON_EXACT_BELOW_E = 64.0  # electrons: shot noise drawn exactly below, as a normal above
 
 
-PARALLEL = True
+_SCRATCH = threading.local()
 
 
-class _Done:
-    def __init__(self, v):
-        self.v = v
-
-    def result(self):
-        return self.v
+def _scratch(key: str, shape: tuple, dtype) -> np.ndarray:
+    """A scratch array of this thread (its content undefined), reused from sample to sample:
+    fresh pages cost a first touch each, as much as the pass that fills them."""
+    cache = _SCRATCH.__dict__
+    a = cache.get(key)
+    if a is None or a.shape != tuple(shape) or a.dtype != np.dtype(dtype):
+        a = cache[key] = np.empty(shape, dtype)
+    return a
 
 
 @dataclass
@@ -187,7 +189,7 @@ def _labels(radiance: np.ndarray, camera, groups) -> dict[str, np.ndarray]:
     two_pi = f32(TWO_PI)
     for j, (_, idx, n) in enumerate(groups):
         d = TWO_PI * np.arange(n) / n
-        dn = np.empty((n, rad.shape[1]), f32)
+        dn = _scratch(f"dn{n}", (n, rad.shape[1]), f32)
         kernels.noise_free_dn(rad, np.asarray(idx, np.int64), f32(camera.exposure_e),
                               f32(camera.full_well_e), f32(camera.dn_per_e),
                               f32(camera.black_level_dn), dn)
@@ -215,11 +217,11 @@ def _noisy_images(radiance: np.ndarray, camera, rng: np.random.Generator) -> np.
     Poisson deviate plus the read noise."""
     f32 = np.float32
     rad = np.ascontiguousarray(radiance, dtype=f32).reshape(-1)
-    z = rng.standard_normal(rad.size, dtype=f32)
+    z = rng.standard_normal(dtype=f32, out=_scratch("z", (rad.size,), f32))
     quantize = bool(camera.quantize)
     dtype = (np.uint8 if camera.bit_depth == 8 else np.uint16) if quantize else f32
     out = np.empty(rad.size, dtype)
-    low = np.empty(rad.size, np.int64)
+    low = _scratch("low", (rad.size,), np.int64)
     r2 = f32(camera.read_noise_e**2)
     k = kernels.expose(rad, z, f32(camera.exposure_e), r2, bool(camera.shot_noise),
                        f32(POISSON_EXACT_BELOW_E), f32(camera.full_well_e),
@@ -291,6 +293,15 @@ def pattern_stack(scene: SampleScene) -> PatternStack:
                         np.zeros((0, h), np.float32))
 
 
+def _render_scratch(i: int, cam: DeviceCalibration, n: int):
+    """This thread's last rendering of camera ``i``, when it fits (name, size, patterns)."""
+    res = _SCRATCH.__dict__.get(f"render{i}")
+    w, h = cam.size
+    if res is None or res.name != cam.name or res.radiance.shape != (n, h, w):
+        return None
+    return res
+
+
 def render_sample(scene: SampleScene, geometry: TraceGeometry | None = None) -> Sample:
     """The arrays of a sample from its description alone (a pure function of ``scene``)."""
     rig = scene.rig
@@ -304,25 +315,19 @@ def render_sample(scene: SampleScene, geometry: TraceGeometry | None = None) -> 
     noisy = scene.camera.sensor.noisy
     quiet = scene.camera.model_copy(update={"shot_noise": False, "read_noise_e": 0.0})
 
-    def noise(res, i: int) -> np.ndarray:
-        return _noisy_images(res.radiance, scene.camera,
-                             np.random.default_rng([*scene.noise_seed, i]))
-
-    # a camera's noise (its normal deviates: a third of a pinhole sample's time; they release
-    # the GIL) is drawn on a thread while the next camera is traced and its labels computed
     cams = []
-    with ThreadPoolExecutor(1) as pool:
-        jobs = []
-        for i, cam in enumerate(rig.cameras):
-            lens = build_lens(scene.lenses[i], cam)
-            res = render_camera(geom, rig, i, lens, projected, quiet, None,
-                                where=f"sample {scene.index}")
-            jobs.append((pool.submit(noise, res, i) if PARALLEL else _Done(noise(res, i)))
-                        if noisy else None)
-            cams.append(_camera_arrays(res, cam, scene, groups))
-        for arrays, job in zip(cams, jobs, strict=True):
-            if job is not None:
-                arrays["images"] = job.result()
+    for i, cam in enumerate(rig.cameras):
+        lens = build_lens(scene.lenses[i], cam)
+        # its outputs are scratch (reused) when the images are the noisy ones made here
+        res = render_camera(geom, rig, i, lens, projected, quiet, None,
+                            where=f"sample {scene.index}",
+                            out=_render_scratch(i, cam, len(projected)) if noisy else None)
+        arrays = _camera_arrays(res, cam, scene, groups)
+        if noisy:  # (res.images, scratch, are the noise-free ones: not part of the sample)
+            _SCRATCH.__dict__[f"render{i}"] = res
+            arrays["images"] = _noisy_images(res.radiance, scene.camera,
+                                             np.random.default_rng([*scene.noise_seed, i]))
+        cams.append(arrays)
     return Sample(scene, cams)
 
 
