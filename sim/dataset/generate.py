@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import hashlib
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -302,10 +303,18 @@ def _render_scratch(i: int, cam: DeviceCalibration, n: int):
     return res
 
 
-def render_sample(scene: SampleScene, geometry: TraceGeometry | None = None) -> Sample:
-    """The arrays of a sample from its description alone (a pure function of ``scene``)."""
+def render_sample(scene: SampleScene, geometry: TraceGeometry | None = None,
+                  timings: dict[str, float] | None = None) -> Sample:
+    """The arrays of a sample from its description alone (a pure function of ``scene``).
+    ``timings``: seconds of each stage are added to it (``geometry_s``; ``trace_s`` and
+    ``gather_s`` of the rendering, ``render_s`` its whole; ``noise_s``, ``labels_s``)."""
+    clock = time.perf_counter
+    t = {k: 0.0 for k in ("geometry_s", "trace_s", "gather_s", "render_s", "noise_s",
+                          "labels_s")}
+    t0 = clock()
     rig = scene.rig
     geom = geometry if geometry is not None else scene_geometry(scene.objects)
+    t["geometry_s"] = clock() - t0
     projected = project_patterns(pattern_stack(scene), scene.projector)
     groups = phase_groups(scene)
     if not groups:
@@ -318,16 +327,27 @@ def render_sample(scene: SampleScene, geometry: TraceGeometry | None = None) -> 
     cams = []
     for i, cam in enumerate(rig.cameras):
         lens = build_lens(scene.lenses[i], cam)
+        t0 = clock()
         # its outputs are scratch (reused) when the images are the noisy ones made here
         res = render_camera(geom, rig, i, lens, projected, quiet, None,
                             where=f"sample {scene.index}",
                             out=_render_scratch(i, cam, len(projected)) if noisy else None)
+        t1 = clock()
         arrays = _camera_arrays(res, cam, scene, groups)
+        t2 = clock()
         if noisy:  # (res.images, scratch, are the noise-free ones: not part of the sample)
             _SCRATCH.__dict__[f"render{i}"] = res
             arrays["images"] = _noisy_images(res.radiance, scene.camera,
                                              np.random.default_rng([*scene.noise_seed, i]))
         cams.append(arrays)
+        t["render_s"] += t1 - t0
+        t["trace_s"] += res.timings.get("trace_s", 0.0)
+        t["gather_s"] += res.timings.get("gather_s", 0.0)
+        t["labels_s"] += t2 - t1
+        t["noise_s"] += clock() - t2
+    if timings is not None:
+        for k, v in t.items():
+            timings[k] = timings.get(k, 0.0) + v
     return Sample(scene, cams)
 
 
