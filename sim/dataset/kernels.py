@@ -8,10 +8,12 @@ with numpy, whose float32 loops the loops here cannot be sure to match.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba as nb
 import numpy as np
 
-_JIT = {"nogil": True, "cache": True, "error_model": "numpy"}
+_JIT: dict[str, Any] = {"nogil": True, "cache": True, "error_model": "numpy"}
 
 
 @nb.njit(**_JIT)

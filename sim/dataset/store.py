@@ -173,9 +173,9 @@ def write_sample(root: Path, sample: Sample, storage: Storage | None = None) -> 
     tmp.parent.mkdir(exist_ok=True)
     try:
         with ThreadPoolExecutor(1) as hasher:  # the sha256 runs while the arrays compress
-            digest = hasher.submit(sample.checksum)
-            write_group(tmp, sample, digest, storage)
-            digest = digest.result()
+            pending = hasher.submit(sample.checksum)
+            write_group(tmp, sample, pending, storage)
+            digest = pending.result()
         sync_tree(tmp)
         final = root / SAMPLES / name
         if final.exists():
