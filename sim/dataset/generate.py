@@ -34,13 +34,15 @@ not: their difference is the defocus-induced phase error.
 from __future__ import annotations
 
 import hashlib
+import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numba as nb
 import numpy as np
 import trimesh
 
+from sim.dataset import kernels
 from sim.dataset.objects import Parts, from_file, procedural
 from sim.dataset.randomise import MeasuredLensDraw, SampleObject, SampleScene
 from sim.optics.rig import DeviceCalibration
@@ -55,6 +57,19 @@ CAMERA_KEYS = ("images", "numerator", "denominator", "wrapped_phase", "backgroun
                "normals", "mask")
 TWO_PI = 2.0 * np.pi
 POISSON_EXACT_BELOW_E = 64.0  # electrons: shot noise drawn exactly below, as a normal above
+
+
+_SCRATCH = threading.local()
+
+
+def _scratch(key: str, shape: tuple, dtype) -> np.ndarray:
+    """A scratch array of this thread (its content undefined), reused from sample to sample:
+    fresh pages cost a first touch each, as much as the pass that fills them."""
+    cache = _SCRATCH.__dict__
+    a = cache.get(key)
+    if a is None or a.shape != tuple(shape) or a.dtype != np.dtype(dtype):
+        a = cache[key] = np.empty(shape, dtype)
+    return a
 
 
 @dataclass
@@ -161,49 +176,36 @@ def phase_groups(scene: SampleScene) -> list[tuple[float, list[int], int]]:
             for p, ds in groups.items()]
 
 
-def _labels(dn: np.ndarray, groups) -> dict[str, np.ndarray]:
-    """Feng/Zuo labels (F, H, W) float32 of noise-free images ``dn`` (n, H, W) float32."""
-    out = {k: [] for k in ("numerator", "denominator", "wrapped_phase", "background",
-                           "modulation")}
-    two_pi = np.float32(TWO_PI)
-    for _, idx, n in groups:
+def _labels(radiance: np.ndarray, camera, groups) -> dict[str, np.ndarray]:
+    """Feng/Zuo labels (F, H, W) float32 of the noise-free, unquantised images of radiance
+    ``radiance`` (n, H, W) float32 through the camera's exposure, full well, gain and black
+    level (compiled passes for the images and A; M and D by BLAS, numpy's arctan2 and
+    hypot, as the numpy reference does)."""
+    f32 = np.float32
+    n_f = len(groups)
+    shape = (n_f, *radiance.shape[1:])
+    out = {k: np.empty(shape, f32) for k in ("numerator", "denominator", "wrapped_phase",
+                                              "background", "modulation")}
+    rad = radiance.reshape(len(radiance), -1)
+    two_pi = f32(TWO_PI)
+    for j, (_, idx, n) in enumerate(groups):
         d = TWO_PI * np.arange(n) / n
-        stack = dn[idx]
-        m = np.tensordot(np.sin(d).astype(np.float32), stack, axes=1)
-        c = np.tensordot(np.cos(d).astype(np.float32), stack, axes=1)
-        ph = np.mod(np.arctan2(m, c), two_pi)
-        ph[ph >= two_pi] = 0.0
-        out["numerator"].append(m)
-        out["denominator"].append(c)
-        out["wrapped_phase"].append(ph)
-        out["background"].append(stack.mean(axis=0, dtype=np.float32))
-        out["modulation"].append(np.float32(2.0 / n) * np.hypot(m, c))
-    return {k: np.stack(v).astype(np.float32, copy=False) for k, v in out.items()}
-
-
-@nb.njit(cache=True, nogil=True)
-def _expose_kernel(rad, z, exposure, r2, shot, threshold, full_well, dn_per_e, black, max_dn,
-                   out, low):  # pragma: no cover - compiled
-    """One pass over flat radiance ``rad`` and normal deviates ``z`` (float32): DN before
-    rounding into ``out``; pixels whose electrons lie in (0, threshold) with shot noise on are
-    left out and their indices listed in ``low``. Returns how many were listed."""
-    n_low = 0
-    zero = np.float32(0.0)
-    for i in range(rad.size):
-        e = rad[i] * exposure
-        if e < zero:
-            e = zero
-        if shot and e > zero and e < threshold:
-            low[n_low] = i
-            n_low += 1
-            continue
-        var = r2 + (e if shot else zero)
-        e = e + np.sqrt(var) * z[i]
-        if e > full_well:
-            e = full_well
-        dn = e * dn_per_e + black
-        out[i] = zero if dn < zero else (max_dn if dn > max_dn else dn)
-    return n_low
+        dn = _scratch(f"dn{n}", (n, rad.shape[1]), f32)
+        kernels.noise_free_dn(rad, np.asarray(idx, np.int64), f32(camera.exposure_e),
+                              f32(camera.full_well_e), f32(camera.dn_per_e),
+                              f32(camera.black_level_dn), dn)
+        # M and D through BLAS as before (its summation order is its own, n > 4 shows it)
+        out["numerator"][j] = np.tensordot(np.sin(d).astype(f32), dn, axes=1).reshape(shape[1:])
+        out["denominator"][j] = np.tensordot(np.cos(d).astype(f32), dn,
+                                             axes=1).reshape(shape[1:])
+        kernels.mean(dn, f32(n), out["background"][j].reshape(-1))
+        ph = out["wrapped_phase"][j]
+        np.arctan2(out["numerator"][j], out["denominator"][j], out=ph)
+        kernels.wrap_phase(ph.reshape(-1), two_pi)
+        mod = out["modulation"][j]
+        np.hypot(out["numerator"][j], out["denominator"][j], out=mod)
+        np.multiply(f32(2.0 / n), mod, out=mod)
+    return out
 
 
 def _noisy_images(radiance: np.ndarray, camera, rng: np.random.Generator) -> np.ndarray:
@@ -216,48 +218,34 @@ def _noisy_images(radiance: np.ndarray, camera, rng: np.random.Generator) -> np.
     Poisson deviate plus the read noise."""
     f32 = np.float32
     rad = np.ascontiguousarray(radiance, dtype=f32).reshape(-1)
-    z = rng.standard_normal(rad.size, dtype=f32)
-    dn = np.empty(rad.size, f32)
-    low = np.empty(rad.size, np.int64)
+    z = rng.standard_normal(dtype=f32, out=_scratch("z", (rad.size,), f32))
+    quantize = bool(camera.quantize)
+    dtype = (np.uint8 if camera.bit_depth == 8 else np.uint16) if quantize else f32
+    out = np.empty(rad.size, dtype)
+    low = _scratch("low", (rad.size,), np.int64)
     r2 = f32(camera.read_noise_e**2)
-    k = _expose_kernel(rad, z, f32(camera.exposure_e), r2, bool(camera.shot_noise),
+    k = kernels.expose(rad, z, f32(camera.exposure_e), r2, bool(camera.shot_noise),
                        f32(POISSON_EXACT_BELOW_E), f32(camera.full_well_e),
                        f32(camera.dn_per_e), f32(camera.black_level_dn), f32(camera.max_dn),
-                       dn, low)
+                       quantize, out, low)
     if k:
         idx = low[:k]
         e = rng.poisson(rad[idx] * f32(camera.exposure_e)).astype(f32) + np.sqrt(r2) * z[idx]
         e = np.minimum(e, f32(camera.full_well_e)) * f32(camera.dn_per_e) \
             + f32(camera.black_level_dn)
-        dn[idx] = np.clip(e, f32(0.0), f32(camera.max_dn))
-    dn = dn.reshape(radiance.shape)
-    if not camera.quantize:
-        return dn
-    return np.rint(dn).astype(np.uint8 if camera.bit_depth == 8 else np.uint16)
+        dn = np.clip(e, f32(0.0), f32(camera.max_dn))
+        out[idx] = np.rint(dn) if quantize else dn
+    return out.reshape(radiance.shape)
 
 
 def _normals(points: np.ndarray, obj: np.ndarray) -> np.ndarray:
-    """Unit normals (H, W, 3) of camera-frame points (H, W, 3) from neighbour differences
-    within the same object (central where both neighbours are, else one-sided), facing the
-    camera; NaN where a pixel has no same-object neighbour along a row or a column."""
-    def diff(axis: int) -> np.ndarray:
-        g, o = np.moveaxis(points, axis, 0), np.moveaxis(obj, axis, 0)
-        fwd = np.full_like(g, np.nan)
-        bwd = np.full_like(g, np.nan)
-        same = (o[1:] == o[:-1]) & (o[1:] >= 0)
-        d = np.where(same[..., None], g[1:] - g[:-1], np.nan)
-        fwd[:-1], bwd[1:] = d, d
-        c = 0.5 * (fwd + bwd)
-        c = np.where(np.isnan(c), fwd, c)
-        c = np.where(np.isnan(c), bwd, c)
-        return np.moveaxis(c, 0, axis)
-
-    n = np.cross(diff(1), diff(0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        n /= np.linalg.norm(n, axis=2, keepdims=True)
-        flip = np.sum(n * points, axis=2) > 0  # facing the camera at the origin
-    n[flip] *= -1
-    return n
+    """Unit normals (H, W, 3) float32 of camera-frame points (H, W, 3) float32 from neighbour
+    differences within the same object (central where both neighbours are, else one-sided),
+    facing the camera; NaN where a pixel has no same-object neighbour along a row or a
+    column."""
+    out = np.empty(points.shape, np.float32)
+    kernels.normals(np.ascontiguousarray(points, np.float32), np.ascontiguousarray(obj), out)
+    return out
 
 
 def _pixel_xy(cam: DeviceCalibration) -> np.ndarray:
@@ -274,25 +262,24 @@ def _pixel_xy(cam: DeviceCalibration) -> np.ndarray:
 
 def _camera_arrays(res, cam: DeviceCalibration, scene: SampleScene, groups) -> dict:
     c = scene.camera
-    dn = (np.minimum(res.radiance * np.float32(c.exposure_e), np.float32(c.full_well_e))
-          * np.float32(c.dn_per_e) + np.float32(c.black_level_dn))
-    out = {"images": res.images, **_labels(dn, groups)}
+    out = {"images": res.images, **_labels(res.radiance, c, groups)}
     fine = min(p for p, _, _ in groups)
-    u_p = res.projector_map[..., 0]
-    absph = TWO_PI * u_p / fine
-    out["absolute_phase"] = absph.astype(np.float32)
-    order = np.where(np.isfinite(absph), np.floor(absph / TWO_PI), -1)
-    out["fringe_order"] = order.astype(np.int32)
-    out["projector_uv"] = res.projector_map.astype(np.float32)
-    out["depth_mm"] = res.depth.astype(np.float32)
-    xy = _pixel_xy(cam)
-    z = res.depth.astype(np.float32)[..., None]
-    pts = np.concatenate([xy.astype(np.float32) * z, z], axis=-1)
+    w, h = cam.size
+    out["absolute_phase"] = np.empty((h, w), np.float32)
+    out["fringe_order"] = np.empty((h, w), np.int32)
+    out["projector_uv"] = np.empty((h, w, 2), np.float32)
+    out["depth_mm"] = np.empty((h, w), np.float32)
+    out["mask"] = np.empty((h, w), np.uint8)
+    pts = np.empty((h, w, 3), np.float32)
+    xy = np.ascontiguousarray(_pixel_xy(cam), np.float64)
+    kernels.truth(np.ascontiguousarray(res.projector_map, np.float64).reshape(-1, 2),
+                  np.ascontiguousarray(res.depth, np.float64).reshape(-1),
+                  np.ascontiguousarray(res.object_id).reshape(-1),
+                  np.ascontiguousarray(res.lit).reshape(-1), xy.reshape(-1, 2), float(fine),
+                  TWO_PI, out["absolute_phase"].reshape(-1), out["fringe_order"].reshape(-1),
+                  out["projector_uv"].reshape(-1, 2), out["depth_mm"].reshape(-1),
+                  pts.reshape(-1, 3), out["mask"].reshape(-1))
     out["normals"] = _normals(pts, res.object_id)
-    hit = res.object_id >= 0
-    inside = np.isfinite(res.projector_map[..., 0])
-    out["mask"] = np.where(~hit, MASK_NONE, np.where(res.lit, MASK_VALID, np.where(
-        inside, MASK_SHADOWED, MASK_OUTSIDE))).astype(np.uint8)
     return out
 
 
@@ -307,27 +294,60 @@ def pattern_stack(scene: SampleScene) -> PatternStack:
                         np.zeros((0, h), np.float32))
 
 
-def render_sample(scene: SampleScene, geometry: TraceGeometry | None = None) -> Sample:
-    """The arrays of a sample from its description alone (a pure function of ``scene``)."""
+def _render_scratch(i: int, cam: DeviceCalibration, n: int):
+    """This thread's last rendering of camera ``i``, when it fits (name, size, patterns)."""
+    res = _SCRATCH.__dict__.get(f"render{i}")
+    w, h = cam.size
+    if res is None or res.name != cam.name or res.radiance.shape != (n, h, w):
+        return None
+    return res
+
+
+def render_sample(scene: SampleScene, geometry: TraceGeometry | None = None,
+                  timings: dict[str, float] | None = None) -> Sample:
+    """The arrays of a sample from its description alone (a pure function of ``scene``).
+    ``timings``: seconds of each stage are added to it (``geometry_s``; ``trace_s`` and
+    ``gather_s`` of the rendering, ``render_s`` its whole; ``noise_s``, ``labels_s``)."""
+    clock = time.perf_counter
+    t = {k: 0.0 for k in ("geometry_s", "trace_s", "gather_s", "render_s", "noise_s",
+                          "labels_s")}
+    t0 = clock()
     rig = scene.rig
     geom = geometry if geometry is not None else scene_geometry(scene.objects)
+    t["geometry_s"] = clock() - t0
     projected = project_patterns(pattern_stack(scene), scene.projector)
     groups = phase_groups(scene)
     if not groups:
         raise ValueError("the pattern set has no phase-shift images")
     if isinstance(scene.patterns, GrayCodeSet):
         groups = groups[:1]
-    cams = []
     noisy = scene.camera.sensor.noisy
     quiet = scene.camera.model_copy(update={"shot_noise": False, "read_noise_e": 0.0})
+
+    cams = []
     for i, cam in enumerate(rig.cameras):
         lens = build_lens(scene.lenses[i], cam)
+        t0 = clock()
+        # its outputs are scratch (reused) when the images are the noisy ones made here
         res = render_camera(geom, rig, i, lens, projected, quiet, None,
-                            where=f"sample {scene.index}")
-        if noisy:
-            res.images = _noisy_images(res.radiance, scene.camera,
-                                       np.random.default_rng([*scene.noise_seed, i]))
-        cams.append(_camera_arrays(res, cam, scene, groups))
+                            where=f"sample {scene.index}",
+                            out=_render_scratch(i, cam, len(projected)) if noisy else None)
+        t1 = clock()
+        arrays = _camera_arrays(res, cam, scene, groups)
+        t2 = clock()
+        if noisy:  # (res.images, scratch, are the noise-free ones: not part of the sample)
+            _SCRATCH.__dict__[f"render{i}"] = res
+            arrays["images"] = _noisy_images(res.radiance, scene.camera,
+                                             np.random.default_rng([*scene.noise_seed, i]))
+        cams.append(arrays)
+        t["render_s"] += t1 - t0
+        t["trace_s"] += res.timings.get("trace_s", 0.0)
+        t["gather_s"] += res.timings.get("gather_s", 0.0)
+        t["labels_s"] += t2 - t1
+        t["noise_s"] += clock() - t2
+    if timings is not None:
+        for k, v in t.items():
+            timings[k] = timings.get(k, 0.0) + v
     return Sample(scene, cams)
 
 

@@ -32,6 +32,7 @@ import json
 import os
 import shutil
 from collections.abc import Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -47,6 +48,8 @@ FORMAT_VERSION = 1
 SAMPLES = "samples"
 PARTIAL = ".partial"
 LOCK = ".lock"
+WRITE_THREADS = 4  # arrays compressed at once (zstd releases the GIL)
+SYNC_THREADS = 16  # fsyncs in flight at once
 
 
 # ---------------------------------------------------------------- durable writes and the lock
@@ -77,16 +80,26 @@ def _sync_dir(folder: Path) -> None:
         os.close(fd)
 
 
-def sync_tree(folder: Path) -> None:
-    """fsync every file and folder under ``folder`` (and itself)."""
-    for root, _dirs, files in os.walk(folder):
-        for name in files:
-            fd = os.open(os.path.join(root, name), os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-        _sync_dir(Path(root))
+def sync_tree(folder: Path, threads: int = SYNC_THREADS) -> None:
+    """fsync every file under ``folder``, then every folder (deepest first, ``folder`` last).
+    The files' fsyncs run on ``threads`` threads: a journalling file system commits
+    concurrent fsyncs together, where one after the other each waits for its own commit."""
+    files, dirs = [], []
+    for root, _dirs, names in os.walk(folder):
+        files += [os.path.join(root, n) for n in names]
+        dirs.append(Path(root))
+    with ThreadPoolExecutor(max(1, threads)) as pool:
+        list(pool.map(_sync_file, files))
+    for d in reversed(dirs):
+        _sync_dir(d)
+
+
+def _sync_file(path: str) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager
@@ -126,19 +139,26 @@ def sample_name(index: int) -> str:
     return f"{index:06d}"
 
 
-def write_group(path: Path, sample: Sample, digest: str, storage: Storage) -> None:
+def write_group(path: Path, sample: Sample, digest: str | Future, storage: Storage,
+                threads: int = WRITE_THREADS) -> None:
     """Write a sample as a zarr v3 group at ``path`` (a new folder); one chunk per array (a
-    sample is read whole, and every file costs an fsync)."""
+    sample is read whole, and every file costs an fsync). The arrays are compressed and
+    written on ``threads`` threads; ``digest`` (or a future of it, awaited once the arrays
+    are written) goes into the group's attributes, written last."""
     scene = sample.scene
+    comp = codecs(storage)
+    jobs = []
+    for i, cam in enumerate(sample.cameras):
+        cg = zarr.open_group(str(Path(path) / f"camera_{i}"), mode="w-", zarr_format=3,
+                             attributes={"name": scene.rig.cameras[i].name})
+        jobs += [(cg, key, cam[key]) for key in CAMERA_KEYS]
+    with ThreadPoolExecutor(max(1, threads)) as pool:
+        list(pool.map(lambda j: j[0].create_array(j[1], data=j[2], chunks=j[2].shape,
+                                                  compressors=comp), jobs))
+    digest = digest.result() if isinstance(digest, Future) else digest
     attrs = {"index": scene.index, "split": scene.split, "checksum": digest,
              "scene": json.loads(scene.model_dump_json())}
-    g = zarr.open_group(str(path), mode="w-", zarr_format=3, attributes=attrs)
-    comp = codecs(storage)
-    for i, cam in enumerate(sample.cameras):
-        cg = g.create_group(f"camera_{i}", attributes={"name": scene.rig.cameras[i].name})
-        for key in CAMERA_KEYS:
-            a = cam[key]
-            cg.create_array(key, data=a, chunks=a.shape, compressors=comp)
+    zarr.create_group(str(path), zarr_format=3, attributes=attrs)
 
 
 def write_sample(root: Path, sample: Sample, storage: Storage | None = None) -> str:
@@ -146,14 +166,16 @@ def write_sample(root: Path, sample: Sample, storage: Storage | None = None) -> 
     there is replaced); returns its checksum."""
     storage = storage or Storage()
     root = Path(root)
-    digest = sample.checksum()
     name = sample_name(sample.index)
     tmp = root / PARTIAL / f"{name}-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.parent.mkdir(exist_ok=True)
     try:
-        write_group(tmp, sample, digest, storage)
+        with ThreadPoolExecutor(1) as hasher:  # the sha256 runs while the arrays compress
+            pending = hasher.submit(sample.checksum)
+            write_group(tmp, sample, pending, storage)
+            digest = pending.result()
         sync_tree(tmp)
         final = root / SAMPLES / name
         if final.exists():
