@@ -23,8 +23,9 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from station.errors import UsageError
+from sim.errors import SimError
 from station.compute import Engine, run_ordered
+from station.errors import StationInputError, UsageError
 
 MANIFEST_EVERY_S = 30.0  # the manifest is rewritten at most this often during a run
 
@@ -70,8 +71,8 @@ def preflight(cfg, rig, where: str) -> None:
         try:
             for f in mesh_files(src.mesh_folder):
                 check_mesh(f)
-        except (OSError, ValueError) as exc:
-            raise ValueError(f"{where}: field 'objects.mesh_folder': {exc}") from exc
+        except (OSError, SimError) as exc:
+            raise StationInputError(f"{where}: field 'objects.mesh_folder': {exc}") from exc
     from sim.dataset.config import MeasuredChoice
     from sim.dataset.generate import build_lens
     from sim.dataset.randomise import MeasuredLensDraw
@@ -80,12 +81,12 @@ def preflight(cfg, rig, where: str) -> None:
         for j, c in enumerate(choices):
             if isinstance(c, MeasuredChoice) and c.weight > 0:
                 if not c.path.is_file():
-                    raise ValueError(f"{where}: field 'lenses.{i}.{j}.path': lens file "
+                    raise StationInputError(f"{where}: field 'lenses.{i}.{j}.path': lens file "
                                      f"{c.path} not found")
                 try:
                     build_lens(MeasuredLensDraw(path=str(c.path)), rig.cameras[i])
-                except (OSError, ValueError) as exc:
-                    raise ValueError(f"{where}: field 'lenses.{i}.{j}.path': {exc}") from exc
+                except (OSError, SimError) as exc:
+                    raise StationInputError(f"{where}: field 'lenses.{i}.{j}.path': {exc}") from exc
     check_fits(rig, cfg, where)
 
 

@@ -15,6 +15,7 @@ from typing import Annotated, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from sim.errors import SimInputError
 from sim.validation import format_validation_error
 
 Range = tuple[float, float]
@@ -281,7 +282,7 @@ def parse_config(raw: dict, source: str = "config", base_dir: Path | None = None
     try:
         cfg = DatasetConfig.model_validate(raw)
     except ValidationError as exc:
-        raise ValueError(format_validation_error(source, exc)) from exc
+        raise SimInputError(format_validation_error(source, exc)) from exc
     return _absolute(cfg, (base_dir or Path.cwd()).resolve())
 
 
@@ -293,5 +294,5 @@ def load_config(path: str | Path) -> DatasetConfig:
     try:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: not valid TOML: {exc}") from exc
+        raise SimInputError(f"{path}: not valid TOML: {exc}") from exc
     return parse_config(raw, str(path), path.parent)

@@ -45,6 +45,7 @@ import trimesh
 from sim.dataset import kernels
 from sim.dataset.objects import Parts, from_file, procedural
 from sim.dataset.randomise import MeasuredLensDraw, SampleObject, SampleScene
+from sim.errors import SimInputError
 from sim.optics.rig import DeviceCalibration
 from sim.render.fringe_patterns import GrayCodeSet
 from sim.render.images import project_patterns, render_camera
@@ -145,7 +146,7 @@ def build_lens(draw, camera: DeviceCalibration):
 
     lens = _load_lens_cached(draw.path, load_lens)
     if tuple(lens.camera_size) != tuple(camera.size):
-        raise ValueError(f"lens file {draw.path} is for a {lens.camera_size} camera, camera "
+        raise SimInputError(f"lens file {draw.path} is for a {lens.camera_size} camera, camera "
                          f"'{camera.name}' is {tuple(camera.size)} (width, height)")
     if draw.pupil_scale == 1.0:
         return lens
@@ -318,7 +319,7 @@ def render_sample(scene: SampleScene, geometry: TraceGeometry | None = None,
     projected = project_patterns(pattern_stack(scene), scene.projector)
     groups = phase_groups(scene)
     if not groups:
-        raise ValueError("the pattern set has no phase-shift images")
+        raise SimInputError("the pattern set has no phase-shift images")
     if isinstance(scene.patterns, GrayCodeSet):
         groups = groups[:1]
     noisy = scene.camera.sensor.noisy

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from sim.errors import SimInputError
 from sim.render.scene import MESH_SUFFIXES, load_mesh
 
 SMOOTH_ANGLE_DEG = 30.0  # edges sharper than this stay sharp (as MeshObject)
@@ -46,7 +47,7 @@ def mesh_files(folder: Path) -> list[Path]:
     files = sorted(p for p in folder.iterdir()
                    if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
     if not files:
-        raise ValueError(f"mesh folder {folder} holds no PLY, STL or OBJ file")
+        raise SimInputError(f"mesh folder {folder} holds no PLY, STL or OBJ file")
     return files
 
 
@@ -171,7 +172,7 @@ def _normalised(parts: Parts, size_mm: float) -> Parts:
         d = np.linalg.norm(parts.spheres[:, :3] - centre, axis=1) + parts.spheres[:, 3]
         radius = max(radius, float(d.max()))
     if not radius > 0:
-        raise ValueError("the object is a single point")
+        raise SimInputError("the object is a single point")
     s = size_mm / (2 * radius)
     meshes = []
     for m in parts.meshes:
@@ -197,7 +198,7 @@ def procedural(family: str, seed: list[int], size_mm: float) -> Parts:
              "displaced": lambda: [_displaced(rng)], "steps": lambda: _steps(rng),
              "holes": lambda: [_holes(rng)]}
     if family not in build:
-        raise ValueError(f"unknown object family {family!r}")
+        raise SimInputError(f"unknown object family {family!r}")
     return _normalised(Parts([_smooth(m) for m in build[family]()], np.zeros((0, 4))), size_mm)
 
 

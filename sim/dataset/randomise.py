@@ -26,6 +26,7 @@ from sim.dataset.config import (
     ThinChoice,
 )
 from sim.dataset.objects import mesh_files
+from sim.errors import SimError, SimInputError
 from sim.optics.lens import AberratedLens, GaussianLens, PinholeLens
 from sim.optics.rig import DeviceCalibration, Rig
 from sim.render.fringe_patterns import GrayCodeSet, PatternSet, PhaseShiftSet
@@ -170,7 +171,7 @@ def check_fits(rig: Rig, cfg: DatasetConfig, where: str = "config") -> None:
     probe = cfg.placement.model_copy(update={"tries": max(50000, cfg.placement.tries)})
     if place(rig, probe, size / 2, rng) is None:
         lo, hi = cfg.placement.distance_mm or default_distance_mm(rig)
-        raise ValueError(
+        raise SimInputError(
             f"{where}: the rig's common working volume (what both cameras and the projector "
             f"see, {lo:.0f}-{hi:.0f} mm from the projector) cannot hold an object of "
             f"{size:g} mm: lower objects.size_mm or change placement.distance_mm")
@@ -281,7 +282,7 @@ def draw_scene(cfg: DatasetConfig, rig: Rig, index: int) -> SampleScene:
     rp = stream(seed, index, POSE)
     centre = place(rig, cfg.placement, size / 2, rp)
     if centre is None:
-        raise ValueError(f"sample {index}: no pose in {cfg.placement.tries} draws puts an "
+        raise SimInputError(f"sample {index}: no pose in {cfg.placement.tries} draws puts an "
                          f"object of {size:.1f} mm inside the rig's common working volume; "
                          "lower objects.size_mm or raise placement.tries")
     if obj.get("family") in SHEETS:
@@ -294,7 +295,7 @@ def draw_scene(cfg: DatasetConfig, rig: Rig, index: int) -> SampleScene:
         objects.append(_backdrop(rig, cfg.placement, centre, size / 2, rp))
     rl = stream(seed, index, LENS)
     if len(cfg.lenses) != len(rig.cameras):
-        raise ValueError(f"lenses: {len(cfg.lenses)} lens lists for {len(rig.cameras)} cameras")
+        raise SimInputError(f"lenses: {len(cfg.lenses)} lens lists for {len(rig.cameras)} cameras")
     lenses = [_lens(_pick(rl, choices), rl) for choices in cfg.lenses]
     rj, pc = stream(seed, index, PROJECTOR), cfg.projector
     projector = ProjectorResponse(input_bits=pc.input_bits, gamma=_u(rj, pc.gamma),
@@ -319,8 +320,8 @@ def config_rig(cfg: DatasetConfig, where: str = "config") -> Rig:
             return Rig.load(cfg.rig.path)
         except FileNotFoundError as exc:
             raise FileNotFoundError(f"{where}: field 'rig.path': {exc}") from exc
-        except ValueError as exc:
-            raise ValueError(f"{where}: field 'rig.path': {exc}") from exc
+        except SimError as exc:
+            raise SimInputError(f"{where}: field 'rig.path': {exc}") from exc
     from sim.optics.rig import CAMERA_FOCAL_MM, CAMERA_PITCH_MM, PROJECTOR_FOCAL_PX, _scaled_rig
 
     b = cfg.rig.builtin

@@ -42,6 +42,7 @@ import zarr
 from sim.dataset.config import Storage
 from sim.dataset.generate import CAMERA_KEYS, Sample, checksum
 from sim.dataset.randomise import SampleScene
+from sim.errors import SimInputError
 
 FORMAT = "ltc-fpp-fringe-dataset"
 FORMAT_VERSION = 1
@@ -220,7 +221,7 @@ def read_sample(path: Path, keys: Sequence[str] = CAMERA_KEYS) -> SampleArrays:
         return SampleArrays(int(a["index"]), str(a["split"]), str(a["checksum"]),
                             SampleScene.model_validate(a["scene"]), cams)
     except Exception as exc:  # noqa: BLE001 - a damaged chunk raises anything (codecs, JSON)
-        raise ValueError(f"data set sample {path} cannot be read: {exc}") from exc
+        raise SimInputError(f"data set sample {path} cannot be read: {exc}") from exc
 
 
 def verify_sample(path: Path) -> str | None:
@@ -241,7 +242,7 @@ def read_manifest(root: Path) -> dict | None:
     try:
         attrs = json.loads(meta.read_text()).get("attributes", {})
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{meta}: not valid JSON ({exc}); the data set's manifest is "
+        raise SimInputError(f"{meta}: not valid JSON ({exc}); the data set's manifest is "
                          "damaged") from exc
     return attrs if attrs.get("format") == FORMAT else None
 
@@ -267,7 +268,7 @@ class DatasetReader:
         self.path = Path(path)
         m = read_manifest(self.path)
         if m is None:
-            raise ValueError(f"{self.path} is not a fringe data set (no manifest with format "
+            raise SimInputError(f"{self.path} is not a fringe data set (no manifest with format "
                              f"{FORMAT!r} in zarr.json)")
         self.manifest = m
         samples = m.get("samples") or {}
