@@ -53,7 +53,8 @@ def main() -> None:
         t_cal = time.perf_counter() - t1
     true = relative_to_camera_0(rig)
     rows = []
-    for a, b in zip([*result.rig.cameras, result.rig.projector], [*true.cameras, true.projector]):
+    for a, b in zip([*result.rig.cameras, result.rig.projector],
+                    [*true.cameras, true.projector], strict=True):
         dR = a.R_array @ b.R_array.T
         ang = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
         rows.append(f"| {a.name} | {result.rms_px[a.name]:.4f} | "

@@ -71,9 +71,9 @@ def peak_mb() -> float:
 
 
 def stage(name: str, out: Path, rows: int, workers: int | None, depths: int = 2) -> dict:
+    from station.acquisition.acquire import pattern_plan
     from station.api import acquire, load_config, open_bench
     from station.compute import default_workers
-    from station.acquisition.acquire import pattern_plan
 
     cfg_path = out / "bench.toml"
     cfg = load_config(cfg_path)

@@ -42,7 +42,8 @@ def _errors(result, true_rig) -> dict:
     out = {"cam_rms": max(result.rms_px["camera_0"], result.rms_px["camera_1"]),
            "proj_rms": result.rms_px["projector"], "f_pct": 0.0, "pp_px": 0.0, "rot_deg": 0.0,
            "t_mm": 0.0}
-    for a, b in zip([*result.rig.cameras, result.rig.projector], [*true.cameras, true.projector]):
+    for a, b in zip([*result.rig.cameras, result.rig.projector],
+                    [*true.cameras, true.projector], strict=True):
         K, Kt = a.K_array, b.K_array
         out["f_pct"] = max(out["f_pct"], 100 * abs(K[0, 0] / Kt[0, 0] - 1),
                            100 * abs(K[1, 1] / Kt[1, 1] - 1))

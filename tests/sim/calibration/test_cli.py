@@ -58,7 +58,7 @@ def test_calibrate_writes_a_rig_and_a_report(small_capture, board, tmp_path, cap
     s = json.loads(text)
     assert s["poses"] == 6 and max(s["rms_px"].values()) < 0.02
     rig, true = Rig.load(out), relative_to_camera_0(small_capture.rig)
-    for a, b in zip([*rig.cameras, rig.projector], [*true.cameras, true.projector]):
+    for a, b in zip([*rig.cameras, rig.projector], [*true.cameras, true.projector], strict=True):
         assert a.K_array[0, 0] == pytest.approx(b.K_array[0, 0], rel=1e-3)
         assert np.abs(a.T_array - b.T_array).max() < 0.2
     for f in ("report.md", "residuals.png", "coverage.png", "error_per_pose.png"):
@@ -115,7 +115,7 @@ def test_refuses_a_capture_out_of_sync_with_the_projector(small_capture, board, 
     # every camera recorded each fringe image one pattern late (the first fringe image twice)
     for folder in d.glob("pose_*/camera_*"):
         files = sorted(folder.glob("*.png"))
-        for late, early in zip(reversed(files[2:]), reversed(files[1:-1])):
+        for late, early in zip(reversed(files[2:]), reversed(files[1:-1]), strict=True):
             shutil.copyfile(early, late)
     err = _refused(capsys, d, board, tmp_path)
     assert "projector's reprojection error" in err and "out of sync" in err

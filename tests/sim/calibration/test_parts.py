@@ -137,7 +137,7 @@ def test_stereo_calibrate_file_round_trip(tmp_path):
                                           "T3"))
     back = Rig.load(path)
     want = relative_to_camera_0(rig)
-    for a, b in zip([*back.cameras, back.projector], [*want.cameras, want.projector]):
+    for a, b in zip([*back.cameras, back.projector], [*want.cameras, want.projector], strict=True):
         assert np.allclose(a.K_array, b.K_array) and np.allclose(a.dist_array, b.dist_array)
         assert np.allclose(a.R_array, b.R_array, atol=1e-12)
         assert np.allclose(a.T_array, b.T_array, atol=1e-9) and a.size == b.size

@@ -49,7 +49,8 @@ def test_ball_bar_centre_distance_and_pose():
 
 
 def test_plane_pose():
-    g = Scene(objects=[PlaneObject(size_mm=(40.0, 20.0), pose=Pose(R=ROT, t=[1.0, 2.0, 3.0]))]).trace_geometry()
+    g = Scene(objects=[PlaneObject(size_mm=(40.0, 20.0),
+                               pose=Pose(R=ROT, t=[1.0, 2.0, 3.0]))]).trace_geometry()
     local = (g.vertices - [1.0, 2.0, 3.0]) @ ROT
     np.testing.assert_allclose(np.abs(local), np.broadcast_to([20.0, 10.0, 0.0], (4, 3)), atol=1e-12)
     np.testing.assert_allclose(np.abs(g.face_normals @ ROT[:, 2]), 1.0)
@@ -136,7 +137,8 @@ def _write(path, text):
      r"scene.toml: field 'objects.0': Input tag 'cone' found using 'kind' does not match"),
     (HEAD + LENSES + PATTERNS + '[[objects]]\nkind = "sphere"\ncolour = "red"\n', ValueError,
      r"scene.toml: field 'objects.0.sphere.colour': Extra inputs are not permitted"),
-    (HEAD + LENSES + PATTERNS + '[[objects]]\nkind = "sphere"\npose = { R = [[1, 0, 0], [0, 1, 0], [0, 0, 2]] }\n',
+    (HEAD + LENSES + PATTERNS
+     + '[[objects]]\nkind = "sphere"\npose = { R = [[1, 0, 0], [0, 1, 0], [0, 0, 2]] }\n',
      ValueError, r"scene.toml: field 'objects.0.sphere.pose.R': R must be a proper rotation"),
     (HEAD + LENSES + '[patterns]\nkind = "phase_shift"\nperiods_px = [-4.0]\n' + SPHERE, ValueError,
      r"scene.toml: field 'patterns.phase_shift'.*periods_px must all be > 0"),

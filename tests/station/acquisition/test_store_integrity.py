@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import zarr
 
+from sim.storage.lock import LOCK_NAME
 from station.acquisition.acquire import AcquisitionError, Event, acquire
 from station.acquisition.config import example_text, parse_config
-from sim.storage.lock import LOCK_NAME
 from station.acquisition.patterns import StationPatternPlan
 from station.acquisition.run_store import FrameCorruptError, FrameMeta, RunStore, RunStoreError
 from station.cli import main
@@ -88,7 +88,7 @@ def test_prefetch_is_a_hint_only(run):
     read then refuses."""
     want = [t.frames.copy() for t in run.read_tile_row(0, 8, 0, 3)]
     run.prefetch_tile_row(0, 8, 0, 3)
-    for got, w in zip(run.read_tile_row(0, 8, 0, 3), want):
+    for got, w in zip(run.read_tile_row(0, 8, 0, 3), want, strict=True):
         np.testing.assert_array_equal(got.frames, w)
     shard(run, 5).unlink()
     run.prefetch_tile_row(0, 8, 0, 3)

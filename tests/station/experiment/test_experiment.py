@@ -136,7 +136,7 @@ def test_an_interrupted_experiment_resumes_with_the_same_numbers(reduced, tmp_pa
     assert earlier == ["S1", "B1", "C1"]
     # S2 scanned again from the same lenses gives the same numbers (render time aside), and
     # the numbers read back are the first run's exactly
-    for a, b in zip(first["rows"], again["rows"]):
+    for a, b in zip(first["rows"], again["rows"], strict=True):
         ja, jb = a.to_json(), b.to_json()
         for m in ja["models"]:
             ja["models"][m].pop("render_s"), jb["models"][m].pop("render_s")

@@ -14,13 +14,12 @@ import numpy as np
 import pytest
 import zarr
 
+from fakes.synthetic import SyntheticBench, parse_synthetic_settings
 from station.api import acquire, load_config
 from station.cli import main as cli_main
 from station.lens.centroids import window_stats
-from station.ltc.tiles import reconstruct
 from station.ltc.store import open_ltc_store
-
-from fakes.synthetic import SyntheticBench, parse_synthetic_settings
+from station.ltc.tiles import reconstruct
 
 CONFIG = """
 backend = "fake"

@@ -244,7 +244,7 @@ def _reference_reconstruction(frames, plan, lut=None, min_snr=10.0, min_harmonic
     main = hm.gamma[hm.h == big - 1][0]
     here, mirror = l * p + k, ((-l) % p) * p + (-k) % p
     side = [(((-h * l) % p) * p + (-h * k) % p, g)
-            for h, g in zip(hm.h, hm.gamma) if h != big - 1 and abs(g) > 1e-15]
+            for h, g in zip(hm.h, hm.gamma, strict=True) if h != big - 1 and abs(g) > 1e-15]
     measured = s[here]
     est = measured / main
     dc = np.abs(s[0])
