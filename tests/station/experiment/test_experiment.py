@@ -33,6 +33,7 @@ def reduced(tmp_path_factory):
                                log=lambda s: None)
 
 
+@pytest.mark.slow
 def test_the_reduced_experiment_orders_the_models_as_the_paper(reduced):
     _, res = reduced
     rows = {r.name: {n: m.to_json() for n, m in r.models.items()} for r in res["rows"]}
@@ -60,6 +61,7 @@ def test_the_reduced_experiment_orders_the_models_as_the_paper(reduced):
         assert abs(rows["C1"][n]["cad"]["mean_mm"]) < 0.2
 
 
+@pytest.mark.slow
 def test_the_report_holds_every_table_and_figure(reduced):
     out, res = reduced
     text = (out / "report.md").read_text()
@@ -126,6 +128,7 @@ def _unfinished_copy(reduced, tmp_path, drop=("S2",)):
     return out
 
 
+@pytest.mark.slow
 def test_an_interrupted_experiment_resumes_with_the_same_numbers(reduced, tmp_path):
     _, first = reduced
     out = _unfinished_copy(reduced, tmp_path)
@@ -147,6 +150,7 @@ def test_an_interrupted_experiment_resumes_with_the_same_numbers(reduced, tmp_pa
         run_experiment(ExperimentConfig(**REDUCED), out, progress=False, log=lambda s: None)
 
 
+@pytest.mark.slow
 def test_a_resume_refuses_another_config_other_lenses_and_a_damaged_position(reduced, tmp_path):
     out = _unfinished_copy(reduced, tmp_path, drop=())
     quiet = dict(progress=False, log=lambda s: None)
@@ -213,6 +217,7 @@ def test_a_second_experiment_on_one_folder_is_refused_naming_the_holder(tmp_path
     assert not (out / "station").exists() and not (out / "positions").exists()
 
 
+@pytest.mark.slow
 def test_the_experiment_goes_through_the_real_scan_path(reduced, tmp_path):
     """The real scanner's images are a real-scan folder that ltc validate reads as a lab's;
     the virtual scanners were validated against it with the pose refined by the measured-LTC

@@ -93,6 +93,7 @@ def test_synthetic_bench_centroids_are_recovered(run, serial):
     assert p50 < 0.1 and p95 < 0.2  # noise-limited: noise-free it is 0.005 / 0.014 px
 
 
+@pytest.mark.slow
 def test_dask_and_worker_processes_equal_single_process(run, serial):
     reconstruct(run / "run.zarr", run / "procs.zarr", tile_px=16, progress=False, workers=2)
     same_store(serial, run / "procs.zarr")

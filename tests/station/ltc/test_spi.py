@@ -518,6 +518,7 @@ def test_gamma_biases_3_step_and_the_inverse_lut_removes_it(bench, capsys):
 
 # ---- the tiled driver and the command --------------------------------------------------------
 
+@pytest.mark.slow
 def test_cli_json_and_tile_size_independence(clean_run, capsys):
     root = clean_run["root"]
     code = cli_main(["reconstruct", str(root / "run.zarr"), "--out", str(root / "t20.zarr"),
