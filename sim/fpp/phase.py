@@ -1,6 +1,6 @@
 """Fringe analysis: N-step wrapped phase, quality mask, temporal unwrapping, projector coordinates.
 
-Convention (OPTICS.md section 3): shift i of N is ``I_i = A + B cos(phi - 2 pi i / N)`` and the
+Convention (docs/optics.md section 7): shift i of N is ``I_i = A + B cos(phi - 2 pi i / N)`` and the
 phase of a fringe of period ``p`` projector pixels is ``phi = 2 pi u_p / p``, projector pixel
 centres at integer ``u_p``. Wrapped phases are returned in ``[0, 2 pi)``; absolute phases are
 ``2 pi u_p / p`` without wrapping, so ``u_p = Phi p / (2 pi)``.

@@ -3,11 +3,11 @@
 Every model answers ``bundle(xy_n, uv) -> RayBundle`` where ``xy_n`` are the pixels'
 undistorted normalised coordinates (see ``sim.optics.projection.pixel_to_normalized``; distortion
 lives there, not here) and ``uv`` their pixel coordinates (used by models that vary per
-pixel). Rays start on the aperture plane ``z = 0`` of the camera frame (OPTICS.md section 4):
+pixel). Rays start on the aperture plane ``z = 0`` of the camera frame (docs/optics.md section 3):
 ray k leaves ``(x_k, y_k, 0)`` and passes through the pixel's in-focus point
 ``(x_n z_f, y_n z_f, z_f)``. Lengths in mm.
 
-The ground-truth lens of the fakes (OPTICS.md section 8) is ``AberratedLens``; the virtual
+The ground-truth lens of the fakes (docs/optics.md section 9) is ``AberratedLens``; the virtual
 scanner renders with the same class, so there is one implementation.
 """
 
@@ -113,7 +113,7 @@ class PinholeLens(BaseModel):
 
 class AberratedLens(BaseModel):
     """Thin lens with a circular entrance pupil, field-dependent vignetting, spherical
-    aberration and coma: the ground-truth lens of the fakes (OPTICS.md section 8).
+    aberration and coma: the ground-truth lens of the fakes (docs/optics.md section 9).
 
     With ``vignetting_shift_mm = spherical_mm = coma_mm = 0`` it is the ideal thin lens,
     whose blur disk on a plane at distance z has diameter ``pupil_diameter_mm * |z - z_f| / z_f``.
@@ -240,7 +240,7 @@ def _compute_pupil_rule(lens: AberratedLens, unit_disk: np.ndarray) -> tuple:
 
 
 class GaussianLens(BaseModel):
-    """Position-invariant Gaussian defocus (OPTICS.md section 7): the thin-lens ray geometry
+    """Position-invariant Gaussian defocus (docs/optics.md section 4): the thin-lens ray geometry
     with Gaussian aperture weights of standard deviation ``sigma_mm`` on the pupil plane."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)

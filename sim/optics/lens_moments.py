@@ -39,7 +39,7 @@ def centre_moments(lens: MeasuredLens) -> tuple[np.ndarray, np.ndarray]:
 
 
 def gaussian_equivalent(lens: MeasuredLens, samples: int | None = None) -> GaussianLens:
-    """The Gaussian defocus model of a measured lens (OPTICS.md section 7): its focus distance,
+    """The Gaussian defocus model of a measured lens (docs/optics.md section 4): its focus distance,
     with Gaussian aperture weights whose per-axis variance is the mean of the two axes' second
     moments of the measured LTC at the optical centre, the same for every pixel. ``samples``:
     aperture samples (default the measured lens's K)."""
@@ -57,7 +57,7 @@ def smoothed_lens(lens: MeasuredLens, sigma_nodes: float) -> MeasuredLens:
     - The samples' centroids (each node's principal ray on the aperture plane, mm) by a local
       quadratic regression over the nodes' positions: quadratic fields pass unbiased, also at
       the sensor's border, where a plain average would pull a curved field inwards. The
-      centroids' noise drives the large-defocus sizes (benchmarks/README.md). The aim offsets
+      centroids' noise drives the large-defocus sizes (docs/decisions 0002). The aim offsets
       are kept: each node's principal ray aims at the same point of the focus plane.
     - The shape about the centroid (sample offsets, weights, transmittance) by a plain
       Gaussian average, edges held. Sample k is only roughly the same part of the aperture at

@@ -1,4 +1,4 @@
-"""The measured lens (OPTICS.md 6.5, ARCHITECTURE.md "Lens model"): per pixel, or per node of
+"""The measured lens (docs/optics.md section 4): per pixel, or per node of
 a grid of pixels, K aperture samples ``(x_k, y_k)`` mm on the plane of the optical centre with
 weights ``w_k`` (sum 1), one focus distance ``z_f`` and, optionally, a focus distance per
 pupil zone ``z(rho)`` (spherical aberration: ``focus_zones_mm``).

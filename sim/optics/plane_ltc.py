@@ -9,7 +9,7 @@ with each. So the pixel's area is integrated exactly for every aperture sample; 
 aperture is sampled. (Depositing each ray on the one plane pixel its hit lies in quantises
 every ray by up to half a plane pixel: on the experiment's fake bench, 2 x 2 subpixels and 512
 pupil samples, the principal rays through such LTCs miss the lens's own by 31 um RMS at the
-pupil, pixel to pixel; with the footprints, 3.8 um: benchmarks/README.md.) The result is the
+pupil, pixel to pixel; with the footprints, 3.8 um: docs/decisions 0015.) The result is the
 per-pixel LTC as a sparse matrix. The footprint ignores the plane's tilt and the distortion's
 change of scale (both first order in small quantities here).
 

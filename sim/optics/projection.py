@@ -1,6 +1,6 @@
 """Pinhole projection with OpenCV distortion, and its inverse (pixel -> normalised ray).
 
-Conventions (ARCHITECTURE.md): OpenCV camera frame (x right, y down, z forward), pixel
+Conventions (docs/architecture.md): OpenCV camera frame (x right, y down, z forward), pixel
 centres at integer coordinates, ``u`` the column. ``R, T`` map world to device:
 ``X_dev = R @ X_world + T``. Distances in mm.
 """

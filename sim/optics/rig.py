@@ -1,6 +1,6 @@
 """Calibrated FPP rig: two cameras and one projector with OpenCV intrinsics and extrinsics.
 
-Conventions (ARCHITECTURE.md): ``R, T`` map world to device, ``X_dev = R X_world + T`` (mm);
+Conventions (docs/architecture.md): ``R, T`` map world to device, ``X_dev = R X_world + T`` (mm);
 ``K`` is the 3x3 intrinsic matrix, ``dist`` the OpenCV coefficients ``k1 k2 p1 p2 k3``; pixel
 centres at integer coordinates, ``size = (width, height)``.
 
@@ -429,7 +429,7 @@ def _device(name: str, size: tuple[int, int], f_px: float, centre: np.ndarray,
     return DeviceCalibration(name=name, K=K, dist=dist, R=R, T=T, size=size)
 
 
-# Reference system (OPTICS.md section 1): 16 mm lenses on 3.45 um pixels, cameras 760 mm from the
+# Reference system (docs/optics.md section 1): 16 mm lenses on 3.45 um pixels, cameras 760 mm from the
 # world origin (centre of the measurement volume) converging at +-15 degrees, projector between.
 WORKING_DISTANCE_MM = 760.0
 CAMERA_FOCAL_MM = 16.0

@@ -1,6 +1,6 @@
 """Projector pattern sets shared by the renderer and the reconstruction.
 
-Conventions (OPTICS.md section 3, ``sim.fpp.phase``): shift ``i`` of ``N`` is
+Conventions (docs/optics.md section 7, ``sim.fpp.phase``): shift ``i`` of ``N`` is
 ``I_i = A + B cos(phi - 2 pi i / N)`` with ``phi = 2 pi u_p / period``, ``u_p`` the projector
 column (``v_p`` the row for direction ``v``), pixel centres at integer coordinates.
 Gray-code stripe ``k`` covers projector coordinates ``[-0.5 + k w, -0.5 + (k + 1) w)`` (``w`` the

@@ -14,7 +14,7 @@ Signal chain for pattern image ``P`` (values in [0, 1]) and camera pixel ``p``:
    * e + black_level_dn``, clipped to ``[0, 2^bits - 1]`` (saturation) and rounded.
 
 Radiance 1 is a white pattern on an albedo-1 surface facing the projector (N.L = 1) seen by an
-unvignetted pixel; there is no distance fall-off (OPTICS.md section 4).
+unvignetted pixel; there is no distance fall-off (docs/optics.md section 3).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Embree tracing of camera rays into a scene lit by the projector: the scene's light transport.
 
-For every camera pixel and lens ray (OPTICS.md section 4): the first hit (embreex, refined in
+For every camera pixel and lens ray (docs/optics.md section 3): the first hit (embreex, refined in
 float64 on the hit triangle, or on the exact sphere for built-in spheres), the interpolated
 vertex normal (two-sided: turned towards the camera), ``N . L`` towards the projector centre, a
 shadow ray to the projector, and the hit point's projector coordinate with the projector's

@@ -2,7 +2,7 @@
 shading, projector coordinates, shadow rays, and the transport written in place. (The lens
 bundles' ray geometry is ``sim.optics.lens_kernels``.)
 
-The arithmetic is OPTICS.md section 4 in float64, as the vectorised numpy it replaced did it
+The arithmetic is docs/optics.md section 3 in float64, as the vectorised numpy it replaced did it
 (results agree to a few ulps; the float32 transport is unchanged). The loops release the GIL
 (``nogil``), so the tracer's threads run them side by side with Embree queries, and are
 compiled on first use and cached on disk (``cache``). Where it matters the work is laid out

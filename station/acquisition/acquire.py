@@ -1,5 +1,5 @@
 """The acquisition engine: a run is a declarative plan of events (depth, pattern) carried out
-on the bench and written to a run store frame by frame (HARDWARE.md "Acquisition runs").
+on the bench and written to a run store frame by frame (docs/hardware.md, "Resumable runs").
 
 For each depth with frames to take: move and settle; calibrate the check code (a capture of
 every code value, so the code reads through any blur; camera pixels that see the code are

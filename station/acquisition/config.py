@@ -183,7 +183,7 @@ CameraConfig = Annotated[
 
 
 class PatternConfig(Modulation):
-    """Fourier single-pixel-imaging patterns (OPTICS.md section 5): ``offset`` A and
+    """Fourier single-pixel-imaging patterns (docs/optics.md section 5): ``offset`` A and
     ``amplitude`` B of ``A + B cos(...)`` (fractions of white, A +- B within [0, 1])."""
 
     period: int = Field(24, ge=4, le=256, description="pattern period P, LCD pixels (at most "

@@ -1,5 +1,5 @@
 """Display response (``ltc gamma``): show uniform grey levels, capture them, fit the display's
-response and write the inverse lookup table that makes it linear (OPTICS.md section 5).
+response and write the inverse lookup table that makes it linear (docs/optics.md section 5).
 
 Relative response of drive level g: ``y(g) = (R(g) - R(0)) / (R(255) - R(0))`` with R a camera
 pixel's reading (so the camera's black level and each pixel's gain cancel), pooled over the

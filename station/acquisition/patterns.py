@@ -1,4 +1,4 @@
-"""Pattern sets of the LTC station (OPTICS.md section 5): Fourier single-pixel patterns and
+"""Pattern sets of the LTC station (docs/optics.md section 5): Fourier single-pixel patterns and
 localisation patterns, combined in one ordered plan that round-trips through JSON.
 
 Values are relative luminances in [0, 1] computed in float, mapped through the display's

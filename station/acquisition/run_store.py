@@ -2,7 +2,7 @@
 completion mask, written durably frame by frame so an interrupted run can resume, and checked
 on every read so a damaged store is never read as data.
 
-Layout, ``format_version`` 2 (HARDWARE.md "Acquisition runs", issues 3 and 13; docs/formats.md):
+Layout, ``format_version`` 2 (docs/hardware.md "Resumable runs"; docs/formats.md):
 
 * ``frames[depth, pattern, row, col]`` in the camera's dtype (uint8 up to 8 bits, else
   uint16). One frame is one stored object, a zarr shard of ``tile_px`` x ``tile_px`` inner
@@ -11,7 +11,7 @@ Layout, ``format_version`` 2 (HARDWARE.md "Acquisition runs", issues 3 and 13; d
   the bytes zarr writes, chunks in row-major order where zarr 3.1 uses Morton order; in
   milliseconds instead of seconds) and reads tiles from it directly, verifying each chunk's
   crc32c; any zarr v3 reader reads the array too. Chosen by measurement
-  (``benchmarks/run_store_io.py``, numbers in ``benchmarks/README.md``).
+  (``benchmarks/run_store_io.py``, numbers in ``benchmarks/results/run_store_io-throughput.md``).
 * ``done[depth, pattern]`` bool: True only after the frame and its metadata were written and
   flushed to disk (fsync). A frame whose flag is False is not trusted (readers refuse it).
 * per-frame metadata ``[depth, pattern]``, one array per field of :class:`FrameMeta`, plus

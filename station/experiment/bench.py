@@ -148,8 +148,8 @@ def measure_cameras(cfg: ExperimentConfig, rig: Rig, out: Path, progress: bool, 
 def scanner_lenses(cfg: ExperimentConfig,
                    measured: list[MeasuredLens]) -> dict[str, tuple[LensModel, ...]]:
     """Per scanner the lens of each camera: "ltc" the measured lenses smoothed over
-    ``lens_smoothing_nodes``; "gaussian" from the measured lenses as derived (OPTICS.md
-    section 7: the second moment of the measured LTC at the optical centre, which the
+    ``lens_smoothing_nodes``; "gaussian" from the measured lenses as derived (docs/optics.md
+    section 4: the second moment of the measured LTC at the optical centre, which the
     derivation gives each node's samples exactly; averaging sample k over nodes narrows
     the deblurred samples by a few per cent, an artefact of the smoothing, not of the
     measurement)."""

@@ -17,7 +17,7 @@ from station.lens.geometry import LensFitConfig
 SPHERE_DIAMETER_MM = 50.8007
 BALLBAR_LENGTH_MM = 209.8219
 BALLBAR_BALL_MM = 38.1
-FOCAL_MM = 16.0  # the reference system's lens (OPTICS.md section 1)
+FOCAL_MM = 16.0  # the reference system's lens (docs/optics.md section 1)
 BENCH_SUBPIXELS = 1  # the fake benches trace each pixel's rays from its centre, each spread over
 # the pixel's whole footprint on the LCD: the pixel's area, with all the rays for the pupil
 REFERENCE_PITCH_UM = 3.45  # the reference cameras' pixel pitch (sim.optics.rig)
@@ -70,10 +70,10 @@ class ExperimentConfig(BaseModel):
     lens_settings: dict[str, float | int | bool] = Field(
         {}, description="further settings of the station's lens step by name "
         "(station.lens.geometry.LensFitConfig); empty: LensFitConfig's defaults, the "
-        "recommended settings (docs/decisions/0025-recommended-lens-settings.md)")
+        "recommended settings (docs/decisions 0025)")
     average_frames: int = Field(4, ge=1, description="camera frames averaged per station "
                                 "pattern ([camera] average_frames): the noise of the principal "
-                                "rays' intercepts / sqrt(N) (benchmarks/README.md)")
+                                "rays' intercepts / sqrt(N) (docs/decisions 0015)")
     seed: int = Field(0, description="fake camera noise seed")
     # the scanners
     lens_smoothing_nodes: float = Field(2.0, ge=0, description="the measured lenses' "
@@ -86,13 +86,13 @@ class ExperimentConfig(BaseModel):
     real_samples: int = Field(4096, ge=1, description="pupil samples of the real scanner's "
                               "lenses (soft clipping edge): converged, twice as many move its "
                               "clouds <= 0.4 um and its sizes <= 2.4 um (512 left a 26 um "
-                              "size at the farthest sphere: benchmarks/README.md)")
+                              "size at the farthest sphere: docs/decisions 0015)")
     bench_samples: int = Field(2048, ge=1, description="pupil samples of each fake bench's "
                                "ground-truth lens (soft clipping edge), traced from each camera "
                                "pixel's centre, each ray spread over the pixel's footprint on "
                                "the LCD (sim.optics.plane_ltc): its principal rays then sit "
                                "~4 um RMS from the converged lens's at the pupil (512: 13 um, "
-                               "which the measured lens inherited: benchmarks/README.md)")
+                               "which the measured lens inherited: docs/decisions 0015)")
     gaussian_samples: int | None = Field(None, ge=1, description="aperture samples of the "
                                          "Gaussian lens (default: the measured lens's K)")
     periods_px: tuple[float, ...] = Field((256.0, 32.0, 8.0), description="fringe periods, "
@@ -127,12 +127,12 @@ def paper_size_config(**overrides: Any) -> ExperimentConfig:
                 # the far side, turned 25 degrees: each camera sees one ball at 808 / 817 mm
                 # and the other at 857 / 867 mm. Farther, the 38.1 mm balls leave the
                 # scanner's working range: at 899 mm 11 % of a ball's pixels pass the
-                # projector-consistency check, against 66-77 % here (benchmarks/README.md)
+                # projector-consistency check, against 66-77 % here (docs/decisions 0015)
                 ballbar_large=((75.0, 0.0), (85.0, 0.0)), ballbar_large_roll_deg=25.0,
                 # the paper-size station's node noise is small (4 frames averaged, nodes every
                 # 8 px); smoothing over 2 nodes there moved which limb pixels the near-side
                 # spheres kept and their own-point sizes by -16 / -35 um against real's, the
-                # lens as measured by -4 / -3 um (benchmarks/README.md)
+                # lens as measured by -4 / -3 um (docs/decisions 0015)
                 lens_smoothing_nodes=0.0)
     base.update(overrides)
     return ExperimentConfig(**base)

@@ -318,7 +318,7 @@ def write_report(results: dict[str, Any], cfg: ExperimentConfig, rig: Rig,
         f"Scanners: real = the ground-truth lenses with {cfg.real_samples} pupil samples; "
         f"ltc = the measured lenses (K = {measured[0].samples} per node every "
         f"{cfg.lens_grid_step} px, bilinear, smoothed over {cfg.lens_smoothing_nodes:g} nodes); "
-        f"Gaussian = OPTICS.md section 7, sigma " + ", ".join(
+        f"Gaussian = docs/optics.md section 4, sigma " + ", ".join(
             f"{g.sigma_mm:.3f}" for g in models["gaussian"]) + " mm, "
         f"{models['gaussian'][0].samples} samples; pinhole.",
     ]

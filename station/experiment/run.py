@@ -11,7 +11,7 @@ a faithful virtual scanner.
    densely enough that their own sampling noise is negligible), ``ltc`` (the measured lenses,
    smoothed over ``lens_smoothing_nodes`` neighbouring nodes against the station's
    node-to-node noise),
-   ``gaussian`` (OPTICS.md section 7: the measured lens's focus distance, Gaussian aperture
+   ``gaussian`` (docs/optics.md section 4: the measured lens's focus distance, Gaussian aperture
    weights with the second moment of the measured LTC at the optical centre, the same for
    every pixel) and ``pinhole``.
 3. **Objects**: the 50.8007 mm sphere at 4 slight and 4 large defocus positions, the

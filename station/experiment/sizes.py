@@ -86,7 +86,7 @@ def check_coverage(scans: dict[str, Scan], pos: Position, scene: Scene, rig: Rig
     blurred to pass the decoder's checks but in patches, and a sphere fitted to the patches is
     not a size (a 38.1 mm ball kept 11 % of its disc's pixels at +139 mm of defocus; with the
     far balls at +176 / +196 mm the real and virtual scanners' lengths differed by 0.7 mm:
-    benchmarks/README.md)."""
+    docs/decisions 0018)."""
     balls = scene.objects[0].spheres()
 
     def counts(cloud: PointCloud) -> list[int]:

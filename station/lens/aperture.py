@@ -1,4 +1,4 @@
-"""The LTC at the optical centre (OPTICS.md 6.4-6.5): scale, resample, fuse, quantise.
+"""The LTC at the optical centre (docs/optics.md section 6): scale, resample, fuse, quantise.
 
 Similar triangles about the pixel's in-focus point map an LCD point ``q`` at depth ``z_i`` to
 the aperture plane (the plane of the optical centre, ``z_O``):
@@ -42,7 +42,7 @@ deconvolution with the fusion weights' mixture of the depths' kernels (LCD pixel
 ``pitch |s_i|`` convolved with the camera pixel's footprint ``footprint |s_i|``). Moment
 matching alone shrinks the blurred shape and keeps its tails: on the experiment's benches the
 samples' ``E[rho^4]^(1/4)`` at the centre was 6.9 / 6.4 mm against the true 6.1 / 5.5 mm,
-after the cut and 20 steps 6.0 / 5.4 mm (``benchmarks/README.md``).
+after the cut and 20 steps 6.0 / 5.4 mm (docs/decisions 0002).
 
 K samples (``ring_samples``): equal-mass polar strata about the mean in whitened
 coordinates (rings by radius, sectors by angle from a golden-angle offset per ring), each
@@ -385,7 +385,7 @@ def support_floor(mass: np.ndarray, floor: float) -> np.ndarray:
     become 0). The fused distribution carries the LTC's noise over its whole signal region
     (the blur margin included); clipped to non-negative it is a pedestal of positive noise
     around the pupil that the samples would keep as far tails (at the experiment's centre
-    node E[rho^4]^(1/4) 6.9 mm against the true 6.1 mm, benchmarks/README.md)."""
+    node E[rho^4]^(1/4) 6.9 mm against the true 6.1 mm, docs/decisions 0002)."""
     from scipy import ndimage
 
     m = np.maximum(np.asarray(mass, dtype=np.float64), 0.0)

@@ -1,4 +1,4 @@
-"""The optical centre (OPTICS.md 6.3): where the principal rays meet, and the centre
+"""The optical centre (docs/optics.md section 6): where the principal rays meet, and the centre
 consistent with the camera matrix K.
 
 **Principal-ray intersection** (``intersect_rays``): the least-squares intersection of the

@@ -1,4 +1,4 @@
-"""Grey-scale centroids and second moments of every pixel's LTC at every depth (OPTICS.md 6.1).
+"""Grey-scale centroids and second moments of every pixel's LTC at every depth (docs/optics.md section 6).
 
 A pixel's LTC window is searched for its peak (after a 3 x 3 box smoothing); the region is
 the connected set of smoothed weights above a noise threshold that holds the peak, grown by
@@ -14,7 +14,7 @@ the reduced experiment's measured-LTC scanner then had a mean distance of -190 u
 one at large defocus and failed its ordering test (tests/station/experiment). With the margin
 the errors are the noise ``var(x_g)`` predicts and nothing more (tests/station/ltc/test_spi.py;
 ``sigma_h`` is the store's per-weight noise estimate). Not the whole P x P window: the noise of
-a centroid grows with the area summed over (OPTICS.md section 5). Station-frame points are
+a centroid grows with the area summed over (docs/optics.md section 5). Station-frame points are
 ``(x_g * pitch, y_g * pitch, z)`` mm with ``z`` the stage reading of the depth
 (``fakes/bench.py`` documents the frame: the LCD plane lies at ``z = stage reading``).
 

@@ -1,4 +1,4 @@
-"""The lens model file from the lens's geometry and its LTCs (OPTICS.md section 6).
+"""The lens model file from the lens's geometry and its LTCs (docs/optics.md section 6).
 
 This module's line: given the ``LensGeometry`` (``station.lens.geometry``: principal rays ->
 optical centre -> focus plane), it takes every node pixel's LTC at each depth, scales it onto
@@ -11,7 +11,7 @@ over the pixels within ``ray_window_px`` (``local_ray_centres``). One pixel's ra
 as good as its centroids extrapolated ~4x from the LCD depths to the centre (~150 um RMS on
 the experiment's benches), and the fused distribution's own mean adds each depth's residual
 times ``|s_i|`` (~5 at the extreme depths): the samples' centroids were ~300-400 um RMS off
-the true lens's, ~30 um with both changes (``benchmarks/README.md``).
+the true lens's, ~30 um with both changes (docs/decisions 0002).
 ``derive_lens`` runs the whole chain from an LTC volume. With a camera matrix and
 ``LensFitConfig.focus_zones`` it first fits the focus per pupil zone (spherical aberration)
 from the LTCs at the optical centre (``station.lens.zones``), maps every LTC onto the

@@ -1,4 +1,4 @@
-"""The lens's geometry from an LTC volume (OPTICS.md 6.1-6.3): principal rays -> optical
+"""The lens's geometry from an LTC volume (docs/optics.md section 6): principal rays -> optical
 centre -> focus plane, as a ``LensGeometry``.
 
 This module's line: it measures where the lens is and where it focuses, nothing of its

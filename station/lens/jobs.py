@@ -288,7 +288,7 @@ def _moments(fused: np.ndarray, weight: np.ndarray, ok: np.ndarray, grid: ap.Ape
     coefficient is the light binned in that LCD pixel, and the resampling spreads it
     uniformly over the pixel's area again) and the camera pixel's once (a box blur).
     Without this the aperture came out 6-9 % wide against the true lens
-    (benchmarks/README.md, "The fake bench's lens converged")."""
+    (docs/decisions 0015)."""
     mean, cov = ap.grid_moments(fused, grid)
     cov = cov - np.eye(2) * grid.cell_mm**2 / 12.0
     if deblur:

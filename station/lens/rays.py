@@ -1,4 +1,4 @@
-"""Principal rays (OPTICS.md 6.2), vectorised over pixels; their intersection, the optical
+"""Principal rays (docs/optics.md section 6), vectorised over pixels; their intersection, the optical
 centre, is ``station.lens.centre``.
 
 A pixel's principal ray is the line through its LTC centroids at the depths:

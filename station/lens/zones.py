@@ -1,4 +1,4 @@
-"""Focus distance per aperture zone (spherical aberration, OPTICS.md section 8) from the LTCs
+"""Focus distance per aperture zone (spherical aberration, docs/optics.md section 9) from the LTCs
 of the pixels at the optical centre.
 
 At the optical centre the pupil is unvignetted and rotationally symmetric. A ray through
@@ -13,7 +13,7 @@ model ray is spread over the camera pixel's footprint on the LCD (``z_i / f`` mm
 ``pixel_samples`` x ``pixel_samples`` points for a simulated camera rendered that way) and
 binned into the LCD's pixels, centred on each window's measured centroid.
 
-On the experiment's fake benches (``benchmarks/README.md``) it recovers the true lenses'
+On the experiment's fake benches (docs/decisions 0017) it recovers the true lenses'
 ``z(rho)`` within ~1.5 mm over the whole pupil (760 -> 775 and 760 -> 768 mm) and their
 pupil radius within 0.01 mm.
 """

@@ -1,4 +1,4 @@
-"""Fourier single-pixel LTC reconstruction (OPTICS.md section 5).
+"""Fourier single-pixel LTC reconstruction (docs/optics.md section 5).
 
 Per camera pixel: n-step demodulation of the Fourier frames into the P x P spectrum
 ``G(k, l) = S F(k, l) = S sum_xy h(x, y) exp(-2 pi j (k x + l y) / P)`` (ADU; conjugate

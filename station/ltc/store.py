@@ -1,6 +1,6 @@
 """The LTC store (zarr v3): per depth and camera pixel, a P x P window of LTC weights.
 
-Layout (ARCHITECTURE.md, issue 3):
+Layout (docs/architecture.md, docs/formats.md):
 
 * ``ltc[depth, row, col, P, P]`` float32, each pixel's LTC normalised to sum 1 (NaN where
   the pixel has no signal); window element ``[r, s]`` is LCD pixel
@@ -95,7 +95,7 @@ def create_ltc_store(
     g = zarr.open_group(str(tmp), mode="w-", zarr_format=3)
     t = (1, min(tile_px, h), min(tile_px, w))
     # uncompressed: noisy float32 windows compress to 0.93 with zstd, whose encoding cost
-    # about as much as the tile's reconstruction (benchmarks/README.md, issue 13)
+    # about as much as the tile's reconstruction (docs/decisions 0008)
     g.create_array("ltc", shape=(d, h, w, period, period), chunks=t + (period, period),
                    dtype="float32", fill_value=np.nan, compressors=None)
     # the per-pixel scalars too (1 % of the store): every tile's chunks are then written as

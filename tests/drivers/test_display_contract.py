@@ -1,5 +1,5 @@
 """One contract for every PatternDisplay implementation (drivers.interfaces.PatternDisplay), from
-HARDWARE.md: patterns drawn 1:1 and on screen as soon as show() returns, the inverse response
+docs/hardware.md: patterns drawn 1:1 and on screen as soon as show() returns, the inverse response
 LUT applied exactly, shows numbered and timed, bad input refused with ValueError, typed errors
 after close, and an idempotent close.
 

@@ -1,4 +1,4 @@
-"""GenICamCamera against Aravis's fake GigE Vision camera on loopback (issue 14).
+"""GenICamCamera against Aravis's fake GigE Vision camera on loopback.
 
 Each test starts its own fake camera in a child process (tests/support/gv_fake.py) with its own serial
 number; frames are checked against the fake's documented diagonal ramp.

@@ -1,4 +1,4 @@
-"""One contract for every Stage implementation (drivers.interfaces.Stage), from HARDWARE.md's
+"""One contract for every Stage implementation (drivers.interfaces.Stage), from docs/hardware.md's
 driver rules: homing, moves that end within tolerance at the measured position, software limits
 checked before anything moves, a position valid while moving, stop from another thread, a move
 deadline that stops the axis, typed errors, and an idempotent close.

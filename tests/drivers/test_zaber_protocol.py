@@ -134,7 +134,7 @@ def test_speed_and_accel_units_are_defined_once_in_the_protocol_module() -> None
     import fakes.zaber.device
     from drivers import zaber_protocol
 
-    # HARDWARE.md: speed in microsteps/s = maxspeed / 1.6384; microsteps/s^2 = accel * 10000 / 1.6384
+    # docs/hardware.md: speed in microsteps/s = maxspeed / 1.6384; microsteps/s^2 = accel * 10000 / 1.6384
     assert zaber_protocol.SPEED_UNIT == 1.6384
     assert 16 / zaber_protocol.ACCEL_UNIT == pytest.approx(16 * 10000 / 1.6384, rel=1e-12)
     for module in (drivers.stage, fakes.zaber.device, fakes.hardware):

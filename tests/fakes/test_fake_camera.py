@@ -1,4 +1,4 @@
-"""FakeCamera and the fake bench against geometry and the noise model (issue 2, part 6)."""
+"""FakeCamera and the fake bench against geometry and the noise model."""
 
 import numpy as np
 import pytest

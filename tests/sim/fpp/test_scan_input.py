@@ -1,4 +1,4 @@
-"""Bringing a real scanner's data to ``ltc scan`` (issue 15): a rig in OpenCV ``stereoCalibrate``
+"""Bringing a real scanner's data to ``ltc scan``: a rig in OpenCV ``stereoCalibrate``
 naming, a pattern set given as fringe counts, float and 16-bit images, and the errors that
 name what the user typed."""
 

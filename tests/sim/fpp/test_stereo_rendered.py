@@ -1,4 +1,4 @@
-"""Stereo matching on rendered spheres (issue 15): the sub-pixel match does not depend on the
+"""Stereo matching on rendered spheres: the sub-pixel match does not depend on the
 interpolation, and the consistency checks drop the silhouette's mixed pixels."""
 
 from __future__ import annotations

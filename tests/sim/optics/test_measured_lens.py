@@ -217,7 +217,7 @@ def test_metadata_is_json(tmp_path):
 
 
 def test_gaussian_baseline_takes_the_second_moment_at_the_optical_centre():
-    """OPTICS.md section 7: four samples at +-a on each axis have per-axis variance a^2 / 2;
+    """docs/optics.md section 4: four samples at +-a on each axis have per-axis variance a^2 / 2;
     the Gaussian equivalent has that sigma and the lens's focus distance."""
     from sim.optics.measured_lens import centre_moments, gaussian_equivalent
 

@@ -1,4 +1,4 @@
-"""Files written straight to the device (issue 13): an aligned array goes through O_DIRECT, and
+"""Files written straight to the device: an aligned array goes through O_DIRECT, and
 whatever path a file takes (direct, buffered, or direct refused at open or mid-write), its bytes
 on disk are the array's, under its final name only."""
 

@@ -1,4 +1,4 @@
-"""The run store's own shard and metadata writer (issue 13): its bytes on disk equal those of
+"""The run store's own shard and metadata writer: its bytes on disk equal those of
 the first format-2 implementation, every inner chunk and per-frame record equals what zarr
 itself writes, for random uint8 and uint16 frames with aligned and padded edges, and plain
 zarr reads them back."""

@@ -1,4 +1,4 @@
-"""Run stores that cannot be silently wrong (issue 13): frame checksums, cross-checks of the
+"""Run stores that cannot be silently wrong: frame checksums, cross-checks of the
 attributes against the frame records, the writer lock, atomic creation, and the writer queue's
 frames equal to the serial path's, bit for bit."""
 

@@ -16,7 +16,7 @@ from station.experiment.run import ExperimentConfig, PositionRow, cad_part_mesh,
 # the demo's rig scale (0.1: scale 0.05 leaves too few pixels on a defocused ball for the
 # stereo checks) and station (LCD pitch, six depths), with a narrower camera, 64 aperture
 # samples and fewer positions (a coarser station, 1 mm LCD pixels at 4 depths, measures a lens
-# whose large-defocus sphere misses real's size by 64 um, benchmarks/README.md)
+# whose large-defocus sphere misses real's size by 64 um, docs/decisions 0018)
 REDUCED = dict(
     scale=0.1, camera_size=(208, 64), lcd_pitch_mm=0.75,
     depths_mm=(50.0, 90.0, 130.0, 290.0, 330.0, 370.0),

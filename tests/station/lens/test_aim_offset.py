@@ -1,6 +1,6 @@
 """Each node's aim offset makes the measured lens's principal rays follow the station's
 measured slopes: against the fake bench's true LTC centroids, the lens file's implied
-principal-ray slopes come closer to the true ones with it than without (issue 16)."""
+principal-ray slopes come closer to the true ones with it than without."""
 
 from __future__ import annotations
 

@@ -87,7 +87,7 @@ def test_centroids_equal_the_true_ones(bench, volume, monkeypatch):
 def test_noise_propagates_to_the_centroid_std(bench, z):
     """Monte Carlo: the predicted centroid and second-moment stds match the scatter of 400
     noisy copies; for a small LTC the region centroid is far less noisy than the whole
-    window's (OPTICS.md section 5)."""
+    window's (docs/optics.md section 5)."""
     w, _ = bench.config.camera_size
     win = bench_windows(bench, z)[0][15 * w + 20]
     sigma = 6e-4  # the default camera's per-weight noise for P = 24 (see test_derive)

@@ -1,4 +1,4 @@
-"""Acceptance of the lens derivation on the fake bench (issue 4).
+"""Acceptance of the lens derivation on the fake bench.
 
 Bench: ``BenchConfig.small`` (40 x 30 camera, f/2, z_f = 250 mm, vignetting 60 mm per unit
 field, 6 mm spherical aberration) with a 120 x 96 LCD 100 mm from the pupil at stage 0, pixel

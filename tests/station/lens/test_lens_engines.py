@@ -1,5 +1,5 @@
 """The lens derivation on every engine, and streamed to a file, gives the same lens bit for
-bit as the in-memory, single-process derivation (issue 13)."""
+bit as the in-memory, single-process derivation."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """The lens derivation's memory-saving forms give the values of the plain ones, bit for bit
-(issue 13: six full-size depths in 4 GB): the summary's residual statistics and the
+(six full-size depths in 4 GB): the summary's residual statistics and the
 transmittance computed in blocks."""
 
 from types import SimpleNamespace

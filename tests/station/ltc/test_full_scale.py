@@ -1,4 +1,4 @@
-"""Issue 13 (compute half), at small size: the synthetic bench's true centroids are recovered;
+"""At small size: the synthetic bench's true centroids are recovered;
 a local Dask cluster, worker processes and a single process give the same LTC store bit for
 bit; a SIGKILLed reconstruction finished with ``--resume`` equals an uninterrupted one; the
 lens derivation refuses an LTC store with an incomplete depth."""

@@ -1,5 +1,5 @@
 """station.ltc.spi / station.ltc.localise: Fourier single-pixel LTC reconstruction against analytic
-answers and against the fake bench's true LTC (issue 3 acceptance).
+answers and against the fake bench's true LTC.
 
 Synthetic runs are made without the acquisition engine: each frame is what ``FakeCamera``
 captures when the LCD shows the plan's pattern (through ``PanelResponse``), written to a
