@@ -17,21 +17,15 @@ A sample is written into ``.partial/``, every file synced, then renamed into ``s
 the folder synced: a sample in ``samples/`` is whole, or absent. Its checksum (sha256 of its
 scene and arrays) is in its attributes and, at the end of a run, in the manifest.
 
-The durable-write and lock helpers here are this package's own minimal ones, one function
-each (``write_durable``, ``sync_tree``, ``writer_lock``), so they can be replaced by the
-project's storage layer in one place.
+Durable writes and the writer lock are the storage layer's (``sim.storage``).
 """
 
 from __future__ import annotations
 
-import builtins
-import contextlib
-import errno
-import fcntl
 import json
 import os
 import shutil
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,12 +37,14 @@ from sim.dataset.config import Storage
 from sim.dataset.generate import CAMERA_KEYS, Sample, checksum
 from sim.dataset.randomise import SampleScene
 from sim.errors import SimInputError
+from sim.storage.durable import durable_file, publish
+from sim.storage.durable import sync_tree as _sync_tree
+from sim.storage.lock import StoreLock
 
 FORMAT = "ltc-fpp-fringe-dataset"
 FORMAT_VERSION = 1
 SAMPLES = "samples"
 PARTIAL = ".partial"
-LOCK = ".lock"
 WRITE_THREADS = 4  # arrays compressed at once (zstd releases the GIL)
 SYNC_THREADS = 16  # fsyncs in flight at once
 
@@ -57,66 +53,21 @@ SYNC_THREADS = 16  # fsyncs in flight at once
 
 
 def write_durable(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that a crash leaves the old file or the new one: a
-    temporary file beside it, fsync, rename over it, fsync of the folder."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with builtins.open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _sync_dir(path.parent)
-
-
-def _sync_dir(folder: Path) -> None:
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    """Write ``data`` to ``path`` durably (:func:`sim.storage.durable.durable_file`)."""
+    with durable_file(path, "wb") as f:
+        f.write(data)
 
 
 def sync_tree(folder: Path, threads: int = SYNC_THREADS) -> None:
-    """fsync every file under ``folder``, then every folder (deepest first, ``folder`` last).
-    The files' fsyncs run on ``threads`` threads: a journalling file system commits
-    concurrent fsyncs together, where one after the other each waits for its own commit."""
-    files, dirs = [], []
-    for root, _dirs, names in os.walk(folder):
-        files += [os.path.join(root, n) for n in names]
-        dirs.append(Path(root))
-    with ThreadPoolExecutor(max(1, threads)) as pool:
-        list(pool.map(_sync_file, files))
-    for d in reversed(dirs):
-        _sync_dir(d)
+    """fsync every file and folder under ``folder`` (:func:`sim.storage.durable.sync_tree`),
+    the files on ``threads`` threads."""
+    _sync_tree(folder, threads)
 
 
-def _sync_file(path: str) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-@contextlib.contextmanager
-def writer_lock(folder: Path) -> Iterator[None]:
-    """Hold the data set's writer lock (``folder/.lock``, flock) for the block; refuses
-    (OSError EBUSY naming the folder) when another process holds it."""
-    fd = os.open(Path(folder) / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise OSError(errno.EBUSY, "another process is writing this data set (its lock "
-                          "is held); wait for it to finish", str(folder)) from None
-        yield
-    finally:
-        os.close(fd)
+def writer_lock(folder: Path) -> StoreLock:
+    """The data set's writer lock (:class:`sim.storage.lock.StoreLock`, ``writer.lock`` in
+    ``folder``): a second writer is refused, naming the holder."""
+    return StoreLock(folder)
 
 
 # ---------------------------------------------------------------- writing
@@ -178,11 +129,7 @@ def write_sample(root: Path, sample: Sample, storage: Storage | None = None) -> 
             write_group(tmp, sample, pending, storage)
             digest = pending.result()
         sync_tree(tmp)
-        final = root / SAMPLES / name
-        if final.exists():
-            shutil.rmtree(final)
-        os.rename(tmp, final)
-        _sync_dir(final.parent)
+        publish(tmp, root / SAMPLES / name, replace=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

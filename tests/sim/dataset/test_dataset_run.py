@@ -273,5 +273,5 @@ def test_one_writer_at_a_time(reference, tmp_path, capsys):
     with writer_lock(out):
         err = _fail(capsys, ["dataset", str(cfg), "--out", str(out), "--samples", str(N),
                              "--workers", "1", "--quiet"])
-    assert "another process is writing this data set" in err
+    assert "locked by another writer" in err and f"PID {os.getpid()}" in err
     assert sim.dataset.open(out).sample(0).verify()
