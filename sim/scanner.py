@@ -24,7 +24,8 @@ import numpy as np
 
 from sim.errors import SimInputError
 from sim.fpp.cloud import PointCloud
-from sim.fpp.decode import DecodeSettings, scan as _scan
+from sim.fpp.decode import DecodeSettings
+from sim.fpp.decode import scan as _scan
 from sim.metrology import measure as _measure
 from sim.optics.lens import LensModel
 from sim.optics.rig import Rig
@@ -61,7 +62,7 @@ class Scanner:
         object.__setattr__(self, "_geometry", None)
         from sim.optics.measured_lens import lens_camera_mismatch
 
-        for i, (lens, cam) in enumerate(zip(self.lenses, self.rig.cameras)):
+        for i, (lens, cam) in enumerate(zip(self.lenses, self.rig.cameras, strict=True)):
             why = lens_camera_mismatch(lens, cam)
             if why is not None:
                 raise SimInputError(f"{self.where}: camera {i}: {why}")

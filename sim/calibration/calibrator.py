@@ -195,7 +195,7 @@ def _zhang(obj: np.ndarray, feats: list[tuple[np.ndarray, np.ndarray]], size, mo
                                f"failed ({' '.join(str(exc).split())[:120]}); vary the board's "
                                "tilt between poses") from exc
     per_pose = []
-    for o, i, r, t in zip(op, ip, rv, tv):
+    for o, i, r, t in zip(op, ip, rv, tv, strict=True):
         p, _ = cv2.projectPoints(o, r, t, K, dist)
         per_pose.append(np.sqrt(np.mean(np.sum((p - i).reshape(-1, 2) ** 2, axis=1))))
     return K, dist.ravel()[:5], [r.ravel() for r in rv], [t.ravel() for t in tv], \
@@ -305,8 +305,8 @@ def calibrate(capture_dir: str | Path, board: CalibrationBoard | str | Path,
     R0 = [cv2.Rodrigues(r)[0] for r in rv[0]]
     for d in (1, 2):
         Rd = [cv2.Rodrigues(r)[0] for r in rv[d]]
-        Rrel = _mean_rotation([a @ b.T for a, b in zip(Rd, R0)])
-        trel = np.median([td - Rrel @ t0_ for td, t0_ in zip(tv[d], tv[0])], axis=0)
+        Rrel = _mean_rotation([a @ b.T for a, b in zip(Rd, R0, strict=True)])
+        trel = np.median([td - Rrel @ t0_ for td, t0_ in zip(tv[d], tv[0], strict=True)], axis=0)
         ext_r.append(cv2.Rodrigues(Rrel)[0].ravel())
         ext_t.append(trel)
     layout = Layout(models, len(views.poses))
@@ -356,5 +356,5 @@ def calibrate(capture_dir: str | Path, board: CalibrationBoard | str | Path,
                "total_s": time.perf_counter() - t0}
     return CalibrationResult(rig, rms, pose_rms, residuals,
                              {names[d]: float(sol.fx_rel_std[d]) for d in range(3)},
-                             dict(zip(names, models)), projector_method, views.poses, board,
+                             dict(zip(names, models, strict=True)), projector_method, views.poses, board,
                              timings)

@@ -153,7 +153,7 @@ class ScanReport:
     def lines(self) -> list[str]:
         """One line per camera: decoded pixels and the non-zero rejections, most first."""
         out = []
-        for i, (n, d, r) in enumerate(zip(self.pixels, self.decoded, self.rejected)):
+        for i, (n, d, r) in enumerate(zip(self.pixels, self.decoded, self.rejected, strict=True)):
             parts = ", ".join(f"{k} {v}" for k, v in sorted(r.items(), key=lambda kv: -kv[1])
                               if v)
             out.append(f"camera {i}: {d} of {n} pixels decoded; rejected: {parts or 'none'}")

@@ -107,7 +107,9 @@ def icp(
     r_tot, t_tot = np.eye(3), np.zeros(3)
     radius = np.max(np.linalg.norm(src0 - src0.mean(axis=0), axis=1))
     previous = np.inf
-    for it in range(1, max_iterations + 1):
+    iterations = 0
+    while iterations < max_iterations:
+        iterations += 1
         src = src0 @ r_tot.T + t_tot
         d, j = tree.query(src)
         use = np.ones(len(src), bool) if max_distance_mm is None else d <= max_distance_mm
@@ -125,7 +127,7 @@ def icp(
         moved = np.linalg.norm(step.t) + radius * np.linalg.norm(step.R - np.eye(3))
         if moved < tolerance_mm:
             break
-    return RigidTransform(r_tot, t_tot), it
+    return RigidTransform(r_tot, t_tot), iterations
 
 
 def signed_distance_to_cloud(

@@ -164,7 +164,7 @@ class LensFileWriter:
         gu = self.shape[1]
         for name in self.NAMES:
             fd = self._files[name].fileno()
-            for d, s in zip(np.asarray(dst).tolist(), np.asarray(src).tolist()):
+            for d, s in zip(np.asarray(dst).tolist(), np.asarray(src).tolist(), strict=True):
                 buf = os.pread(fd, nbytes, self._offset(name, s // gu, s % gu))
                 os.pwrite(fd, buf, self._offset(name, d // gu, d % gu))
 

@@ -8,7 +8,8 @@ pixel's in-focus point ``((x_n + e_x) z_k, (y_n + e_y) z_k, z_k)`` in the camera
 origin is the optical centre (``z_k = z_f``, or with ``focus_zones_mm`` the zone's focus at
 the sample's pupil radius ``rho_k = |(x_k, y_k)|``, linear between rows, clamped at the
 ends; ``e`` the node's ``aim_offset``, 0 without one), with weight ``w_k * transmittance``
-(relative transmittance: 1 for the brightest pixels, lower where the lens vignettes). Samples between nodes: ``nearest`` node,
+(relative transmittance: 1 for the brightest pixels, lower where the lens vignettes).
+Samples between nodes: ``nearest`` node,
 or ``bilinear`` (sample k of the four surrounding nodes blended; the derivation orders
 samples the same way at every node, so sample k means the same part of the aperture).
 

@@ -221,7 +221,7 @@ def _write_filestorage(rig: Rig, path: Path) -> None:
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     if not fs.isOpened():
         raise OSError(f"rig file {path}: cannot open for writing")
-    for node, dev in zip(DEVICE_NODES, [*rig.cameras, rig.projector]):
+    for node, dev in zip(DEVICE_NODES, [*rig.cameras, rig.projector], strict=True):
         fs.startWriteStruct(node, cv2.FileNode_MAP)
         fs.write("name", dev.name)
         fs.write("image_width", int(dev.width))
@@ -448,7 +448,7 @@ def _scaled_rig(camera_size: tuple[int, int], projector_size: tuple[int, int], s
     f_cam = CAMERA_FOCAL_MM / CAMERA_PITCH_MM * scale
     cd = CAMERA_DIST if distortion else [0.0] * 5
     pd = PROJECTOR_DIST if distortion else [0.0] * 5
-    cams = [_device(n, camera_size, f_cam, c, cd) for n, c in zip(("left", "right"), cam_c)]
+    cams = [_device(n, camera_size, f_cam, c, cd) for n, c in zip(("left", "right"), cam_c, strict=True)]
     proj = _device("projector", projector_size, PROJECTOR_FOCAL_PX * scale,
                    np.array([0.0, 0.0, -WORKING_DISTANCE_MM]), pd)
     return Rig(cameras=cams, projector=proj)

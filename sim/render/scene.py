@@ -27,12 +27,12 @@ Scene file (TOML; paths relative to the file; example ``examples/sphere_scene.to
 from __future__ import annotations
 
 import json
+import tomllib
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import tomllib
 import trimesh
 from pydantic import (
     BaseModel,
@@ -43,15 +43,15 @@ from pydantic import (
 )
 
 from sim.errors import SimInputError
+from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens
+from sim.optics.rig import DeviceCalibration, Rig, _matrix
 from sim.render.board import CalibrationBoard, PlacedBoard
 from sim.render.fringe_patterns import PatternSet
-from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens
 from sim.render.images import RenderResult, RenderSettings, render_views, write_pngs, write_zarr
-from sim.optics.rig import DeviceCalibration, Rig, _matrix
-from sim.validation import format_validation_error
 from sim.render.trace import TraceGeometry
 from sim.storage.durable import durable_file
 from sim.tolerances import ROTATION_TOL
+from sim.validation import format_validation_error
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
 
@@ -378,7 +378,7 @@ class LoadedScene:
         cam = self.config.render.camera
         png_dirs = [str(out / f"camera_{i}") if cam.quantize else None
                     for i in range(len(result.cameras))]
-        for c, d in zip(result.cameras, png_dirs):
+        for c, d in zip(result.cameras, png_dirs, strict=True):
             if d is not None:
                 write_pngs(d, c.images, cam.bit_depth)
         recorded = Path(final) if final is not None else out
@@ -397,7 +397,7 @@ class LoadedScene:
     def _summary(self, result: RenderResult, out: Path, png_dirs: list[str | None]) -> dict:
         cfg = self.config
         cams = []
-        for i, (c, dev) in enumerate(zip(result.cameras, self.rig.cameras)):
+        for i, (c, dev) in enumerate(zip(result.cameras, self.rig.cameras, strict=True)):
             depth = c.depth[np.isfinite(c.depth)]
             cams.append({
                 "name": c.name, "group": f"camera_{i}", "size": list(dev.size),
@@ -454,7 +454,7 @@ def load_scene_file(path: str | Path) -> LoadedScene:
         raise SimInputError(f"{path}: field 'lenses': {len(cfg.lenses)} lens tables for "
                          f"{len(rig.cameras)} rig cameras; give one per camera")
     lenses = [_build_lens(spec, base, path, i, cam)
-              for i, (spec, cam) in enumerate(zip(cfg.lenses, rig.cameras))]
+              for i, (spec, cam) in enumerate(zip(cfg.lenses, rig.cameras, strict=True))]
     objects = [o.model_copy(update={"path": _resolve(base, o.path)}) if isinstance(o, MeshObject) else o
                for o in cfg.objects]
     scene = Scene(objects=objects)

@@ -226,8 +226,8 @@ class _Projector:
 def _shadow_buffers(m: int) -> kern.ShadowRays:
     """Room for up to m shadow rays: origins, directions (m, 3) float32, far (m,) float32,
     and what each belongs to (m,) int64."""
-    return kern.ShadowRays(np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32),
-            np.empty(m, np.int64))
+    return kern.ShadowRays(np.empty((m, 3), np.float32), np.empty((m, 3), np.float32),
+                           np.empty(m, np.float32), np.empty(m, np.int64))
 
 
 def _occluded(geom: TraceGeometry, shadow: kern.ShadowRays, s: int) -> np.ndarray:
