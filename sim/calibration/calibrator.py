@@ -118,7 +118,7 @@ def _gather(capture: Capture, board: CalibrationBoard, method: Method,
     cams: list[list] = [[], []]
     maps: list[list] = [[], []]
     proj: list = []
-    size = None
+    size: tuple[int, int] | None = None  # (width, height) px
     for pose in capture.poses:
         per_cam = []
         for c in range(capture.cameras):
@@ -130,7 +130,8 @@ def _gather(capture: Capture, board: CalibrationBoard, method: Method,
                 return None if f is None else f.uv
 
             view = capture.view(pose, c, settings, features)
-            size = view.white.shape[::-1]
+            h, w = view.white.shape
+            size = (w, h)
             feats = found[0]
             if feats is None:
                 nx, ny = board.pattern_size
@@ -156,7 +157,8 @@ def _gather(capture: Capture, board: CalibrationBoard, method: Method,
                 "projector phase around them; is the board lit by the projector and the fringe "
                 "modulation high enough?")
         proj.append((ids, acc[ids] / cnt[ids, None]))
-    return _Views(list(capture.poses), cams, proj, tuple(size), maps)
+    assert size is not None, "calibrate refuses a capture with fewer than MIN_POSES poses"
+    return _Views(list(capture.poses), cams, proj, size, maps)
 
 
 def _check_conditioning(views: _Views, object_points: np.ndarray) -> None:
@@ -328,7 +330,8 @@ def calibrate(capture_dir: str | Path, board: CalibrationBoard | str | Path,
         sol = adjust(layout, sol.x, obs)
     t_ba = time.perf_counter()
     names = ["camera_0", "camera_1", "projector"]
-    residuals, rms, pose_rms = [], {}, {}
+    residuals, rms = [], {}
+    pose_rms: dict[str, dict[str, float]] = {}  # device, pose: RMS px
     for d in range(3):
         sel = obs.dev == d
         e = sol.residuals[sel]

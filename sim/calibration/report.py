@@ -86,7 +86,7 @@ def write_report(result: CalibrationResult, directory: str | Path) -> Path:
              "| model | fx rel. std |", "|---|---|---|---|---|---|---|---|---|---|"]
     for d in [*rig.cameras, rig.projector]:
         per = result.pose_rms_px[d.name]
-        worst = max(per, key=per.get)
+        worst = max(per, key=lambda pose: per[pose])
         K = d.K_array
         lines.append(f"| {d.name} | {result.rms_px[d.name]:.4f} | {worst} ({per[worst]:.4f}) | "
                      f"{K[0, 0]:.3f} | {K[1, 1]:.3f} | {K[0, 2]:.3f} | {K[1, 2]:.3f} | "

@@ -218,7 +218,8 @@ def compare_by_pixel(measured, reference, transform: RigidTransform | None = Non
         keys.append(np.stack([f["camera"], f["v"], f["u"]], axis=1).astype(np.int64))
     km, kr = keys
     hi = np.maximum(km.max(axis=0), kr.max(axis=0)) + 1 + 2 * edge_px
-    flat = [np.ravel_multi_index((k + [0, edge_px, edge_px]).T, hi) for k in keys]
+    # flat pixel index of every point (the stubs type ravel_multi_index's result as a scalar)
+    flat = [np.asarray(np.ravel_multi_index((k + [0, edge_px, edge_px]).T, hi)) for k in keys]
     _, im, ir = np.intersect1d(flat[0], flat[1], return_indices=True)
     unmatched = (len(km) - len(im), len(kr) - len(ir))
     nrm = np.asarray(reference.normals, dtype=np.float64)

@@ -178,7 +178,8 @@ class LensFileWriter:
         gv, gu, _ = self.shape
         # the scalar fields, validated by a one-node stand-in (the per-node arrays were
         # checked per block); then the node positions and the transmittance themselves
-        lens = MeasuredLens(focus_distance_mm, optical_centre_mm, camera_size, [0.0], [0.0],
+        lens = MeasuredLens(focus_distance_mm, optical_centre_mm, camera_size,
+                            np.array([0.0]), np.array([0.0]),
                             np.zeros((1, 1, 1)), np.zeros((1, 1, 1)), np.ones((1, 1, 1)),
                             np.ones((1, 1)), interpolation, camera_matrix, dist_coeffs,
                             metadata or {}, focus_zones_mm)

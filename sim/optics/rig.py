@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import ClassVar, overload
 
 import cv2
 import numpy as np
@@ -80,7 +81,13 @@ class _Float64View:
     def __set_name__(self, owner: type, name: str) -> None:
         self.field = name.removesuffix("_array")
 
-    def __get__(self, obj, owner=None):
+    @overload
+    def __get__(self, obj: None, owner: type | None = None) -> _Float64View: ...
+
+    @overload
+    def __get__(self, obj: object, owner: type | None = None) -> np.ndarray: ...
+
+    def __get__(self, obj: object | None, owner: type | None = None) -> _Float64View | np.ndarray:
         return self if obj is None else np.asarray(getattr(obj, self.field), dtype=np.float64)
 
 
@@ -124,10 +131,10 @@ class DeviceCalibration(BaseModel):
             raise SimInputError(f"size must be (width, height) >= 1 pixel, got {self.size}")
         return self
 
-    K_array = _Float64View()  # K, dist, R, T as float64 arrays
-    dist_array = _Float64View()
-    R_array = _Float64View()
-    T_array = _Float64View()
+    K_array: ClassVar[_Float64View] = _Float64View()  # K, dist, R, T as float64 arrays
+    dist_array: ClassVar[_Float64View] = _Float64View()
+    R_array: ClassVar[_Float64View] = _Float64View()
+    T_array: ClassVar[_Float64View] = _Float64View()
 
     @property
     def width(self) -> int:

@@ -223,7 +223,8 @@ class Scene(BaseModel):
     def trace_geometry(self, where: str = "scene") -> TraceGeometry:
         """All objects as one ``TraceGeometry`` in world coordinates; errors name ``where``
         and the object (``objects[i]``)."""
-        verts, faces, normals, albedo, obj, face_sph, spheres = [], [], [], [], [], [], []
+        verts, faces, normals, albedo, obj, face_sph = [], [], [], [], [], []
+        spheres: list[np.ndarray] = []  # rows (cx, cy, cz, r) mm
         nv = 0
         for i, o in enumerate(self.objects):
             try:
@@ -324,7 +325,7 @@ def _build_lens(spec, base: Path, source: Path, index: int, camera: DeviceCalibr
         path = _resolve(base, spec.path)
         if not path.is_file():
             raise FileNotFoundError(f"{where}: lens file {path} not found")
-        from sim.optics.measured_lens import load_lens  # imported only when a scene uses it
+        from sim.optics.lens_file import load_lens  # imported only when a scene uses it
 
         try:
             lens = load_lens(path)
@@ -419,12 +420,14 @@ class LoadedScene:
 def _projector_size(raw: object, base: Path) -> tuple[int, int] | None:
     """The rig's projector (width, height) when ``[patterns]`` gives ``fringes`` and the rig
     file reads (a rig that does not is reported by the rig's own check)."""
-    patterns = raw.get("patterns") if isinstance(raw, dict) else None
+    if not isinstance(raw, dict):
+        return None
+    patterns = raw.get("patterns")
     if not (isinstance(patterns, dict) and "fringes" in patterns
             and isinstance(raw.get("rig"), str)):
         return None
     try:
-        return tuple(Rig.load(_resolve(base, Path(raw["rig"]))).projector.size)
+        return Rig.load(_resolve(base, Path(raw["rig"]))).projector.size
     except (OSError, ValueError):
         return None
 
