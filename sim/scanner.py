@@ -16,7 +16,7 @@ Each method is a thin composition of ``sim.render``, ``sim.fpp`` and ``sim.metro
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -24,7 +24,8 @@ import numpy as np
 
 from sim.errors import SimInputError
 from sim.fpp.cloud import PointCloud
-from sim.fpp.decode import DecodeSettings, scan as _scan
+from sim.fpp.decode import DecodeSettings
+from sim.fpp.decode import scan as _scan
 from sim.metrology import measure as _measure
 from sim.optics.lens import LensModel
 from sim.optics.rig import Rig
@@ -52,16 +53,17 @@ class Scanner:
     decode: DecodeSettings = DecodeSettings()
     seed: int = 0
     where: str = "scanner"
+    # the scene's Embree geometry once built (``geometry``), shared by ``with_lenses`` copies
+    _geometry: TraceGeometry | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if len(self.lenses) != len(self.rig.cameras):
             raise SimInputError(f"{self.where}: {len(self.lenses)} lenses for "
                              f"{len(self.rig.cameras)} rig cameras; give one per camera")
         object.__setattr__(self, "lenses", tuple(self.lenses))
-        object.__setattr__(self, "_geometry", None)
         from sim.optics.measured_lens import lens_camera_mismatch
 
-        for i, (lens, cam) in enumerate(zip(self.lenses, self.rig.cameras)):
+        for i, (lens, cam) in enumerate(zip(self.lenses, self.rig.cameras, strict=True)):
             why = lens_camera_mismatch(lens, cam)
             if why is not None:
                 raise SimInputError(f"{self.where}: camera {i}: {why}")
@@ -87,9 +89,11 @@ class Scanner:
     @property
     def geometry(self) -> TraceGeometry:
         """The scene's Embree geometry, built on first use."""
-        if self._geometry is None:
-            object.__setattr__(self, "_geometry", self.scene.trace_geometry(where=self.where))
-        return self._geometry
+        geom = self._geometry
+        if geom is None:
+            geom = self.scene.trace_geometry(where=self.where)
+            object.__setattr__(self, "_geometry", geom)
+        return geom
 
     def render(self, progress: bool = False, rng: np.random.Generator | None = None) -> RenderResult:
         """Fringe images of the pattern set on every camera, with truth maps (noise from

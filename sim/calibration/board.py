@@ -107,7 +107,7 @@ def detect(image: np.ndarray, board: CalibrationBoard) -> Features | None:
                                                       flags=cv2.CALIB_CB_EXHAUSTIVE)
         if not ok:
             return None
-        uv = corners.reshape(-1, 2).astype(np.float32)
+        uv: np.ndarray = corners.reshape(-1, 2).astype(np.float32)
         crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
         w = SUBPIX_WINDOW_PX
         uv = cv2.cornerSubPix(gray, uv.reshape(-1, 1, 2), (w, w), (-1, -1), crit).reshape(-1, 2)
@@ -117,10 +117,10 @@ def detect(image: np.ndarray, board: CalibrationBoard) -> Features | None:
     if board.kind in ("circles", "asymmetric_circles"):
         flags = (cv2.CALIB_CB_SYMMETRIC_GRID if board.kind == "circles"
                  else cv2.CALIB_CB_ASYMMETRIC_GRID)
-        params = cv2.SimpleBlobDetector_Params()
+        params = cv2.SimpleBlobDetector.Params()
         params.maxArea = float(gray.size) / 20
         params.minArea = 10.0
-        det = cv2.SimpleBlobDetector_create(params)
+        det = cv2.SimpleBlobDetector.create(params)
         ok, centres = cv2.findCirclesGrid(gray, (nx, ny), flags=flags, blobDetector=det)
         if not ok:
             return None
@@ -132,7 +132,9 @@ def detect(image: np.ndarray, board: CalibrationBoard) -> Features | None:
     if ids is None or len(ids) < MIN_CHARUCO_CORNERS:
         return None
     ids = ids.ravel().astype(np.int64)
-    clear = (board.square_mm - board.marker_mm) / (2 * board.square_mm)
+    square, marker = board.square_mm, board.marker_mm
+    assert square is not None and marker is not None, "a charuco board has both (validated)"
+    clear = (square - marker) / (2 * square)
     uv = refine_corners(image, corners.reshape(-1, 2).astype(np.float64), (nx, ny), ids, clear)
     return Features(ids, uv)
 
@@ -177,7 +179,7 @@ EDGE_WINDOW_PX = 6  # half length of the scan across an edge
 EDGE_GAP_PX = 4.0  # edge samples start this far from the corner
 
 
-def _edge_points(im: np.ndarray, c: np.ndarray, d: np.ndarray, reach: float,
+def _edge_points(im: np.ndarray, c: np.ndarray, d: np.ndarray, reach: float | np.floating,
                  half_window: int = EDGE_WINDOW_PX) -> np.ndarray:
     """Sub-pixel points (m, 2) of the straight edge through corner ``c`` along unit ``d``,
     from ``EDGE_GAP_PX`` to ``reach`` px on both sides. Each point comes from one pixel row

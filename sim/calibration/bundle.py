@@ -135,7 +135,7 @@ def project_all(layout: Layout, x: np.ndarray, obs: Observations) -> np.ndarray:
 def sparsity(layout: Layout, obs: Observations) -> lil_matrix:
     """The Jacobian's pattern (2 m, parameters)."""
     S = lil_matrix((2 * len(obs.dev), layout.size), dtype=np.int8)
-    for k, (d, j) in enumerate(zip(obs.dev, obs.pose)):
+    for k, (d, j) in enumerate(zip(obs.dev, obs.pose, strict=True)):
         cols = layout.columns(int(d), int(j))
         S[2 * k, cols] = 1
         S[2 * k + 1, cols] = 1
@@ -172,7 +172,7 @@ def initial_vector(layout: Layout, K: list[np.ndarray], dist: list[np.ndarray],
     x[layout.pose_start : layout.ext_start] = np.concatenate(
         [pose_rvec.reshape(-1, 3), pose_t.reshape(-1, 3)], axis=1).ravel()
     x[layout.ext_start :] = np.concatenate(
-        [np.concatenate([np.ravel(r), np.ravel(t)]) for r, t in zip(ext_rvec, ext_t)])
+        [np.concatenate([np.ravel(r), np.ravel(t)]) for r, t in zip(ext_rvec, ext_t, strict=True)])
     return x
 
 
@@ -182,7 +182,7 @@ def _groups(S: np.ndarray) -> list[np.ndarray]:
     used: list[np.ndarray] = []
     for c in range(S.shape[1]):
         rows = S[:, c]
-        for g, u in zip(groups, used):
+        for g, u in zip(groups, used, strict=True):
             if not np.any(u & rows):
                 g.append(c)
                 u |= rows
@@ -212,7 +212,7 @@ def adjust(layout: Layout, x0: np.ndarray, obs: Observations) -> BundleSolution:
             xp = x.copy()
             xp[g] += h
             df = fun(xp) - f0
-            for c, hc in zip(g, h):
+            for c, hc in zip(g, h, strict=True):
                 rows = S[:, c]
                 J[rows, c] = df[rows] / hc
         return J

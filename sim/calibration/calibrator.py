@@ -118,7 +118,7 @@ def _gather(capture: Capture, board: CalibrationBoard, method: Method,
     cams: list[list] = [[], []]
     maps: list[list] = [[], []]
     proj: list = []
-    size = None
+    size: tuple[int, int] | None = None  # (width, height) px
     for pose in capture.poses:
         per_cam = []
         for c in range(capture.cameras):
@@ -130,7 +130,8 @@ def _gather(capture: Capture, board: CalibrationBoard, method: Method,
                 return None if f is None else f.uv
 
             view = capture.view(pose, c, settings, features)
-            size = view.white.shape[::-1]
+            h, w = view.white.shape
+            size = (w, h)
             feats = found[0]
             if feats is None:
                 nx, ny = board.pattern_size
@@ -156,7 +157,8 @@ def _gather(capture: Capture, board: CalibrationBoard, method: Method,
                 "projector phase around them; is the board lit by the projector and the fringe "
                 "modulation high enough?")
         proj.append((ids, acc[ids] / cnt[ids, None]))
-    return _Views(list(capture.poses), cams, proj, tuple(size), maps)
+    assert size is not None, "calibrate refuses a capture with fewer than MIN_POSES poses"
+    return _Views(list(capture.poses), cams, proj, size, maps)
 
 
 def _check_conditioning(views: _Views, object_points: np.ndarray) -> None:
@@ -195,7 +197,7 @@ def _zhang(obj: np.ndarray, feats: list[tuple[np.ndarray, np.ndarray]], size, mo
                                f"failed ({' '.join(str(exc).split())[:120]}); vary the board's "
                                "tilt between poses") from exc
     per_pose = []
-    for o, i, r, t in zip(op, ip, rv, tv):
+    for o, i, r, t in zip(op, ip, rv, tv, strict=True):
         p, _ = cv2.projectPoints(o, r, t, K, dist)
         per_pose.append(np.sqrt(np.mean(np.sum((p - i).reshape(-1, 2) ** 2, axis=1))))
     return K, dist.ravel()[:5], [r.ravel() for r in rv], [t.ravel() for t in tv], \
@@ -305,8 +307,8 @@ def calibrate(capture_dir: str | Path, board: CalibrationBoard | str | Path,
     R0 = [cv2.Rodrigues(r)[0] for r in rv[0]]
     for d in (1, 2):
         Rd = [cv2.Rodrigues(r)[0] for r in rv[d]]
-        Rrel = _mean_rotation([a @ b.T for a, b in zip(Rd, R0)])
-        trel = np.median([td - Rrel @ t0_ for td, t0_ in zip(tv[d], tv[0])], axis=0)
+        Rrel = _mean_rotation([a @ b.T for a, b in zip(Rd, R0, strict=True)])
+        trel = np.median([td - Rrel @ t0_ for td, t0_ in zip(tv[d], tv[0], strict=True)], axis=0)
         ext_r.append(cv2.Rodrigues(Rrel)[0].ravel())
         ext_t.append(trel)
     layout = Layout(models, len(views.poses))
@@ -328,7 +330,8 @@ def calibrate(capture_dir: str | Path, board: CalibrationBoard | str | Path,
         sol = adjust(layout, sol.x, obs)
     t_ba = time.perf_counter()
     names = ["camera_0", "camera_1", "projector"]
-    residuals, rms, pose_rms = [], {}, {}
+    residuals, rms = [], {}
+    pose_rms: dict[str, dict[str, float]] = {}  # device, pose: RMS px
     for d in range(3):
         sel = obs.dev == d
         e = sol.residuals[sel]
@@ -356,5 +359,5 @@ def calibrate(capture_dir: str | Path, board: CalibrationBoard | str | Path,
                "total_s": time.perf_counter() - t0}
     return CalibrationResult(rig, rms, pose_rms, residuals,
                              {names[d]: float(sol.fx_rel_std[d]) for d in range(3)},
-                             dict(zip(names, models)), projector_method, views.poses, board,
+                             dict(zip(names, models, strict=True)), projector_method, views.poses, board,
                              timings)

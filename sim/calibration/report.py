@@ -22,7 +22,7 @@ def _figures(result: CalibrationResult, out: Path) -> list[str]:
     names = []
     # residual vectors over the sensor, exaggerated to be seen
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
-    for ax, dev in zip(axes, DEVICES):
+    for ax, dev in zip(axes, DEVICES, strict=True):
         rs = [r for r in result.residuals if r.device == dev and len(r.uv)]
         uv = np.concatenate([r.uv for r in rs])
         e = np.concatenate([r.error for r in rs])
@@ -43,7 +43,7 @@ def _figures(result: CalibrationResult, out: Path) -> list[str]:
     names.append("residuals.png")
     # coverage: the features of every pose, one colour per pose
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
-    for ax, dev in zip(axes, DEVICES):
+    for ax, dev in zip(axes, DEVICES, strict=True):
         for r in result.residuals:
             if r.device == dev and len(r.uv):
                 ax.plot(r.uv[:, 0], r.uv[:, 1], ".", ms=3, label=r.pose)
@@ -86,7 +86,7 @@ def write_report(result: CalibrationResult, directory: str | Path) -> Path:
              "| model | fx rel. std |", "|---|---|---|---|---|---|---|---|---|---|"]
     for d in [*rig.cameras, rig.projector]:
         per = result.pose_rms_px[d.name]
-        worst = max(per, key=per.get)
+        worst = max(per, key=lambda pose: per[pose])
         K = d.K_array
         lines.append(f"| {d.name} | {result.rms_px[d.name]:.4f} | {worst} ({per[worst]:.4f}) | "
                      f"{K[0, 0]:.3f} | {K[1, 1]:.3f} | {K[0, 2]:.3f} | {K[1, 2]:.3f} | "

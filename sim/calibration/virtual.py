@@ -108,7 +108,7 @@ def render_capture(out: str | Path, board: CalibrationBoard, rig: Rig | None = N
     out = Path(out)
     rig = rig or calibration_rig()
     poses = list(poses) if poses is not None else default_poses(board)
-    patterns = patterns or CalibrationPatterns.default(tuple(rig.projector.size))
+    patterns = patterns or CalibrationPatterns.default(rig.projector.size)
     if tuple(patterns.projector_size) != tuple(rig.projector.size):
         raise ValueError(f"patterns are for a {patterns.projector_size} projector, the rig's is "
                          f"{rig.projector.size}")

@@ -96,7 +96,7 @@ def checksum(scene_json: str, cameras: list[dict[str, np.ndarray]]) -> str:
         for key in CAMERA_KEYS:
             a = np.ascontiguousarray(cam[key])
             h.update(f"{i}/{key}/{a.dtype.str}/{a.shape}".encode())
-            h.update(memoryview(a).cast("B"))
+            h.update(a.data.cast("B"))
     return h.hexdigest()
 
 
@@ -113,7 +113,8 @@ def object_parts(obj: SampleObject) -> Parts:
 
 def scene_geometry(objects: list[SampleObject]) -> TraceGeometry:
     """Every object of a sample as one ``TraceGeometry`` (world mm; exact spheres kept)."""
-    verts, faces, normals, albedo, obj_id, face_sph, spheres = [], [], [], [], [], [], []
+    verts, faces, normals, albedo, obj_id, face_sph = [], [], [], [], [], []
+    spheres: list[list[float]] = []  # rows (cx, cy, cz, r) mm
     nv = 0
     for i, o in enumerate(objects):
         parts = object_parts(o)
@@ -168,10 +169,11 @@ def _load_lens_cached(path: str, load):
 def phase_groups(scene: SampleScene) -> list[tuple[float, list[int], int]]:
     """(period px, image indices in shift order, N) of each phase-shift frequency, in the
     pattern set's order."""
-    descs = scene.patterns.descriptors(tuple(scene.rig.projector.size))
+    descs = scene.patterns.descriptors(scene.rig.projector.size)
     groups: dict[float, list] = {}
     for d in descs:
         if d.kind == "phase":
+            assert d.period_px is not None, "a phase pattern has a period"
             groups.setdefault(float(d.period_px), []).append(d)
     return [(p, [d.index for d in sorted(ds, key=lambda d: d.shift)], ds[0].steps)
             for p, ds in groups.items()]

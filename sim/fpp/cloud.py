@@ -85,7 +85,8 @@ def write_ply(path: str | Path, cloud: PointCloud) -> None:
 def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
     if f.readline().strip() != b"ply":
         raise SimInputError(f"{path}: not a PLY file (no 'ply' magic line)")
-    fmt, count, props, element = None, None, [], None
+    fmt, count, element = None, None, None
+    props: list[tuple[str, str]] = []
     for number in range(2, MAX_HEADER_LINES):
         line = f.readline()
         if not line:
@@ -135,7 +136,7 @@ def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
 def _ascii_rows(f, path: Path, count: int, n: int) -> np.ndarray:
     """``count`` ASCII vertex rows of ``n`` values, read until the count or the end of the
     file (a count larger than the file never loops past its end)."""
-    rows = []
+    rows: list[list[bytes]] = []  # the split lines of a binary-mode file
     for line in f:
         if len(rows) == count:
             break
@@ -163,11 +164,12 @@ def read_ply(path: str | Path) -> PointCloud:
         if not {"x", "y", "z"} <= set(names):
             raise SimInputError(f"{path}: the vertex element needs properties x, y and z, has "
                                 f"{names}")
-        if FORMATS[fmt] is None:
+        byte_order = FORMATS[fmt]
+        if byte_order is None:
             data = _ascii_rows(f, path, count, len(props))
             col = {n: data[:, i] for i, n in enumerate(names)}
         else:
-            dt = np.dtype([(n, FORMATS[fmt] + t) for n, t in props])
+            dt = np.dtype([(n, byte_order + t) for n, t in props])
             raw = f.read(dt.itemsize * count)
             if len(raw) < dt.itemsize * count:
                 raise SimInputError(f"{path}: file ends after {len(raw) // dt.itemsize} of {count} "

@@ -153,7 +153,7 @@ class ScanReport:
     def lines(self) -> list[str]:
         """One line per camera: decoded pixels and the non-zero rejections, most first."""
         out = []
-        for i, (n, d, r) in enumerate(zip(self.pixels, self.decoded, self.rejected)):
+        for i, (n, d, r) in enumerate(zip(self.pixels, self.decoded, self.rejected, strict=True)):
             parts = ", ".join(f"{k} {v}" for k, v in sorted(r.items(), key=lambda kv: -kv[1])
                               if v)
             out.append(f"camera {i}: {d} of {n} pixels decoded; rejected: {parts or 'none'}")
@@ -361,7 +361,7 @@ def scan_with_report(
 ) -> tuple[PointCloud, ScanReport]:
     """``scan``, and the ``ScanReport`` of what each check rejected."""
     settings = settings or DecodeSettings()
-    psize = tuple(rig.projector.size)
+    psize = rig.projector.size
     if camera is None:
         if len(images) != 2:
             raise SimInputError(f"stereo needs the image stacks of 2 cameras, got {len(images)}")
@@ -424,6 +424,7 @@ def scan_with_report(
 def _relative_quality(cloud: PointCloud, top: float) -> PointCloud:
     """``cloud`` with its modulation (image units) as field ``modulation`` and as quality the
     modulation relative to ``top`` (the 99th percentile over the images: about 0 to 1)."""
+    assert cloud.quality is not None, "scan clouds carry the modulation as their quality"
     fields = {"modulation": cloud.quality, **cloud.fields}
     quality = cloud.quality / top if top > 0 else cloud.quality
     return PointCloud(cloud.points, cloud.normals, quality, fields)

@@ -29,7 +29,7 @@ import zarr
 from pydantic import ValidationError
 
 from sim.errors import SimInputError
-from sim.render.fringe_patterns import pattern_set_from
+from sim.render.fringe_patterns import GrayCodeSet, PhaseShiftSet, pattern_set_from
 from sim.validation import format_validation_error
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
@@ -39,8 +39,9 @@ class ScanInputError(SimInputError):
     """IMAGES cannot be read as a scan; the message names the path and what was expected."""
 
 
-def _read_image(f: Path) -> np.ndarray:
-    """One image file: PNG / TIFF (8, 16 bit or float32) or a 2-D ``.npy`` array."""
+def _read_image(f: Path) -> np.ndarray | None:
+    """One image file: PNG / TIFF (8, 16 bit or float32) or a 2-D ``.npy`` array; None when
+    OpenCV cannot read the file."""
     if f.suffix.lower() == ".npy":
         try:
             im = np.load(f, allow_pickle=False)
@@ -62,9 +63,10 @@ def _read_stack(folder: Path) -> np.ndarray:
         raise ScanInputError(f"{folder}: no PNG, TIFF or .npy images")
     if len(files) == 1 and files[0].suffix.lower() == ".npy":
         stack = _read_image(files[0])
+        assert stack is not None, "a .npy file is read or refused with an error"
         if stack.ndim == 3:
             return stack
-    images = []
+    images: list[np.ndarray] = []
     for f in files:
         im = _read_image(f)
         if im is None or im.ndim != 2:
@@ -83,7 +85,8 @@ def _read_stack(folder: Path) -> np.ndarray:
     return np.stack(images)
 
 
-def _pattern_set(raw, where: str, projector_size: tuple[int, int] | None = None):
+def _pattern_set(raw: object, where: str, projector_size: tuple[int, int] | None = None
+                 ) -> PhaseShiftSet | GrayCodeSet:
     try:
         return pattern_set_from(raw, projector_size)
     except ValidationError as exc:
@@ -104,7 +107,8 @@ def _from_zarr(path: Path) -> tuple[list[np.ndarray], dict | None]:
     return stacks, dict(root.attrs).get("summary", {}).get("pattern_set")
 
 
-def load_pattern_set(path: Path, projector_size: tuple[int, int] | None = None) -> object:
+def load_pattern_set(path: Path, projector_size: tuple[int, int] | None = None
+                     ) -> PhaseShiftSet | GrayCodeSet:
     """A pattern set from a JSON file (``sim.render.fringe_patterns``); errors name the file.
     ``projector_size`` (width, height) turns fringe counts into periods."""
     path = Path(path)
@@ -125,7 +129,8 @@ def point_sampled(images: Path) -> bool:
 
 
 def load_scan_input(images: Path, patterns: Path | None = None,
-                    projector_size: tuple[int, int] | None = None) -> tuple[list[np.ndarray], object]:
+                    projector_size: tuple[int, int] | None = None
+                    ) -> tuple[list[np.ndarray], PhaseShiftSet | GrayCodeSet]:
     """The two cameras' image stacks (n, H, W) and the pattern set of a scan input;
     ``projector_size`` (width, height) turns fringe counts into periods."""
     if not images.exists():
@@ -175,7 +180,7 @@ def scan_files(images: str | Path, rig_path: str | Path, out: str | Path, *,
     t0 = time.perf_counter()
     rig = Rig.load(rig_path)
     stacks, pset = load_scan_input(images, None if patterns is None else Path(patterns),
-                                   tuple(rig.projector.size))
+                                   rig.projector.size)
     if pixel_variance_px2 is None:
         pixel_variance_px2 = 0.0 if point_sampled(images) else 1.0 / 12.0
     settings = DecodeSettings(min_modulation=min_modulation, unwrap=unwrap,

@@ -155,12 +155,12 @@ def stereo_cloud(
             raise SimInputError(f"camera '{s.cam.name}': no valid pixel with 8 valid neighbours to "
                                 "match")
         usable.append(usable_pixels(s.residual, max_model_residual))
-    noise = [phase_noise_px(s.residual, q) for s, q in zip(sides, (quality1, quality2))]
+    noise = [phase_noise_px(s.residual, q) for s, q in zip(sides, (quality1, quality2), strict=True)]
     # the search model is used at the matched pixel too: mask its coefficients
-    sides = [_masked(s, u) for s, u in zip(sides, usable)]
+    sides = [_masked(s, u) for s, u in zip(sides, usable, strict=True)]
     tally = [dict.fromkeys(("stereo_model_residual", "stereo_no_match", "stereo_projector_error",
                              "stereo_left_right", "stereo_range_step"), 0) for _ in sides]
-    for t, s, u in zip(tally, sides, usable):
+    for t, s, u in zip(tally, sides, usable, strict=True):
         t["stereo_model_residual"] = int(np.isfinite(s.coord).sum() - u.sum())
     results = []
     for a, b in ((0, 1), (1, 0)):
@@ -224,7 +224,8 @@ def stereo_cloud(
         points.append(world)
         normals.append(grid_normals(grid, cam.centre_world)[iv, iu])
         qa = (quality1, quality2)[a]
-        quality.append(np.asarray(qa, dtype=np.float64)[iv, iu] if qa is not None else np.full(len(world), np.nan))
+        quality.append(np.asarray(qa, dtype=np.float64)[iv, iu] if qa is not None
+                       else np.full(len(world), np.nan))
         camera.append(np.full(len(world), a))
         pixels.append(ref_pix)
         perr.append(sides[a].residual[iv, iu])

@@ -107,7 +107,9 @@ def icp(
     r_tot, t_tot = np.eye(3), np.zeros(3)
     radius = np.max(np.linalg.norm(src0 - src0.mean(axis=0), axis=1))
     previous = np.inf
-    for it in range(1, max_iterations + 1):
+    iterations = 0
+    while iterations < max_iterations:
+        iterations += 1
         src = src0 @ r_tot.T + t_tot
         d, j = tree.query(src)
         use = np.ones(len(src), bool) if max_distance_mm is None else d <= max_distance_mm
@@ -125,7 +127,7 @@ def icp(
         moved = np.linalg.norm(step.t) + radius * np.linalg.norm(step.R - np.eye(3))
         if moved < tolerance_mm:
             break
-    return RigidTransform(r_tot, t_tot), it
+    return RigidTransform(r_tot, t_tot), iterations
 
 
 def signed_distance_to_cloud(
@@ -216,7 +218,8 @@ def compare_by_pixel(measured, reference, transform: RigidTransform | None = Non
         keys.append(np.stack([f["camera"], f["v"], f["u"]], axis=1).astype(np.int64))
     km, kr = keys
     hi = np.maximum(km.max(axis=0), kr.max(axis=0)) + 1 + 2 * edge_px
-    flat = [np.ravel_multi_index((k + [0, edge_px, edge_px]).T, hi) for k in keys]
+    # flat pixel index of every point (the stubs type ravel_multi_index's result as a scalar)
+    flat = [np.asarray(np.ravel_multi_index((k + [0, edge_px, edge_px]).T, hi)) for k in keys]
     _, im, ir = np.intersect1d(flat[0], flat[1], return_indices=True)
     unmatched = (len(km) - len(im), len(kr) - len(ir))
     nrm = np.asarray(reference.normals, dtype=np.float64)

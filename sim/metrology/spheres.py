@@ -147,7 +147,8 @@ def find_spheres(
 ) -> list[SphereFit]:
     """Detect ``count`` spheres of about ``radius_mm`` in a cloud (RANSAC, then ``fit_sphere``).
 
-    RANSAC runs on a random subset of ``RANSAC_POINTS`` points. Samples are drawn from a seed point and its neighbours within ``2 radius_mm``; a candidate is
+    RANSAC runs on a random subset of ``RANSAC_POINTS`` points. Samples are drawn from a seed
+    point and its neighbours within ``2 radius_mm``; a candidate is
     kept when its radius is within ``radius_tolerance`` (relative) of ``radius_mm``; its score is
     the number of points within ``inlier_mm`` of its surface. The best candidate's points within
     ``max(5 inlier_mm, 0.1 radius_mm)`` of its surface go to ``fit_sphere`` (which trims the

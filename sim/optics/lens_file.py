@@ -164,7 +164,7 @@ class LensFileWriter:
         gu = self.shape[1]
         for name in self.NAMES:
             fd = self._files[name].fileno()
-            for d, s in zip(np.asarray(dst).tolist(), np.asarray(src).tolist()):
+            for d, s in zip(np.asarray(dst).tolist(), np.asarray(src).tolist(), strict=True):
                 buf = os.pread(fd, nbytes, self._offset(name, s // gu, s % gu))
                 os.pwrite(fd, buf, self._offset(name, d // gu, d % gu))
 
@@ -178,7 +178,8 @@ class LensFileWriter:
         gv, gu, _ = self.shape
         # the scalar fields, validated by a one-node stand-in (the per-node arrays were
         # checked per block); then the node positions and the transmittance themselves
-        lens = MeasuredLens(focus_distance_mm, optical_centre_mm, camera_size, [0.0], [0.0],
+        lens = MeasuredLens(focus_distance_mm, optical_centre_mm, camera_size,
+                            np.array([0.0]), np.array([0.0]),
                             np.zeros((1, 1, 1)), np.zeros((1, 1, 1)), np.ones((1, 1, 1)),
                             np.ones((1, 1)), interpolation, camera_matrix, dist_coeffs,
                             metadata or {}, focus_zones_mm)

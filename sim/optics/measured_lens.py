@@ -8,7 +8,8 @@ pixel's in-focus point ``((x_n + e_x) z_k, (y_n + e_y) z_k, z_k)`` in the camera
 origin is the optical centre (``z_k = z_f``, or with ``focus_zones_mm`` the zone's focus at
 the sample's pupil radius ``rho_k = |(x_k, y_k)|``, linear between rows, clamped at the
 ends; ``e`` the node's ``aim_offset``, 0 without one), with weight ``w_k * transmittance``
-(relative transmittance: 1 for the brightest pixels, lower where the lens vignettes). Samples between nodes: ``nearest`` node,
+(relative transmittance: 1 for the brightest pixels, lower where the lens vignettes).
+Samples between nodes: ``nearest`` node,
 or ``bilinear`` (sample k of the four surrounding nodes blended; the derivation orders
 samples the same way at every node, so sample k means the same part of the aperture).
 
@@ -178,7 +179,8 @@ class MeasuredLens:
         """Aperture samples of pixels uv (n, 2): x (n, K), y (n, K) mm and weights (n, K)
         times the relative transmittance."""
         t = _Transmitted(self.transmittance, self.weights)
-        return self._at((self.aperture_x_mm, self.aperture_y_mm, t), uv)  # type: ignore
+        x, y, w = self._at((self.aperture_x_mm, self.aperture_y_mm, t), uv)
+        return x, y, w
 
     def aim_offset_at(self, uv: np.ndarray) -> np.ndarray:
         """The aim offset (n, 2) of pixels uv (n, 2), read like the samples; 0 without one."""
@@ -187,7 +189,7 @@ class MeasuredLens:
             return np.zeros((len(uv), 2))
         return self._at((self.aim_offset,), uv)[0]
 
-    def _at(self, arrays: tuple[np.ndarray, ...], uv: np.ndarray) -> tuple[np.ndarray, ...]:
+    def _at(self, arrays: tuple[NodeArray, ...], uv: np.ndarray) -> tuple[np.ndarray, ...]:
         """Per-node arrays (Gv, Gu, ...) at pixels uv (n, 2) (``_between_nodes``)."""
         return _between_nodes(self.node_u, self.node_v, self.interpolation, arrays, uv)
 
@@ -275,8 +277,12 @@ class _Transmitted:
     def __init__(self, transmittance: np.ndarray, weights: np.ndarray) -> None:
         self.t, self.w = transmittance, weights
 
-    def __getitem__(self, index):
+    def __getitem__(self, index: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         return self.t[index][..., None] * self.w[index]
+
+
+# a per-node array (Gv, Gu, ...) or what reads like one node by node (``a[j, i]``)
+NodeArray = np.ndarray | _Transmitted
 
 
 def _check_aim_offset(a: np.ndarray, gv: int, gu: int) -> None:
@@ -288,7 +294,7 @@ def _check_aim_offset(a: np.ndarray, gv: int, gu: int) -> None:
 
 
 def _between_nodes(node_u: np.ndarray, node_v: np.ndarray, interpolation: str,
-                   arrays: tuple[np.ndarray, ...], uv: np.ndarray) -> tuple[np.ndarray, ...]:
+                   arrays: tuple[NodeArray, ...], uv: np.ndarray) -> tuple[np.ndarray, ...]:
     """Per-node arrays (Gv, Gu, ...) at pixels uv (n, 2): the nearest node, or bilinear
     between the four surrounding nodes (clamped at the border)."""
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)

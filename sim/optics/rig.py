@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import ClassVar, overload
 
 import cv2
 import numpy as np
@@ -80,7 +81,13 @@ class _Float64View:
     def __set_name__(self, owner: type, name: str) -> None:
         self.field = name.removesuffix("_array")
 
-    def __get__(self, obj, owner=None):
+    @overload
+    def __get__(self, obj: None, owner: type | None = None) -> _Float64View: ...
+
+    @overload
+    def __get__(self, obj: object, owner: type | None = None) -> np.ndarray: ...
+
+    def __get__(self, obj: object | None, owner: type | None = None) -> _Float64View | np.ndarray:
         return self if obj is None else np.asarray(getattr(obj, self.field), dtype=np.float64)
 
 
@@ -124,10 +131,10 @@ class DeviceCalibration(BaseModel):
             raise SimInputError(f"size must be (width, height) >= 1 pixel, got {self.size}")
         return self
 
-    K_array = _Float64View()  # K, dist, R, T as float64 arrays
-    dist_array = _Float64View()
-    R_array = _Float64View()
-    T_array = _Float64View()
+    K_array: ClassVar[_Float64View] = _Float64View()  # K, dist, R, T as float64 arrays
+    dist_array: ClassVar[_Float64View] = _Float64View()
+    R_array: ClassVar[_Float64View] = _Float64View()
+    T_array: ClassVar[_Float64View] = _Float64View()
 
     @property
     def width(self) -> int:
@@ -221,7 +228,7 @@ def _write_filestorage(rig: Rig, path: Path) -> None:
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     if not fs.isOpened():
         raise OSError(f"rig file {path}: cannot open for writing")
-    for node, dev in zip(DEVICE_NODES, [*rig.cameras, rig.projector]):
+    for node, dev in zip(DEVICE_NODES, [*rig.cameras, rig.projector], strict=True):
         fs.startWriteStruct(node, cv2.FileNode_MAP)
         fs.write("name", dev.name)
         fs.write("image_width", int(dev.width))
@@ -448,7 +455,7 @@ def _scaled_rig(camera_size: tuple[int, int], projector_size: tuple[int, int], s
     f_cam = CAMERA_FOCAL_MM / CAMERA_PITCH_MM * scale
     cd = CAMERA_DIST if distortion else [0.0] * 5
     pd = PROJECTOR_DIST if distortion else [0.0] * 5
-    cams = [_device(n, camera_size, f_cam, c, cd) for n, c in zip(("left", "right"), cam_c)]
+    cams = [_device(n, camera_size, f_cam, c, cd) for n, c in zip(("left", "right"), cam_c, strict=True)]
     proj = _device("projector", projector_size, PROJECTOR_FOCAL_PX * scale,
                    np.array([0.0, 0.0, -WORKING_DISTANCE_MM]), pd)
     return Rig(cameras=cams, projector=proj)

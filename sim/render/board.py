@@ -71,7 +71,7 @@ class CalibrationBoard(BaseModel):
                              f"{self.rows}, columns {self.columns}) so that its orientation is "
                              "unambiguous")
         if self.kind == "charuco":
-            if self.marker_mm is None or self.marker_mm >= self.square_mm:
+            if self.marker_mm is None or self.marker_mm >= self._square:
                 raise ValueError("a charuco board needs marker_mm smaller than square_mm")
             if not hasattr(cv2.aruco, self.dictionary):
                 raise ValueError(f"unknown ArUco dictionary {self.dictionary!r} "
@@ -79,6 +79,18 @@ class CalibrationBoard(BaseModel):
         if self.dark_albedo >= self.light_albedo:
             raise ValueError("dark_albedo must be below light_albedo")
         return self
+
+    @property
+    def _square(self) -> float:
+        """Square side, mm, of a chessboard or charuco board (the validator requires it)."""
+        assert self.square_mm is not None, f"a {self.kind} board has no square_mm"
+        return self.square_mm
+
+    @property
+    def _pitch(self) -> float:
+        """Circle spacing in a row, mm, of a circle grid (the validator requires it)."""
+        assert self.pitch_mm is not None, f"a {self.kind} board has no pitch_mm"
+        return self.pitch_mm
 
     @property
     def pattern_size(self) -> tuple[int, int]:
@@ -92,15 +104,15 @@ class CalibrationBoard(BaseModel):
         """Circle diameter, mm (circle grids)."""
         if self.circle_diameter_mm is not None:
             return self.circle_diameter_mm
-        nn = self.pitch_mm if self.kind == "circles" else self.pitch_mm / np.sqrt(2.0)
+        nn = self._pitch if self.kind == "circles" else self._pitch / np.sqrt(2.0)
         return 0.4 * nn
 
     @property
     def size_mm(self) -> tuple[float, float]:
         """(width, height) of the printed board, mm."""
         if self.kind in ("chessboard", "charuco"):
-            return self.columns * self.square_mm, self.rows * self.square_mm
-        p = self.pitch_mm
+            return self.columns * self._square, self.rows * self._square
+        p = self._pitch
         if self.kind == "circles":
             return (self.columns + 1) * p, (self.rows + 1) * p
         return (2 * self.columns + 3) * p / 2, (self.rows + 3) * p / 2
@@ -111,11 +123,11 @@ class CalibrationBoard(BaseModel):
         i, j = np.mgrid[0:ny, 0:nx]
         i, j = i.ravel().astype(float), j.ravel().astype(float)
         if self.kind in ("chessboard", "charuco"):
-            xy = np.stack([(j + 1) * self.square_mm, (i + 1) * self.square_mm], axis=1)
+            xy = np.stack([(j + 1) * self._square, (i + 1) * self._square], axis=1)
         elif self.kind == "circles":
-            xy = np.stack([(j + 1) * self.pitch_mm, (i + 1) * self.pitch_mm], axis=1)
+            xy = np.stack([(j + 1) * self._pitch, (i + 1) * self._pitch], axis=1)
         else:
-            p = self.pitch_mm
+            p = self._pitch
             xy = np.stack([(2 * j + i % 2 + 2) * p / 2, (i + 2) * p / 2], axis=1)
         return np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
 
@@ -123,7 +135,7 @@ class CalibrationBoard(BaseModel):
     def charuco(self):
         """The ``cv2.aruco.CharucoBoard`` (charuco boards only)."""
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
-        return cv2.aruco.CharucoBoard((self.columns, self.rows), self.square_mm, self.marker_mm, d)
+        return cv2.aruco.CharucoBoard((self.columns, self.rows), self._square, self.marker_mm, d)
 
     @cached_property
     def _charuco_raster(self) -> np.ndarray:
@@ -136,24 +148,24 @@ class CalibrationBoard(BaseModel):
         """Whether board points (..., 2) mm lie on the white print (outside the board: white)."""
         x, y = np.asarray(xy_mm)[..., 0], np.asarray(xy_mm)[..., 1]
         if self.kind == "chessboard":
-            r, c = np.floor(y / self.square_mm), np.floor(x / self.square_mm)
+            r, c = np.floor(y / self._square), np.floor(x / self._square)
             inside = (r >= 0) & (r < self.rows) & (c >= 0) & (c < self.columns)
             return ~inside | ((r + c) % 2 == 1)
         if self.kind == "charuco":
             ras = self._charuco_raster
-            s = CHARUCO_PX_PER_SQUARE / self.square_mm
+            s = CHARUCO_PX_PER_SQUARE / self._square
             r, c = np.floor(y * s).astype(np.int64), np.floor(x * s).astype(np.int64)
             inside = (r >= 0) & (r < ras.shape[0]) & (c >= 0) & (c < ras.shape[1])
             return ~inside | ras[np.clip(r, 0, ras.shape[0] - 1), np.clip(c, 0, ras.shape[1] - 1)]
         centres = self.object_points()[:, :2]
         rad2 = (self.diameter_mm / 2) ** 2
         if self.kind == "circles":
-            p = self.pitch_mm
+            p = self._pitch
             j, i = np.rint(x / p) - 1, np.rint(y / p) - 1
             ok = (i >= 0) & (i < self.rows) & (j >= 0) & (j < self.columns)
             return ~ok | ((x - (j + 1) * p) ** 2 + (y - (i + 1) * p) ** 2 > rad2)
         dark = np.zeros(np.shape(x), bool)
-        h = self.pitch_mm / 2
+        h = self._pitch / 2
         # asymmetric: the nearest centre is one of the lattice points (2j + i%2 + 2, i + 2) h
         i0 = np.rint(y / h) - 2
         for di in (-1.0, 0.0, 1.0):
@@ -221,8 +233,9 @@ def _projector_xy(proj: DeviceCalibration, uv: np.ndarray) -> np.ndarray:
         Kinv = np.linalg.inv(proj.K_array)
         return (np.concatenate([uv, np.ones((len(uv), 1))], axis=1) @ Kinv.T)[:, :2]
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-14)
-    out = cv2.undistortPointsIter(uv.reshape(-1, 1, 2).astype(np.float64), proj.K_array,
-                                  proj.dist_array, None, None, crit)
+    # the stubs shipped with opencv-python lack undistortPointsIter (it exists at runtime)
+    out = cv2.undistortPointsIter(  # type: ignore[attr-defined]
+        uv.reshape(-1, 1, 2).astype(np.float64), proj.K_array, proj.dist_array, None, None, crit)
     return out.reshape(-1, 2)
 
 

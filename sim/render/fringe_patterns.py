@@ -237,7 +237,8 @@ def _periods_from_fringes(raw: dict, projector_size: tuple[int, int] | None) -> 
     return raw
 
 
-def pattern_set_from(raw: object, projector_size: tuple[int, int] | None = None):
+def pattern_set_from(raw: object, projector_size: tuple[int, int] | None = None
+                     ) -> PhaseShiftSet | GrayCodeSet:
     """Validate a pattern-set mapping (as a scene's ``[patterns]`` or a ``--patterns`` file
     holds it): the one model of both, ``fringes`` included. Raises pydantic's
     ``ValidationError``."""

@@ -22,9 +22,10 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Literal, Sequence
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -244,7 +245,7 @@ def render(tr: Transport, pattern_images: np.ndarray | PatternStack, settings: R
         return camera_response(rad.reshape(-1, h, w), cam, rng)
     resp = _response_args(cam)
     shape, dtype = (len(projected), w * h), _image_dtype(cam)
-    out = np.empty(shape, dtype)
+    out: np.ndarray = np.empty(shape, dtype)
     if len(tr.pixels) < w * h:  # the response to radiance 0
         out[:] = camera_response(np.zeros(1, np.float32), cam, None, 1)[0]
     _gather_rows(tr, tr.pixels, projected, out, None, resp, cam.quantize)
@@ -303,7 +304,7 @@ def render_camera(geom: TraceGeometry, rig: Rig, index: int, lens: LensModel,
     rad = res.radiance.reshape(len(projected), w * h)
     depth, pmap = res.depth.reshape(-1), res.projector_map.reshape(-1, 2)
     lit, obj = res.lit.reshape(-1), res.object_id.reshape(-1)
-    tiles = _transport_tiles(transport, cam.name, (w, h), tuple(rig.projector.size))
+    tiles = _transport_tiles(transport, cam.name, (w, h), rig.projector.size)
     t_trace = t_gather = 0.0
     n_rays = 0
     bar = tqdm(total=w * h, desc=f"render {cam.name}", unit="px", unit_scale=True,
@@ -381,8 +382,8 @@ def blur_reach_px(camera, lens: LensModel, z_mm: tuple[float, float], step_px: i
     us = np.unique(np.r_[np.arange(0, w, step_px), w - 1])
     vs = np.unique(np.r_[np.arange(0, h, step_px), h - 1])
     uv = np.stack(np.meshgrid(us, vs), axis=-1).reshape(-1, 2).astype(np.float64)
-    if hasattr(lens, "node_u"):  # a measured lens: every node too (pixels between nodes
-        # interpolate their rays, whose offsets are then bounded by the nodes')
+    if hasattr(lens, "node_u") and hasattr(lens, "node_v"):  # a measured lens: every node too
+        # (pixels between nodes interpolate their rays, whose offsets are then bounded by the nodes')
         nodes = np.stack(np.meshgrid(lens.node_u, lens.node_v), axis=-1).reshape(-1, 2)
         uv = np.concatenate([uv, nodes.astype(np.float64)])
     f = np.abs(np.diag(camera.K_array)[:2])
@@ -477,7 +478,10 @@ def _camera_outputs(out: CameraImages | None, name: str, n: int, w: int, h: int,
               "depth": ((h, w), np.float64), "projector_map": ((h, w, 2), np.float64),
               "lit": ((h, w), np.bool_), "object_id": ((h, w), np.int32)}
     if out is None:
-        return CameraImages(name, **{key: np.empty(*sd) for key, sd in shapes.items()})
+        new: dict[str, np.ndarray] = {key: np.empty(*sd) for key, sd in shapes.items()}
+        return CameraImages(name, images=new["images"], radiance=new["radiance"],
+                            depth=new["depth"], projector_map=new["projector_map"],
+                            lit=new["lit"], object_id=new["object_id"])
     if out.name != name:
         raise SimInputError(f"render_camera out: it holds camera '{out.name}', not '{name}'")
     for key, (shape, dt) in shapes.items():

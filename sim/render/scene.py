@@ -27,12 +27,12 @@ Scene file (TOML; paths relative to the file; example ``examples/sphere_scene.to
 from __future__ import annotations
 
 import json
+import tomllib
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import tomllib
 import trimesh
 from pydantic import (
     BaseModel,
@@ -43,15 +43,15 @@ from pydantic import (
 )
 
 from sim.errors import SimInputError
+from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens
+from sim.optics.rig import DeviceCalibration, Rig, _matrix
 from sim.render.board import CalibrationBoard, PlacedBoard
 from sim.render.fringe_patterns import PatternSet
-from sim.optics.lens import AberratedLens, GaussianLens, LensModel, PinholeLens
 from sim.render.images import RenderResult, RenderSettings, render_views, write_pngs, write_zarr
-from sim.optics.rig import DeviceCalibration, Rig, _matrix
-from sim.validation import format_validation_error
 from sim.render.trace import TraceGeometry
 from sim.storage.durable import durable_file
 from sim.tolerances import ROTATION_TOL
+from sim.validation import format_validation_error
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
 
@@ -223,7 +223,8 @@ class Scene(BaseModel):
     def trace_geometry(self, where: str = "scene") -> TraceGeometry:
         """All objects as one ``TraceGeometry`` in world coordinates; errors name ``where``
         and the object (``objects[i]``)."""
-        verts, faces, normals, albedo, obj, face_sph, spheres = [], [], [], [], [], [], []
+        verts, faces, normals, albedo, obj, face_sph = [], [], [], [], [], []
+        spheres: list[np.ndarray] = []  # rows (cx, cy, cz, r) mm
         nv = 0
         for i, o in enumerate(self.objects):
             try:
@@ -324,7 +325,7 @@ def _build_lens(spec, base: Path, source: Path, index: int, camera: DeviceCalibr
         path = _resolve(base, spec.path)
         if not path.is_file():
             raise FileNotFoundError(f"{where}: lens file {path} not found")
-        from sim.optics.measured_lens import load_lens  # imported only when a scene uses it
+        from sim.optics.lens_file import load_lens  # imported only when a scene uses it
 
         try:
             lens = load_lens(path)
@@ -378,7 +379,7 @@ class LoadedScene:
         cam = self.config.render.camera
         png_dirs = [str(out / f"camera_{i}") if cam.quantize else None
                     for i in range(len(result.cameras))]
-        for c, d in zip(result.cameras, png_dirs):
+        for c, d in zip(result.cameras, png_dirs, strict=True):
             if d is not None:
                 write_pngs(d, c.images, cam.bit_depth)
         recorded = Path(final) if final is not None else out
@@ -397,7 +398,7 @@ class LoadedScene:
     def _summary(self, result: RenderResult, out: Path, png_dirs: list[str | None]) -> dict:
         cfg = self.config
         cams = []
-        for i, (c, dev) in enumerate(zip(result.cameras, self.rig.cameras)):
+        for i, (c, dev) in enumerate(zip(result.cameras, self.rig.cameras, strict=True)):
             depth = c.depth[np.isfinite(c.depth)]
             cams.append({
                 "name": c.name, "group": f"camera_{i}", "size": list(dev.size),
@@ -419,12 +420,14 @@ class LoadedScene:
 def _projector_size(raw: object, base: Path) -> tuple[int, int] | None:
     """The rig's projector (width, height) when ``[patterns]`` gives ``fringes`` and the rig
     file reads (a rig that does not is reported by the rig's own check)."""
-    patterns = raw.get("patterns") if isinstance(raw, dict) else None
+    if not isinstance(raw, dict):
+        return None
+    patterns = raw.get("patterns")
     if not (isinstance(patterns, dict) and "fringes" in patterns
             and isinstance(raw.get("rig"), str)):
         return None
     try:
-        return tuple(Rig.load(_resolve(base, Path(raw["rig"]))).projector.size)
+        return Rig.load(_resolve(base, Path(raw["rig"]))).projector.size
     except (OSError, ValueError):
         return None
 
@@ -454,7 +457,7 @@ def load_scene_file(path: str | Path) -> LoadedScene:
         raise SimInputError(f"{path}: field 'lenses': {len(cfg.lenses)} lens tables for "
                          f"{len(rig.cameras)} rig cameras; give one per camera")
     lenses = [_build_lens(spec, base, path, i, cam)
-              for i, (spec, cam) in enumerate(zip(cfg.lenses, rig.cameras))]
+              for i, (spec, cam) in enumerate(zip(cfg.lenses, rig.cameras, strict=True))]
     objects = [o.model_copy(update={"path": _resolve(base, o.path)}) if isinstance(o, MeshObject) else o
                for o in cfg.objects]
     scene = Scene(objects=objects)

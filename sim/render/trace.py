@@ -94,6 +94,7 @@ class TraceGeometry:
         """(F,) bool: the face's vertex normals differ (interpolate them); not for sphere faces."""
         vn = self.vertex_normals[self.faces]
         same = np.all(np.abs(vn - vn[:, :1]) <= VERTEX_NORMAL_SAME_TOL, axis=(1, 2))
+        assert self.face_sphere is not None, "set by __post_init__"
         return ~same & (self.face_sphere < 0)
 
     @cached_property
@@ -107,6 +108,7 @@ class TraceGeometry:
         row: geometric normal (3), plane offset, shading normal (3), albedo, object, and the
         kind of face: ``FACE_FLAT``, ``FACE_SMOOTH`` (``face_smooth``), or the index of its
         exact sphere."""
+        assert self.face_sphere is not None, "set by __post_init__"
         kind = np.where(self.face_sphere >= 0, self.face_sphere,
                         np.where(self.face_smooth, kern.FACE_SMOOTH, kern.FACE_FLAT))
         return np.ascontiguousarray(np.column_stack(
@@ -226,8 +228,8 @@ class _Projector:
 def _shadow_buffers(m: int) -> kern.ShadowRays:
     """Room for up to m shadow rays: origins, directions (m, 3) float32, far (m,) float32,
     and what each belongs to (m,) int64."""
-    return kern.ShadowRays(np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32),
-            np.empty(m, np.int64))
+    return kern.ShadowRays(np.empty((m, 3), np.float32), np.empty((m, 3), np.float32),
+                           np.empty(m, np.float32), np.empty(m, np.int64))
 
 
 def _occluded(geom: TraceGeometry, shadow: kern.ShadowRays, s: int) -> np.ndarray:

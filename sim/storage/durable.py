@@ -20,11 +20,14 @@ import os
 import platform
 import shutil
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import IO
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 DIRECT_ALIGN = 4096  # bytes: address and length a buffer needs to bypass the page cache
 
@@ -134,7 +137,7 @@ def _direct_buffer(parts: list) -> memoryview | None:
     if not a.flags.c_contiguous or a.nbytes == 0 or a.nbytes % DIRECT_ALIGN or \
             a.ctypes.data % DIRECT_ALIGN:
         return None
-    return memoryview(a).cast("B")
+    return a.data.cast("B")
 
 
 def write_new_file(path: Path, parts: list, sync: bool = False) -> None:
@@ -198,12 +201,12 @@ def write_json(path: str | os.PathLike, data: object) -> None:
         json.dump(data, f, indent=2)
 
 
-def durable_figure(fig: object, path: str | os.PathLike, **savefig: object) -> Path:
+def durable_figure(fig: Figure, path: str | os.PathLike, **savefig: Any) -> Path:
     """Save a matplotlib figure durably (format from the path's suffix; ``savefig``: more
     ``Figure.savefig`` keywords); returns the path."""
     path = Path(path)
     with durable_file(path, "wb") as f:
-        fig.savefig(f, format=path.suffix.lstrip(".") or "png", **savefig)  # type: ignore
+        fig.savefig(f, format=path.suffix.lstrip(".") or "png", **savefig)
     return path
 
 
@@ -262,7 +265,8 @@ def start_writeback(fd: int, offset: int, nbytes: int) -> None:
 
 
 @functools.cache
-def _sync_file_range() -> object:
+def _sync_file_range() -> Callable[[int, int, int, int], int] | None:
+    """libc's ``sync_file_range`` with its argument types set, or None where there is none."""
     fn = getattr(_libc(), "sync_file_range", None)
     if fn is not None:
         fn.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint]
