@@ -23,8 +23,8 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from station.errors import UsageError
 from station.compute import Engine, run_ordered
+from station.errors import UsageError
 
 MANIFEST_EVERY_S = 30.0  # the manifest is rewritten at most this often during a run
 

@@ -226,7 +226,7 @@ class RunStore(RunStoreReader):
                 "config": config,
                 "pattern_set": plan.model_dump(mode="json"),
                 "software": software_versions(),
-                "start_time": start_time or _dt.datetime.now(_dt.timezone.utc).isoformat(),
+                "start_time": start_time or _dt.datetime.now(_dt.UTC).isoformat(),
                 "depths_mm": [float(z) for z in depths_mm],
                 "camera_size": [w, h],
                 "bit_depth": int(bit_depth),
