@@ -396,6 +396,7 @@ def _reconstruct_block(d: np.ndarray, plan: StationPatternPlan,
     p = f.period
     re, im, sigma_d = _demodulate(d, plan, j0, j1)
     planes = re.base
+    assert planes is not None  # re is a view of _demodulate's stacked (2 P^2, n) planes
     if harmonics is not None:
         _correct_stacked(planes, f, harmonics)
     n = planes.shape[1]
