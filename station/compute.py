@@ -107,7 +107,11 @@ class Engine:
         if self.kind == "serial":
             return _Done(fn, args)
         if self.kind == "processes":
+            if self._pool is None:
+                raise RuntimeError("submit on a closed engine")
             return self._pool.submit(fn, *args)
+        if self._client is None:
+            raise RuntimeError("submit on a closed engine")
         return self._client.submit(fn, *args, pure=False)
 
     def wait_some(self, pending: set) -> tuple[set, set]:

@@ -43,7 +43,7 @@ log = logging.getLogger("station.sequence")
 
 
 def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
 def _remove(path: Path) -> None:

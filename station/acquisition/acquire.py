@@ -45,6 +45,7 @@ from drivers.errors import CameraError, CameraTimeout, DeviceSettingError
 from drivers.frame_code import (
     CodeCalibration,
     FrameCodeError,
+    FrameCodeLayout,
     calibrate_code,
     frame_code_rect,
     read_code,
@@ -150,7 +151,7 @@ class Acquisition:
         attempts = self.config.acquire.max_retries + 1
         for attempt in range(attempts):
             try:
-                self.calibration = self._calibrate(depth, first_pattern)
+                self.calibration = self._calibrate(depth, first_pattern, self.layout)
                 break
             except FrameCodeError as exc:
                 if attempt + 1 == attempts:
@@ -160,24 +161,26 @@ class Acquisition:
                         "frame_check.origin_px into the camera's view (see `ltc align`) or "
                         "enlarge frame_check.block_px") from exc
                 self._retry("code calibration", f"depth {depth}", attempt, str(exc))
+        assert self.calibration is not None  # the loop above calibrated (max_retries >= 0)
         mask = self.calibration.polluted
         self.writer.submit(f"the code mask of depth {depth}", self.store.add_code_mask, depth,
                            mask)
         self.mask_fraction[depth] = float(mask.mean())
 
-    def _calibrate(self, depth: int, first_pattern: int) -> CodeCalibration:
-        """Capture the code on a white display, then every code value on a black one; leave a
-        frame whose code is not the first pattern's on screen, so a display that repeats it is
-        caught."""
+    def _calibrate(self, depth: int, first_pattern: int,
+                   layout: FrameCodeLayout) -> CodeCalibration:
+        """Capture the code (drawn with ``layout``, the engine's) on a white display, then
+        every code value on a black one; leave a frame whose code is not the first pattern's
+        on screen, so a display that repeats it is caught."""
         size = self.store.lcd_size
         dark = np.broadcast_to(apply_lut(np.zeros((1, 1)), self.lut), size[::-1])
         light = np.broadcast_to(apply_lut(np.ones((1, 1)), self.lut), size[::-1])
-        values = 2**self.layout.bits
-        background = self._capture_still(stamp_frame_code(light, 0, self.layout),
+        values = 2**layout.bits
+        background = self._capture_still(stamp_frame_code(light, 0, layout),
                                          (1, depth, values))
-        frames = [self._capture_still(stamp_frame_code(dark, v, self.layout), (1, depth, v))
+        frames = [self._capture_still(stamp_frame_code(dark, v, layout), (1, depth, v))
                   for v in range(values)]
-        self._show(stamp_frame_code(dark, (first_pattern - 1) % values, self.layout))
+        self._show(stamp_frame_code(dark, (first_pattern - 1) % values, layout))
         fc = self.config.frame_check
         return calibrate_code(np.stack(frames), background, 0, leak_max=fc.leak_max,
                               pollution=fc.pollution)
@@ -189,7 +192,9 @@ class Acquisition:
             frame, why = self._capture(shown)
             if frame is not None:
                 return frame.image
+            assert why is not None  # _capture gives a frame or the reason there is none
             self._retry(why[0], f"calibration capture {key}", attempt, why[1])
+        assert why is not None  # every attempt (max_retries >= 0) failed with a reason
         raise AcquisitionError(f"no good frame of calibration capture {key} in "
                                f"{self.config.acquire.max_retries + 1} attempts: {why[1]}")
 
@@ -218,6 +223,8 @@ class Acquisition:
         else:
             raise AcquisitionError(f"frame (depth {d}, pattern {p}): no good frame in "
                                    f"{max_retries + 1} attempts: {'; '.join(reasons)}")
+        # _capture_pattern gives a frame and its peak when it gives no reason
+        assert frame is not None and peak is not None
         self._check_saturation(event, peak)
         target, measured = self.stage_mm
         meta = FrameMeta(stage_target_mm=target, stage_measured_mm=measured,
@@ -240,20 +247,24 @@ class Acquisition:
         per-pixel maximum over the frames (for the saturation count); or (None, None, (kind,
         detail)) for the first frame that is not good (the attempt is retried whole)."""
         n = self.config.camera.average_frames
-        total = peak = None
+        total: np.ndarray | None = None  # the frames' sum, uint64
+        peak: np.ndarray | None = None
+        frame: Frame | None = None
         for _ in range(n):
             frame, why = self._capture(shown)
             if frame is not None and code is not None:
                 why = self._verify(frame, code)
             if why is not None:
                 return None, None, why
+            assert frame is not None  # _capture gives a frame or the reason there is none
             if n == 1:
                 return frame, frame.image, None
-            if total is None:
+            if total is None or peak is None:  # the first frame (both are set together)
                 total, peak = frame.image.astype(np.uint64), frame.image.copy()
             else:
                 total += frame.image
                 np.maximum(peak, frame.image, out=peak)
+        assert frame is not None and total is not None  # average_frames >= 1
         mean = ((total + n // 2) // n).astype(frame.image.dtype)
         return replace(frame, image=mean), peak, None
 
@@ -276,6 +287,8 @@ class Acquisition:
 
     def _verify(self, frame: Frame, code: int) -> tuple[str, str] | None:
         """None when the frame shows check code ``code``, else (kind, detail)."""
+        # frames are verified only with the check code on, after setup_depth calibrated it
+        assert self.calibration is not None
         try:
             seen = read_code(frame.image, self.calibration,
                              min_margin=self.config.frame_check.min_margin)
@@ -456,7 +469,8 @@ def _open_for_resume(out: Path, record: dict) -> RunStore:
 def _check_and_create(config: StationConfig, hw: Hardware, out: Path, store: RunStore | None,
                       record: dict, lut: np.ndarray | None) -> RunStore:
     """Check the config against the opened devices (before anything moves); create the store."""
-    lcd_size = tuple(hw.display.size)
+    lcd_w, lcd_h = hw.display.size
+    lcd_size = (lcd_w, lcd_h)
     plan = pattern_plan(config, lcd_size)
     if config.frame_check.enabled:
         try:

@@ -186,7 +186,7 @@ def write_contact_sheet(images: list[tuple[str, np.ndarray]], path: Path) -> Pat
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3 * rows), squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
-    for ax, (label, img) in zip(axes.ravel(), images):
+    for ax, (label, img) in zip(axes.ravel(), images, strict=False):
         ax.imshow(img, cmap="gray", interpolation="nearest")
         ax.set_title(label, fontsize=9)
     fig.tight_layout()

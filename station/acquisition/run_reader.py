@@ -11,6 +11,7 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NoReturn
 
 import google_crc32c
 import numpy as np
@@ -48,13 +49,35 @@ class Tile:
 
 class RunStoreReader:
     """The reading methods of :class:`station.acquisition.run_store.RunStore` (which sets
-    ``path``, ``codec``, ``depths_mm``, ``n_patterns``, ``dtype``, ``tile_px`` and the arrays)."""
+    ``path``, ``group``, ``plan``, ``codec``, ``depths_mm``, ``tile_px``, ``camera_size`` and
+    the arrays)."""
 
     path: Path
+    group: zarr.Group
+    plan: StationPatternPlan
     codec: ShardCodec
     depths_mm: list[float]
     tile_px: int
-    camera_size: tuple[int, int]
+    camera_size: tuple[int, int]  # (width, height) in pixels
+    _frames: zarr.Array  # [depth, pattern, row, col] camera dtype
+    _done: zarr.Array  # [depth, pattern] bool
+    _meta: dict[str, zarr.Array]  # name -> [depth, pattern] per-frame metadata
+
+    @property
+    def n_depths(self) -> int:
+        return len(self.depths_mm)
+
+    @property
+    def n_patterns(self) -> int:
+        return len(self.plan)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self._frames.dtype
+
+    def done(self) -> np.ndarray:
+        """Completion mask (depths, patterns) bool, read from disk now."""
+        return np.asarray(self._done[...], dtype=bool)
 
     # ---- reading ----------------------------------------------------------------------------
     def code_mask(self, depth: int) -> np.ndarray:
@@ -311,7 +334,7 @@ class RunStoreReader:
         except FileNotFoundError:
             self._corrupt(depth, pattern, "is missing")
 
-    def _corrupt(self, depth: int, pattern: int, why: str) -> None:
+    def _corrupt(self, depth: int, pattern: int, why: str) -> NoReturn:
         raise FrameCorruptError(
             f"{self.path}: frame (depth {depth} = {self.depths_mm[depth]:g} mm, pattern "
             f"{pattern}) is marked done but its data {why} "

@@ -130,8 +130,10 @@ class RunStore(RunStoreReader):
         self.plan = plan
         a = group.attrs
         self.depths_mm: list[float] = [float(z) for z in a["depths_mm"]]
-        self.camera_size: tuple[int, int] = tuple(int(v) for v in a["camera_size"])
-        self.lcd_size: tuple[int, int] = tuple(int(v) for v in a["lcd_size"])
+        cw, ch = a["camera_size"]  # (width, height), two values (checked by open)
+        self.camera_size: tuple[int, int] = (int(cw), int(ch))
+        lw, lh = a["lcd_size"]
+        self.lcd_size: tuple[int, int] = (int(lw), int(lh))
         self.lcd_pitch_mm = float(a["lcd_pitch_mm"])
         self.bit_depth = int(a["bit_depth"])
         self.tile_px = int(a["tile_px"])
@@ -226,7 +228,7 @@ class RunStore(RunStoreReader):
                 "config": config,
                 "pattern_set": plan.model_dump(mode="json"),
                 "software": software_versions(),
-                "start_time": start_time or _dt.datetime.now(_dt.timezone.utc).isoformat(),
+                "start_time": start_time or _dt.datetime.now(_dt.UTC).isoformat(),
                 "depths_mm": [float(z) for z in depths_mm],
                 "camera_size": [w, h],
                 "bit_depth": int(bit_depth),
@@ -321,22 +323,6 @@ class RunStore(RunStoreReader):
         crc = np.ascontiguousarray(np.asarray(self._meta["frame_crc32c"][...]), "<i8")
         return "sha256:" + sha256_hex(str(self.group.attrs["start_time"]).encode(),
                                       crc.tobytes())
-
-    @property
-    def n_depths(self) -> int:
-        return len(self.depths_mm)
-
-    @property
-    def n_patterns(self) -> int:
-        return len(self.plan)
-
-    @property
-    def dtype(self) -> np.dtype:
-        return self._frames.dtype
-
-    def done(self) -> np.ndarray:
-        """Completion mask (depths, patterns) bool, read from disk now."""
-        return np.asarray(self._done[...], dtype=bool)
 
     def first_incomplete(self) -> tuple[int, int] | None:
         """(depth, pattern) of the first frame not done in plan order, None when complete."""

@@ -73,10 +73,10 @@ class ShardCodec:
         self.size = n * self.chunk_bytes + len(self.index)
         self._buf: np.ndarray | None = None
 
-    def _allocate(self) -> None:
-        """The shard buffer (allocated once, so no page faults per frame), its pixels seen as
-        (chunk rows, chunk cols, tile, tile), read-only views of each chunk's pixel bytes for
-        the crc32c, and a zeroed strip for chunk rows with edge padding."""
+    def _allocate(self) -> np.ndarray:
+        """The shard buffer (allocated once, so no page faults per frame; returned), its
+        pixels seen as (chunk rows, chunk cols, tile, tile), read-only views of each chunk's
+        pixel bytes for the crc32c, and a zeroed strip for chunk rows with edge padding."""
         t, n = self.t, self.nr * self.nc
         self._buf = np.zeros((self.nr, self.nc, self.chunk_bytes), np.uint8)
         self._pix = self._buf[:, :, : self.data_bytes].view(self.dtype).reshape(
@@ -85,6 +85,7 @@ class ShardCodec:
         self._chunk_views = [flat[i, : self.data_bytes] for i in range(n)]
         self._crcs = self._buf.reshape(n, self.chunk_bytes)[:, self.data_bytes :].view("<u4")
         self._strip = np.zeros((t, self.nc * t), self.dtype)
+        return self._buf
 
     def encode(self, image: np.ndarray, full: int) -> FrameShard:
         """One frame's shard chunks and what the store records of the frame, in one pass over
@@ -93,8 +94,7 @@ class ShardCodec:
         and maximum, one copy into shard order (edge chunk rows through a zero-padded strip),
         then each chunk's crc32c on the buffer in place. The buffer is reused: valid until the
         next call, one thread at once."""
-        if self._buf is None:
-            self._allocate()
+        buf = self._allocate() if self._buf is None else self._buf
         t, nc, w = self.t, self.nc, self.w
         img = readonly(np.ascontiguousarray(image, self.dtype))  # no copy for camera frames
         aligned = w == nc * t
@@ -113,7 +113,7 @@ class ShardCodec:
                 self._pix[r] = self._strip.reshape(t, nc, t).transpose(1, 0, 2)
             self._crcs[r * nc : (r + 1) * nc, 0] = [
                 crc32c(v) for v in self._chunk_views[r * nc : (r + 1) * nc]]
-        return FrameShard(self._buf.reshape(-1), crc, saturated, top)
+        return FrameShard(buf.reshape(-1), crc, saturated, top)
 
     def decode_chunks(self, raw: bytes, n_chunks: int) -> tuple[np.ndarray, int]:
         """(chunks (n, t, t), index of the first chunk failing its crc32c or -1)."""

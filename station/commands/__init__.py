@@ -22,6 +22,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+
 def add_command(sub: argparse._SubParsersAction, name: str, module: ModuleType) -> None:
     """Add the subcommand ``name`` declared by ``module`` (see the package docstring)."""
     summary, _, description = (module.__doc__ or name).strip().partition("\n\n")

@@ -49,7 +49,6 @@ def _calibration(args: argparse.Namespace) -> dict:
     from sim.calibration.board import load_board
     from sim.calibration.virtual import default_poses, render_capture
     from sim.render.scene import load_scene_file
-
     from station.errors import UsageError
     from station.outputs import CALIBRATION_CAPTURE, check_output, staged
 

@@ -95,7 +95,7 @@ def distance_map_figure(name: str, maps: Maps, path: Path) -> Path:
     structure."""
     fig = _figure((15, 4.2))
     axes = fig.subplots(1, 3)
-    for ax, n in zip(axes, VIRTUAL):
+    for ax, n in zip(axes, VIRTUAL, strict=True):
         pts, d = maps[n]
         lo, hi = ((float(np.percentile(d, 1)) * 1e3, float(np.percentile(d, 99)) * 1e3)
                   if d.size else (-1.0, 1.0))
@@ -136,7 +136,7 @@ def cad_figure(maps: Maps, path: Path) -> Path:
     axes = fig.subplots(1, 4)
     d_real = maps["cad_real"][1]
     lim = max(float(np.percentile(np.abs(d_real), 95)) * 1e3, 1.0)
-    for ax, n in zip(axes, MODELS):
+    for ax, n in zip(axes, MODELS, strict=True):
         pts, d = maps[f"cad_{n}"]
         sc = _distance_map(ax, pts, d, lim, 1, f"{LABELS[n]} - CAD\nmean {d.mean() * 1e3:+.0f} "
                            f"um, RMSE {np.sqrt(np.mean(d * d)) * 1e3:.0f} um")
@@ -167,7 +167,7 @@ def summary_figure(rows: list[PositionRow], path: Path) -> Path:
             axes[1].plot(x, [(v.rmse_mm or 0.0) * 1e3 for v in m], **style)
             axes[2].plot(x, [abs(size_vs_real_um(v)) for v in m], **style)
     for ax, t in zip(axes, ("mean distance to real, um", "RMSE to real, um",
-                            "|size - real's size|, shared pixels, um")):
+                            "|size - real's size|, shared pixels, um"), strict=True):
         ax.set_yscale("symlog", linthresh=10.0)
         ax.set_xlabel("defocus (depth - focus distance), mm")
         ax.set_title(t)

@@ -66,7 +66,7 @@ def check_lenses(out: Path, lens_paths: list[str]) -> None:
         write_json(record, {"lenses": now})
         return
     before = json.loads(record.read_text(encoding="utf-8"))["lenses"]
-    for i, (a, b) in enumerate(zip(before, now)):
+    for i, (a, b) in enumerate(zip(before, now, strict=False)):
         if a["sha256"] != b["sha256"]:
             raise UsageError(f"{b['file']}: camera {i}'s measured lens differs from the one "
                              f"this experiment's positions were scanned with ({record}: "

@@ -215,7 +215,7 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, progress: bool = T
             "station": station,
             "lenses": [{"file": p, "samples": m.samples, "focus_distance_mm": m.focus_distance_mm,
                         "gaussian_sigma_mm": gaussian_sigma_mm[i]}
-                       for i, (p, m) in enumerate(zip(lens_paths, measured))],
+                       for i, (p, m) in enumerate(zip(lens_paths, measured, strict=True))],
             "render_s": render_s,
             "render_vs_pinhole": {n: render_s[n] / render_s["pinhole"] for n in MODELS},
             "acceptance": acceptance(rows),

@@ -36,6 +36,7 @@ from tqdm import tqdm
 from sim.optics.lens_file import LensFileWriter
 from sim.optics.measured_lens import MeasuredLens, aim_depths
 from sim.optics.projection import pixel_to_normalized
+from station.compute import Engine, run_ordered
 from station.lens import aperture as ap
 from station.lens.centroids import STATUS_OK
 from station.lens.geometry import LensFitConfig, LensFitError, LensGeometry, fit_geometry
@@ -69,7 +70,6 @@ from station.lens.result import (
     node_positions,
 )
 from station.lens.zoned import CENTRE_PIXELS, MISS_TERMS, shift_zones, zoned_centre
-from station.compute import Engine, run_ordered
 from station.lens.zones import fit_focus_zones
 from station.ltc.store import LtcVolume
 

@@ -93,7 +93,7 @@ def rays_figure(volume: LtcVolume, result: LensResult, path: Path) -> Path:
     z = np.array([z0, float(np.max(g.centroids.depths_mm))])
     fig = Figure(figsize=(10, 4.5), dpi=DPI)
     axes = fig.subplots(1, 2)
-    for k, (ax, name) in enumerate(zip(axes, ("x", "y"))):
+    for k, (ax, name) in enumerate(zip(axes, ("x", "y"), strict=True)):
         xy = np.stack([rays.xy_at(zz)[show, k] for zz in z])
         ax.plot(z, xy, "-", color="0.6", lw=0.5)
         ax.plot(zs.ravel(), cen[..., k].ravel(), ".", color="C0", ms=2, label="LTC centroids")

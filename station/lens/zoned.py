@@ -10,12 +10,12 @@ import numpy as np
 
 from sim.optics.measured_lens import aim_depths
 from sim.optics.projection import pixel_to_normalized
+from station.compute import Engine, run_ordered
 from station.lens import aperture as ap
 from station.lens.geometry import LensFitConfig, LensGeometry
 from station.lens.jobs import GRID_PIXELS, aperture_block, aperture_job, pixel_inputs, tile_groups
 from station.lens.rayfit import sample_moment
 from station.lens.result import node_positions
-from station.compute import Engine, run_ordered
 from station.ltc.store import LtcVolume
 
 

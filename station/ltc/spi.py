@@ -241,8 +241,8 @@ def _level_inverse(fourier: FourierPatternSet, h_bytes: bytes, gamma_bytes: byte
     t = _plan_tables(fourier)
     h = np.frombuffer(h_bytes, dtype=np.int64)
     gamma = np.frombuffer(gamma_bytes, dtype=np.complex128)
-    big, pp, m = fourier.grid, fourier.period ** 2, len(t.here)
-    side = [(t.side_target[int(hh)], complex(g)) for hh, g in zip(h, gamma)
+    big, pp = fourier.grid, fourier.period ** 2
+    side = [(t.side_target[int(hh)], complex(g)) for hh, g in zip(h, gamma, strict=True)
             if hh != big - 1 and abs(g) > 1e-15]
     main = complex(gamma[h == big - 1][0])
     x = np.zeros((pp, 2 * pp), np.complex128)  # plane rows x unit inputs (re plane, im plane)
@@ -396,6 +396,7 @@ def _reconstruct_block(d: np.ndarray, plan: StationPatternPlan,
     p = f.period
     re, im, sigma_d = _demodulate(d, plan, j0, j1)
     planes = re.base
+    assert planes is not None  # re is a view of _demodulate's stacked (2 P^2, n) planes
     if harmonics is not None:
         _correct_stacked(planes, f, harmonics)
     n = planes.shape[1]

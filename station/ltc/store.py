@@ -289,12 +289,13 @@ class LtcTileWriter:
         sealed = None
         out = np.empty(len(CHECKED_ARRAYS), np.int64)
         for k, name in enumerate(CHECKED_ARRAYS):
-            if crcs.get(name) is None:
+            crc = crcs.get(name)
+            if crc is None:
                 if sealed is None:
                     sealed = seal_tiles(self.group, depth, [(row0 // ch, col0 // cw)])[0]
                 out[k] = sealed[k]
             else:
-                out[k] = crcs[name]
+                out[k] = crc
         return out
 
 

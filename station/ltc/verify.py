@@ -109,7 +109,7 @@ def _verify_ltc(path: Path) -> StoreReport:
 
 
 def _verify_lens(path: Path) -> StoreReport:
-    from sim.optics.measured_lens import load_lens
+    from sim.optics.lens_file import load_lens
 
     damaged = []
     with zipfile.ZipFile(path) as zf:
