@@ -15,6 +15,7 @@ import zarr
 import zarr.storage._local as zarr_local
 
 from drivers.interfaces import DeviceError
+from sim.storage import durable
 from station.acquisition import run_store
 from station.acquisition.acquire import acquire
 from station.acquisition.backend import Hardware, open_fake_hardware
@@ -72,14 +73,15 @@ class FullDisk:
     """Every file write under ``root`` counts its bytes; once ``budget`` bytes are written the
     disk is full: writes raise ``OSError(ENOSPC)`` naming the file, as the kernel's would,
     until :meth:`free`. Patched: ``zarr.storage._local._put`` (every chunk and metadata file
-    zarr writes) and ``station.acquisition.run_store._write`` (every shard and per-frame
-    record the run store writes itself)."""
+    zarr writes) and ``sim.storage.durable.write_all`` (every shard, per-frame record and
+    LTC tile the stores write themselves, also as the run store imported it)."""
 
     def __init__(self, monkeypatch: pytest.MonkeyPatch, root: Path, budget: int) -> None:
         self.root, self.left, self.refused = str(root), budget, 0
-        self._put, self._write = zarr_local._put, run_store._write
+        self._put, self._write = zarr_local._put, durable.write_all
         monkeypatch.setattr(zarr_local, "_put", self.put)
-        monkeypatch.setattr(run_store, "_write", self.write)
+        monkeypatch.setattr(durable, "write_all", self.write)
+        monkeypatch.setattr(run_store, "write_all", self.write)
 
     def _spend(self, path: Path, n: int) -> None:
         if str(path).startswith(self.root):
