@@ -276,13 +276,6 @@ def _name(exc: OSError, written: Path, path: Path) -> None:
             exc.strerror = os.strerror(exc.errno)
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
 
 @contextlib.contextmanager
 def naming(path: str | os.PathLike) -> Iterator[None]:
@@ -333,9 +326,15 @@ def staged(path: str | os.PathLike, kind: OutputKind, always: bool = False) -> I
     if not (new.exists() or new.is_symlink()):
         shutil.rmtree(staging, ignore_errors=True)
         return
+    from sim.storage.durable import fsync_path, sync_tree
+
+    if new.is_dir() and not new.is_symlink():  # every file of the new output on the disk
+        sync_tree(new)
+    elif not new.is_symlink():
+        fsync_path(new)
     if (path.exists() or path.is_symlink()) and (kind.folder or path.is_dir()):
         _exchange(new, path)  # ``new`` now names the old output, inside the staging folder
     else:
         os.replace(new, path)
-    _fsync_dir(path.parent.resolve())
+    fsync_path(path.parent.resolve())
     shutil.rmtree(staging, ignore_errors=True)
