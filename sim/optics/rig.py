@@ -493,7 +493,6 @@ def save_stereo_calibrate(rig: Rig, path: str | Path) -> None:
     (camera 0 to camera 1), ``M3 D3 R3 T3`` (camera 0 to the projector), ``image_width
     image_height`` and ``projector_width projector_height``; the world frame becomes camera 0's.
     Written to a temporary file beside ``path`` then renamed over it."""
-    import os
 
     path = Path(path)
     if path.suffix.lower() not in YAML_SUFFIXES:
@@ -502,10 +501,7 @@ def save_stereo_calibrate(rig: Rig, path: str | Path) -> None:
         raise ValueError(f"rig file {path}: stereoCalibrate naming has one camera size, the "
                          f"cameras are {rig.cameras[0].size} and {rig.cameras[1].size}")
     rel = relative_to_camera_0(rig)
-    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
-    fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
-    if not fs.isOpened():
-        raise OSError(f"rig file {path}: cannot open {tmp} for writing")
+    fs = cv2.FileStorage(f"rig{path.suffix}", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
     c0, c1, p = rel.cameras[0], rel.cameras[1], rel.projector
     fs.write("image_width", int(c0.width))
     fs.write("image_height", int(c0.height))
@@ -518,7 +514,6 @@ def save_stereo_calibrate(rig: Rig, path: str | Path) -> None:
     fs.write("T", c1.T_array.reshape(3, 1))
     fs.write("R3", p.R_array)
     fs.write("T3", p.T_array.reshape(3, 1))
-    fs.release()
-    with open(tmp, "rb+") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    text = fs.releaseAndGetString()
+    with durable_file(path) as f:
+        f.write(text)
