@@ -35,7 +35,7 @@ def test_the_scene_kinds_in_the_formats_page_are_the_loaders():
     scene = text.split("## Scene file (TOML)", 1)[1].split("\n## ", 1)[0]
     object_kinds = {typing.get_args(cls.model_fields["kind"].annotation)[0]
                     for cls in typing.get_args(typing.get_args(SceneObject)[0])}
-    assert object_kinds == {"sphere", "ball_bar", "plane", "mesh"}
+    assert object_kinds == {"sphere", "ball_bar", "plane", "mesh", "board"}
     assert _table_kinds(scene, "**Objects**") == object_kinds
     assert _table_kinds(scene, "**Lenses**") == set(LENS_KINDS)
 
