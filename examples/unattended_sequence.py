@@ -4,9 +4,8 @@
 
 Start it in the evening; if the machine is stopped (Ctrl-C, a crash, a power cut), run the
 same command again: finished steps are skipped, the acquisition continues at the first frame
-not written, and the rest runs as before. After a crash the run store still holds the dead
-run's writer lock: the error names it, and --force takes it over. OUT_DIR/summary.json says how
-every step went.
+not written, and the rest runs as before (a dead run's writer lock dies with it; a live run's
+refuses the second one, naming it). OUT_DIR/summary.json says how every step went.
 Without CONFIG the built-in fake bench is used.
 """
 

@@ -21,7 +21,7 @@ from station.commands import at_least, positive_float
 
 OPTIONS = {"out": "folder for report.md, figures and results.json",
            "force": "validate again into an --out that holds a validation (of other inputs, "
-                    "or finished), and take over the writer lock a killed run left",
+                    "or finished)",
            "json": None}
 
 
