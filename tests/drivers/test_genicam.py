@@ -38,6 +38,7 @@ def test_list_cameras_finds_the_fake_with_its_identity(fake):
     assert info.device_id == f"Aravis-Fake-{fake.serial}"
 
 
+@pytest.mark.slow
 def test_software_trigger_frames_are_the_fakes_ramp_with_consecutive_ids(fake):
     with GenICamCamera(serial=fake.serial, exposure_ms=10.0) as camera:
         assert camera.size == DEFAULT_SIZE and camera.bit_depth == 8
@@ -64,6 +65,7 @@ def test_open_by_device_id_and_by_address(fake):
         assert by_address.name == f"Aravis Fake {fake.serial!r}"
 
 
+@pytest.mark.slow
 def test_free_run_delivers_every_frame_in_order(fake):
     with GenICamCamera(serial=fake.serial, trigger=None, frame_rate_hz=100.0) as camera:
         frames = [camera.capture(timeout=1.0) for _ in range(20)]
@@ -79,6 +81,7 @@ def test_free_run_delivers_every_frame_in_order(fake):
     assert 0.16 <= frames[-1].timestamp - frames[0].timestamp <= 0.45
 
 
+@pytest.mark.slow
 def test_exposure_and_gain_round_trip(fake):
     with GenICamCamera(serial=fake.serial) as camera:
         for ms in (0.5, 12.5, 40.0):
@@ -94,6 +97,7 @@ def test_exposure_and_gain_round_trip(fake):
             frame.image, expected_pattern(frame.frame_id, *DEFAULT_SIZE, gain=1.0))
 
 
+@pytest.mark.slow
 def test_mono16_and_roi(fake):
     with GenICamCamera(serial=fake.serial) as camera:
         first = camera.capture()
@@ -109,6 +113,7 @@ def test_mono16_and_roi(fake):
     assert frames[1].frame_id == _next_id(frames[0].frame_id)
 
 
+@pytest.mark.slow
 def test_camera_that_vanishes_mid_stream_raises_camera_lost_in_time(fake):
     camera = GenICamCamera(serial=fake.serial, trigger=None, frame_rate_hz=50.0)
     for _ in range(3):
@@ -129,6 +134,7 @@ def test_camera_that_vanishes_mid_stream_raises_camera_lost_in_time(fake):
         camera.capture()
 
 
+@pytest.mark.slow
 def test_triggered_camera_that_vanishes_raises_within_the_deadline(fake):
     camera = GenICamCamera(serial=fake.serial)
     camera.capture()
@@ -140,6 +146,7 @@ def test_triggered_camera_that_vanishes_raises_within_the_deadline(fake):
     camera.close()
 
 
+@pytest.mark.slow
 def test_no_trigger_pulse_times_out_within_the_deadline(fake):
     with GenICamCamera(serial=fake.serial, trigger="Line0") as camera:
         start = time.monotonic()
@@ -176,6 +183,7 @@ def test_unsupported_settings_are_typed_errors_naming_camera_and_value(fake, set
         assert after.image.shape == before.image.shape and after.image.dtype == np.uint8
 
 
+@pytest.mark.slow
 def test_unknown_camera_is_camera_not_found(fake):
     with pytest.raises(CameraNotFound, match=r"no camera with serial 'NOPE'; found: "
                        rf".*Aravis-Fake-{fake.serial} \(serial '{fake.serial}'\)"):

@@ -566,6 +566,7 @@ def test_pty_vanishing_after_a_move_command(homed: ZaberStage, device: FakeZaber
     assert info.value.position_mm is None and info.value.busy is None
 
 
+@pytest.mark.slow
 def test_silent_device_every_call_returns_within_its_deadline(stage: ZaberStage,
                                                               device: FakeZaberDevice) -> None:
     device.faults.silent = True

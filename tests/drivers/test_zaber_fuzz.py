@@ -124,6 +124,7 @@ CHUNKS = st.lists(st.one_of(st.binary(max_size=40), st.sampled_from([b"\n", b"\r
                             st.integers(1, 1500).map(lambda n: b"x" * n + b"\n")), max_size=12)
 
 
+@pytest.mark.slow
 @settings(max_examples=EXAMPLES["line_reader"], **FUZZ)
 @given(CHUNKS, st.booleans())
 def test_fuzz_line_reader(chunks: list[bytes], fail: bool) -> None:

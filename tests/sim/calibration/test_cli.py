@@ -50,6 +50,7 @@ def test_patterns_writes_the_projector_images_in_capture_order(tmp_path, capsys)
     assert pats.count == 13 and pats.v.periods_px == [108.0, 18.0]
 
 
+@pytest.mark.slow
 def test_calibrate_writes_a_rig_and_a_report(small_capture, board, tmp_path, capsys):
     out, rep = tmp_path / "rig.yaml", tmp_path / "report"
     code, text, err = _run(capsys, "calibrate", small_capture.directory, "--board", board,
@@ -103,12 +104,14 @@ def test_refuses_fewer_than_three_poses(small_capture, board, tmp_path, capsys):
     assert f"2 usable pose(s) ({poses[0]}, {poses[1]}) seen by camera 0 and camera 1" in err
 
 
+@pytest.mark.slow
 def test_refuses_poses_that_leave_the_focal_length_unconstrained(fronto_capture, board,
                                                                  tmp_path, capsys):
     err = _refused(capsys, fronto_capture.directory, board, tmp_path)
     assert "pose_000 .. pose_003, camera 0:" in err and "focal length is unconstrained" in err
 
 
+@pytest.mark.slow
 def test_refuses_a_capture_out_of_sync_with_the_projector(small_capture, board, tmp_path,
                                                           capsys):
     d = _copy(small_capture, tmp_path, "c")
@@ -122,6 +125,7 @@ def test_refuses_a_capture_out_of_sync_with_the_projector(small_capture, board, 
     assert "gamma" in err and ", camera 0 and camera 1:" in err
 
 
+@pytest.mark.slow
 def test_render_calibration_writes_a_capture_with_the_scene_s_rig_and_response(
         board, tmp_path, capsys):
     from sim.calibration.virtual import calibration_rig

@@ -99,6 +99,7 @@ def test_a_sample_regenerated_alone_equals_the_one_in_the_data_set(reference):
         assert again.checksum() == stored.checksum
 
 
+@pytest.mark.slow
 def test_reader_splits_batches_and_manifest(reference):
     cfg_path, out = reference
     cfg = load_config(cfg_path)

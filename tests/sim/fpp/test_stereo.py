@@ -278,6 +278,7 @@ def test_ply_round_trip(tmp_path):
     np.testing.assert_array_equal(read_ply(tmp_path / "c.ply").points, [[1, 2, 3], [4, 5, 6]])
 
 
+@pytest.mark.slow
 def test_scanned_ply_carries_scalar_fields_and_normals(tmp_path):
     """A scan's PLY: ``x y z``, ``nx ny nz`` and ``scalar_<name>`` per-point extras (the names
     CloudCompare shows as scalar fields), read back as they were written."""

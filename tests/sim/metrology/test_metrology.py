@@ -120,6 +120,7 @@ def test_find_spheres_errors():
         find_spheres(np.concatenate([pts, plane]), 2, 10.0)
 
 
+@pytest.mark.slow
 def test_sphere_found_without_a_radius_prior_among_a_plane():
     """RANSAC with no radius prior finds the sphere (not the larger plane behind it), and the
     result is the one found with the nominal radius."""
@@ -136,6 +137,7 @@ def test_sphere_found_without_a_radius_prior_among_a_plane():
         find_sphere_unknown(plane)
 
 
+@pytest.mark.slow
 def test_measure_refuses_a_fit_far_from_the_nominal():
     rng = np.random.default_rng(9)
     pts = cap(rng, 3000, [0, 0, 0], R_SPHERE, 0.002)

@@ -262,6 +262,7 @@ def test_ctrl_c_loses_only_the_frame_in_flight_and_resume_finishes(reference, tm
 # ---- faults: caught, re-captured, recorded --------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_repeated_pattern_is_caught_by_the_check_code_and_recaptured(reference, tmp_path):
     out = tmp_path / "run.zarr"
 
@@ -282,6 +283,7 @@ def test_repeated_pattern_is_caught_by_the_check_code_and_recaptured(reference, 
     np.testing.assert_array_equal(arrays["frames"], reference["arrays"]["frames"])
 
 
+@pytest.mark.slow
 def test_camera_timeout_and_stale_frames_are_retried_and_recorded(reference, tmp_path):
     out = tmp_path / "run.zarr"
 
@@ -304,6 +306,7 @@ def test_camera_timeout_and_stale_frames_are_retried_and_recorded(reference, tmp
     np.testing.assert_array_equal(arrays["frames"], reference["arrays"]["frames"])
 
 
+@pytest.mark.slow
 def test_averaged_frames_store_the_rounded_mean_of_fresh_verified_frames(reference, tmp_path):
     """camera.average_frames = 4: every stored frame is the mean, rounded half up, of the four
     frames the camera delivered of its pattern (pixel-exact against a recording of them),
@@ -385,6 +388,7 @@ def test_check_code_out_of_the_cameras_view_is_refused_at_its_depth(tmp_path):
         acquire(config, tmp_path / "run.zarr", progress=False)
 
 
+@pytest.mark.slow
 def test_saturated_frames_are_counted_and_the_check_code_can_be_off(tmp_path, caplog):
     config = small_config(**{"depths_mm = [40.0, 160.0]": "depths_mm = [160.0]",
                              "exposure_ms = 20.0": "exposure_ms = 30.0",
@@ -484,6 +488,7 @@ def test_resume_on_other_devices_is_refused(reference, tmp_path, monkeypatch):
 # ---- teardown -------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_failed_cleanup_never_hides_the_original_error(tmp_path):
     config = small_config(**{"depths_mm = [40.0, 160.0]": "depths_mm = [160.0]"})
     with open_hardware(config) as hw:

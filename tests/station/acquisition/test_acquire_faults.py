@@ -133,6 +133,7 @@ def test_acquire_into_a_full_disk_stops_with_one_line_and_resumes_bit_identical(
                                   before["camera_timestamp_s"][done])  # none written twice
 
 
+@pytest.mark.slow
 def test_reconstruct_into_a_full_disk_stops_with_one_line_and_resumes_bit_identical(
         reference, tmp_path, monkeypatch, capsys):
     out = tmp_path / "ltc.zarr"
@@ -161,6 +162,7 @@ FAULTS = ("camera timeout", "camera stale", "camera drop", "camera garbage", "di
           "stage garbled reply", "stage bad checksum", "stage stall", "stage short")
 
 
+@pytest.mark.slow
 def test_random_faults_are_retried_or_resumed_to_the_fault_free_frames(reference, tmp_path,
                                                                        caplog):
     """Faults at a seeded rate of 12 % per event: every run either completes or stops with

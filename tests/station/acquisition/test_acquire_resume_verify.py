@@ -7,6 +7,7 @@ from __future__ import annotations
 import shutil
 
 import numpy as np
+import pytest
 
 from station.acquisition.config import example_text
 from station.acquisition.run_store import META_ARRAYS, RunStore
@@ -29,6 +30,7 @@ def frames(path) -> np.ndarray:
     return np.stack([s.read_frame(d, p) for d in range(s.n_depths) for p in range(s.n_patterns)])
 
 
+@pytest.mark.slow
 def test_resume_recaptures_damaged_frames_bit_for_bit(tmp_path, capsys, caplog):
     cfg = tmp_path / "run.toml"
     cfg.write_text(one_depth_text())

@@ -102,6 +102,7 @@ def test_tilt_from_axis_inverts_the_bench_rotation(tilt):
     assert tilt_from_axis(vanishing, c, f) == pytest.approx(tilt, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_ltc_align_reports_the_configured_tilt(tmp_path, capsys):
     cfg = tmp_path / "tilted.toml"
     cfg.write_text(tilted_text())

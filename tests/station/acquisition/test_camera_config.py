@@ -105,6 +105,7 @@ def test_bad_camera_sections_are_one_line_naming_file_and_field(base, lines, mes
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.slow
 def test_open_camera_opens_genicam_with_the_configured_settings():
     with running_fake_camera("CFG1") as fake:
         config = GenICamCameraConfig(serial=fake.serial, pixel_format="Mono16",

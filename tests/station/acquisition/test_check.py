@@ -9,6 +9,7 @@ from station.acquisition.config import example_text
 from station.cli import main
 
 
+@pytest.mark.slow
 def test_check_fake_json_is_ok_and_writes_contact_sheet(tmp_path, capsys):
     assert main(["check", "--fake", "--json", "--out", str(tmp_path)]) == 0
     report = json.loads(capsys.readouterr().out)
@@ -22,6 +23,7 @@ def test_check_fake_json_is_ok_and_writes_contact_sheet(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow
 def test_check_reports_a_camera_that_sees_nothing(tmp_path, capsys):
     cfg = tmp_path / "dark.toml"
     cfg.write_text(example_text("fake").replace("[fake.noise]", "[fake.noise]\nwhite_fraction = 0.001"))

@@ -19,6 +19,7 @@ def no_video_devices(monkeypatch, tmp_path):
     monkeypatch.setattr(drivers.camera, "SYSFS_VIDEO", str(tmp_path / "none"))
 
 
+@pytest.mark.slow
 def test_json_lists_the_fake_gige_camera_with_its_identity(capsys, no_video_devices):
     with running_fake_camera("LIST42") as fake:
         assert main(["cameras", "--json"]) == 0
@@ -29,6 +30,7 @@ def test_json_lists_the_fake_gige_camera_with_its_identity(capsys, no_video_devi
     assert report["opencv"] == [] and report["errors"] == []
 
 
+@pytest.mark.slow
 def test_text_names_what_to_put_in_the_config(capsys, no_video_devices):
     with running_fake_camera("LIST43"):
         assert main(["cameras"]) == 0

@@ -31,6 +31,7 @@ def lens(store, out) -> list[str]:
             "--workers", "1", "--quiet"]
 
 
+@pytest.mark.slow
 def test_a_second_lens_writer_is_refused_naming_the_first(store, tmp_path, capsys):
     out = tmp_path / "lens.npz"
     holder = subprocess.Popen([sys.executable, "-c", HOLD, str(out)], stdout=subprocess.PIPE,
@@ -49,6 +50,7 @@ def test_a_second_lens_writer_is_refused_naming_the_first(store, tmp_path, capsy
     assert sorted(p.name for p in tmp_path.iterdir()) == ["lens.npz"]
 
 
+@pytest.mark.slow
 def test_an_output_that_appears_meanwhile_is_not_replaced(store, tmp_path, capsys,
                                                           monkeypatch):
     out = tmp_path / "lens.npz"

@@ -155,6 +155,7 @@ def _copy(src: Path, dst: Path) -> Path:
     return dst
 
 
+@pytest.mark.slow
 def test_scan_errors_wrong_count_sizes_dark_rig(sphere_render, tmp_path, capsys):
     d = sphere_render
     rig = d / "rig.json"

@@ -73,6 +73,7 @@ def damage_weight(path):
     ("gain", damage_weight, "fails its crc32c"),
     ("noise", damage_truncate, "truncated or resized"),
 ])
+@pytest.mark.slow
 def test_a_damaged_chunk_is_refused_naming_it(store, tmp_path, capsys, name, damage, why):
     copy = tmp_path / "ltc.zarr"
     shutil.copytree(store, copy)
@@ -91,6 +92,7 @@ def test_a_damaged_chunk_is_refused_naming_it(store, tmp_path, capsys, name, dam
     assert after == before  # verify changed nothing
 
 
+@pytest.mark.slow
 def test_an_undamaged_store_verifies_and_gives_the_lens(store, tmp_path, capsys):
     assert main(["verify", str(store), "--json"]) == 0
     out = capsys.readouterr().out

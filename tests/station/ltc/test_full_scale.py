@@ -75,6 +75,7 @@ def serial(run):
     return run / "serial.zarr"
 
 
+@pytest.mark.slow
 def test_synthetic_bench_centroids_are_recovered(run, serial):
     cfg = load_config(run / "syn.toml")
     bench = SyntheticBench(parse_synthetic_settings(cfg.fake).synthetic)

@@ -410,6 +410,7 @@ def test_localisation_maps_pixels_to_lcd_coordinates():
 
 # ---- acceptance on the fake bench ---------------------------------------------------------------
 
+@pytest.mark.slow
 def test_run_store_to_ltc_store_end_to_end(bench, plan, clean_frames, clean_run):
     g = open_ltc_store(clean_run["root"] / "ltc.zarr")
     c = bench.config
