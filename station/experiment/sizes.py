@@ -18,6 +18,8 @@ from station.experiment.config import (
     SPHERE_DIAMETER_MM,
 )
 from station.experiment.objects import Position
+from station.validation.compare import shared_pixel_fits
+from station.validation.locate import pixel_keys
 
 if TYPE_CHECKING:
     from sim.fpp.cloud import PointCloud
@@ -25,13 +27,6 @@ if TYPE_CHECKING:
     from sim.optics.rig import Rig
     from sim.render.scene import Scene
     from station.experiment.scan import Scan
-
-def _pixel_keys(cloud: PointCloud) -> np.ndarray:
-    """One integer per point naming its rig pixel (camera, v, u) (n,)."""
-    f = cloud.fields
-    return ((np.asarray(f["camera"], np.int64) * 1_000_000 + np.asarray(f["v"], np.int64))
-            * 1_000_000 + np.asarray(f["u"], np.int64))
-
 
 def _size_of(fits: list[SphereFit], pos: Position) -> float:
     """Sphere: diameter minus nominal; ball bar: centre distance minus nominal, mm."""
@@ -65,7 +60,7 @@ def size_fit(cloud: PointCloud, pos: Position, scene: Scene) -> SizeFit:
     from sim.metrology.spheres import fit_sphere
 
     points = np.asarray(cloud.points, dtype=np.float64)
-    keys = _pixel_keys(cloud)
+    keys = pixel_keys(cloud)
     fits, kept = [], []
     for ball in scene.objects[0].spheres():
         near = on_ball(points, ball)
@@ -121,21 +116,6 @@ def shared_size_mm(cloud: PointCloud, own: SizeFit, real: PointCloud, real_own: 
     further trimming (``fit_sphere(reject_sigma=None)``), so the two sizes differ only by the
     per-point offsets, not by which points each scanner kept. Returns ``size_shared_mm`` and
     ``size_shared_real_mm`` (against nominal) and ``size_shared_points``."""
-    from sim.metrology.spheres import fit_sphere
-
-    fits, real_fits, count = [], [], 0
-    pv, kv = np.asarray(cloud.points, np.float64), _pixel_keys(cloud)
-    pr, kr = np.asarray(real.points, np.float64), _pixel_keys(real)
-    for a, b in zip(own.kept, real_own.kept, strict=True):
-        both = np.intersect1d(a, b)
-        if both.size < 20:
-            raise StationError(f"position {pos.name}: the virtual and real clouds share only "
-                               f"{both.size} pixels on a ball; move it into both cameras' view")
-        iv = np.flatnonzero(np.isin(kv, both))
-        ir = np.flatnonzero(np.isin(kr, both))
-        iv, ir = iv[np.argsort(kv[iv])], ir[np.argsort(kr[ir])]
-        fits.append(fit_sphere(pv[iv], reject_sigma=None))
-        real_fits.append(fit_sphere(pr[ir], reject_sigma=None))
-        count += both.size
+    fits, real_fits, count = shared_pixel_fits(cloud, own.kept, real, real_own.kept, pos.name)
     return {"size_shared_mm": _size_of(fits, pos), "size_shared_real_mm": _size_of(real_fits, pos),
             "size_shared_points": int(count)}

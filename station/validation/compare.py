@@ -5,6 +5,7 @@ their phases pixel by pixel (Fig. 14). Lengths mm, phases rad."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -107,26 +108,37 @@ def image_differences(real: np.ndarray, twin: np.ndarray, lit: np.ndarray,
     return stats, np.where(mask, diff, np.nan), np.where(mask, dp, np.nan)
 
 
-def shared_sizes(cloud: PointCloud, own: ArtefactFit, real: PointCloud, real_own: ArtefactFit,
-                 artefact: AnyArtefact, name: str) -> tuple[float, float, int]:
-    """Both clouds' sizes refitted on the pixels both scanners' own fits kept (no further
-    trimming): twin size, real size (mm) and the points used."""
+def shared_pixel_fits(cloud: PointCloud, kept: Sequence[np.ndarray], real: PointCloud,
+                      real_kept: Sequence[np.ndarray], name: str
+                      ) -> tuple[list[SphereFit], list[SphereFit], int]:
+    """Per ball, both clouds refitted on the pixels both scanners' own fits kept (``kept``,
+    ``real_kept``: pixel keys per ball), with no further trimming, so the two fits differ only
+    by the points' offsets, not by which points each scanner kept: the twin's fits, the real
+    fits and the points used. Fewer than 20 shared pixels on a ball is refused."""
     from sim.metrology.spheres import fit_sphere
 
     fits_v, fits_r, count = [], [], 0
     pv, kv = np.asarray(cloud.points, np.float64), pixel_keys(cloud)
     pr, kr = np.asarray(real.points, np.float64), pixel_keys(real)
-    for a, b in zip(own.kept, real_own.kept, strict=True):
+    for a, b in zip(kept, real_kept, strict=True):
         both = np.intersect1d(a, b)
         if both.size < 20:
             raise RealScanError(f"position {name}: the twin and real clouds share only "
-                                f"{both.size} pixels on a ball")
+                                f"{both.size} pixels on a ball; move it into both cameras' view")
         iv = np.flatnonzero(np.isin(kv, both))
         ir = np.flatnonzero(np.isin(kr, both))
         iv, ir = iv[np.argsort(kv[iv])], ir[np.argsort(kr[ir])]
         fits_v.append(fit_sphere(pv[iv], reject_sigma=None))
         fits_r.append(fit_sphere(pr[ir], reject_sigma=None))
         count += both.size
+    return fits_v, fits_r, count
+
+
+def shared_sizes(cloud: PointCloud, own: ArtefactFit, real: PointCloud, real_own: ArtefactFit,
+                 artefact: AnyArtefact, name: str) -> tuple[float, float, int]:
+    """Both clouds' sizes on the pixels both scanners' own fits kept
+    (:func:`shared_pixel_fits`): twin size, real size (mm) and the points used."""
+    fits_v, fits_r, count = shared_pixel_fits(cloud, own.kept, real, real_own.kept, name)
 
     def size(fits: list[SphereFit]) -> float:
         if len(fits) == 1:
