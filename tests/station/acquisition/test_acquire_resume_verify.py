@@ -9,20 +9,13 @@ import shutil
 import numpy as np
 import pytest
 
-from station.acquisition.config import example_text
 from station.acquisition.run_store import META_ARRAYS, RunStore
 from station.cli import main
+from tests.support.configs import small_fake_config_text
 
 
 def one_depth_text() -> str:
-    text = example_text("fake")
-    for old, new in {"depths_mm = [40.0, 70.0, 130.0, 160.0]": "depths_mm = [40.0, 70.0]",
-                     "period = 12": "period = 4", "timeout_s = 2.0": "timeout_s = 0.05",
-                     "pupil_samples = 200 ": "pupil_samples = 48 ",
-                     "subpixels = 2": "subpixels = 1"}.items():
-        assert old in text, old
-        text = text.replace(old, new, 1)
-    return text
+    return small_fake_config_text((40.0, 70.0))
 
 
 def frames(path) -> np.ndarray:

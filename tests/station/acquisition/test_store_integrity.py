@@ -16,10 +16,11 @@ import zarr
 
 from sim.storage.lock import LOCK_NAME
 from station.acquisition.acquire import AcquisitionError, Event, acquire
-from station.acquisition.config import example_text, parse_config
+from station.acquisition.config import parse_config
 from station.acquisition.patterns import StationPatternPlan
 from station.acquisition.run_store import FrameCorruptError, FrameMeta, RunStore, RunStoreError
 from station.cli import main
+from tests.support.configs import small_fake_config_text
 
 CAM = (20, 13)  # (width, height): edge chunks are partial with tile 8
 LCD = (24, 16)
@@ -149,14 +150,7 @@ def test_attributes_that_disagree_with_the_frame_records_are_refused(run, tmp_pa
 
 
 def one_depth_text() -> str:
-    text = example_text("fake")
-    for old, new in {"depths_mm = [40.0, 70.0, 130.0, 160.0]": "depths_mm = [40.0]",
-                     "period = 12": "period = 4", "timeout_s = 2.0": "timeout_s = 0.05",
-                     "pupil_samples = 200 ": "pupil_samples = 48 ",
-                     "subpixels = 2": "subpixels = 1"}.items():
-        assert old in text, old
-        text = text.replace(old, new, 1)
-    return text
+    return small_fake_config_text()
 
 
 def stop_at(pattern: int):

@@ -11,22 +11,15 @@ import sys
 import pytest
 
 from sim.storage.lock import StoreLock, StoreLockedError
-from station.acquisition.config import example_text
 from station.acquisition.run_store import RunStore
 from station.cli import main
 from station.ltc import tiles
 from station.ltc.store import open_ltc_store
+from tests.support.configs import small_fake_config_text
 
 
 def one_depth_text() -> str:
-    text = example_text("fake")
-    for old, new in {"depths_mm = [40.0, 70.0, 130.0, 160.0]": "depths_mm = [40.0]",
-                     "period = 12": "period = 4", "timeout_s = 2.0": "timeout_s = 0.05",
-                     "pupil_samples = 200 ": "pupil_samples = 48 ",
-                     "subpixels = 2": "subpixels = 1"}.items():
-        assert old in text, old
-        text = text.replace(old, new, 1)
-    return text
+    return small_fake_config_text()
 
 
 @pytest.fixture
