@@ -8,6 +8,9 @@ line (a CLI error is one line).
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 from pydantic import ValidationError
 
 
@@ -28,3 +31,19 @@ def format_validation_error(
     """
     return "; ".join(f"{source}: field '{field_path(e['loc'], prefix)}': "
                      f"{e['msg'].removeprefix('Value error, ')}" for e in exc.errors())
+
+
+def read_toml(path: str | Path, what: str) -> dict[str, Any]:
+    """The table of the TOML file ``path``; a missing file is ``FileNotFoundError`` ("``what``
+    PATH not found"), a file that is not TOML ``SimInputError`` naming it."""
+    import tomllib
+
+    from sim.errors import SimInputError
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} {path} not found")
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SimInputError(f"{path}: not valid TOML: {exc}") from exc

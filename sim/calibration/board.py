@@ -15,7 +15,6 @@ board's feature order (``CalibrationBoard.object_points``) with their ids.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from pydantic import ValidationError
 
 from sim.calibration.errors import CalibrationError
 from sim.render.board import CalibrationBoard
-from sim.validation import format_validation_error
+from sim.validation import format_validation_error, read_toml
 
 SUBPIX_WINDOW_PX = 5  # cornerSubPix half window
 MIN_CHARUCO_CORNERS = 6
@@ -34,12 +33,7 @@ MIN_CHARUCO_CORNERS = 6
 def load_board(path: str | Path) -> CalibrationBoard:
     """Read a board file (TOML, see the module docstring); errors name the file and field."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"board file {path} not found")
-    try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise CalibrationError(f"{path}: not valid TOML: {exc}") from exc
+    raw = read_toml(path, "board file")
     try:
         return CalibrationBoard.model_validate(raw)
     except ValidationError as exc:

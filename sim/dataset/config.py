@@ -9,14 +9,13 @@ pixels (width, height); the unit is in each field's name.
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Annotated, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from sim.errors import SimInputError
-from sim.validation import format_validation_error
+from sim.validation import format_validation_error, read_toml
 
 Range = tuple[float, float]
 
@@ -289,10 +288,5 @@ def parse_config(raw: dict, source: str = "config", base_dir: Path | None = None
 def load_config(path: str | Path) -> DatasetConfig:
     """Read a data-set config TOML file; errors name the file and the field."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"data-set config {path} not found")
-    try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise SimInputError(f"{path}: not valid TOML: {exc}") from exc
+    raw = read_toml(path, "data-set config")
     return parse_config(raw, str(path), path.parent)

@@ -27,7 +27,6 @@ Scene file (TOML; paths relative to the file; example ``examples/sphere_scene.to
 from __future__ import annotations
 
 import json
-import tomllib
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -51,7 +50,7 @@ from sim.render.images import RenderResult, RenderSettings, render_views, write_
 from sim.render.trace import TraceGeometry
 from sim.storage.durable import durable_file
 from sim.tolerances import ROTATION_TOL
-from sim.validation import format_validation_error
+from sim.validation import format_validation_error, read_toml
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
 
@@ -435,12 +434,7 @@ def _projector_size(raw: object, base: Path) -> tuple[int, int] | None:
 def load_scene_file(path: str | Path) -> LoadedScene:
     """Read a scene TOML file and everything it names; errors name the file and the field."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"scene file {path} not found")
-    try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise SimInputError(f"{path}: not valid TOML: {exc}") from exc
+    raw = read_toml(path, "scene file")
     base = path.parent
     try:
         cfg = SceneFile.model_validate(raw, context={"projector_size": _projector_size(raw, base)})
