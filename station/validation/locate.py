@@ -198,12 +198,31 @@ def fit_near(cloud: PointCloud, artefact: AnyArtefact, pose: Pose, name: str,
     return _fit_balls(cloud, artefact, ball_centres(artefact, pose), name)
 
 
-def pose_correction(real: ArtefactFit, virtual: ArtefactFit) -> np.ndarray:
-    """``fit(real) - fit(virtual)`` per centre (k, 3) mm (the nominal-radius centres of
-    balls)."""
-    if real.pose_centres is not None and virtual.pose_centres is not None:
-        return real.pose_centres - virtual.pose_centres
-    return real.centres - virtual.centres
+def pose_correction(real: ArtefactFit, virtual: ArtefactFit, artefact: AnyArtefact,
+                    real_cloud: PointCloud | None = None,
+                    virtual_cloud: PointCloud | None = None) -> np.ndarray:
+    """``fit(real) - fit(virtual)`` per centre (k, 3) mm. Balls: each ball's nominal-radius
+    centre refitted in both clouds on the pixels both fits kept (given the clouds and at
+    least ``MIN_BALL_POINTS`` shared pixels), so that pixels one cloud has at the limb and
+    the other has not move neither fit; else the fits' own nominal-radius centres. A CAD
+    part: the ICP origins."""
+    if real.pose_centres is None or virtual.pose_centres is None:
+        return real.centres - virtual.centres
+    delta = real.pose_centres - virtual.pose_centres
+    if real_cloud is None or virtual_cloud is None or isinstance(artefact, CadArtefact):
+        return delta
+    r = (artefact.diameter_mm if isinstance(artefact, SphereArtefact)
+         else artefact.ball_diameter_mm) / 2
+    pts = [np.asarray(c.points, np.float64) for c in (real_cloud, virtual_cloud)]
+    keys = [pixel_keys(c) for c in (real_cloud, virtual_cloud)]
+    for k, (kr, kv) in enumerate(zip(real.kept, virtual.kept, strict=True)):
+        shared = np.intersect1d(kr, kv)
+        if len(shared) < MIN_BALL_POINTS:
+            continue
+        c = [fixed_radius_centre(p[np.isin(key, shared)], f.pose_centres[k], r)
+             for p, key, f in zip(pts, keys, (real, virtual), strict=True)]
+        delta[k] = c[0] - c[1]
+    return delta
 
 
 def corrected_pose(artefact: AnyArtefact, pose: Pose, delta: np.ndarray) -> Pose:
@@ -238,20 +257,25 @@ class Refinement(Generic[S]):
 
 def refine_pose(artefact: AnyArtefact, real: ArtefactFit, start: Pose,
                 scan_at: Callable[[Pose], S], name: str, mesh: Trimesh | None = None,
-                max_steps: int = MAX_REFINE) -> Refinement[S]:
+                max_steps: int = MAX_REFINE, real_cloud: PointCloud | None = None
+                ) -> Refinement[S]:
     """Analysis by synthesis: scan the artefact with the twin at ``start`` (``scan_at(pose)``
-    returns an object with ``.cloud``), fit it, move the pose by ``fit(real) - fit(virtual)``;
-    until the correction is below ``CONVERGED_MM``. A correction that does not shrink (the
-    fit jumps as limb pixels come and go) is halved from the best pose so far, as often as
-    needed. Returns the pose with the smallest correction and the twin's scan there."""
+    returns an object with ``.cloud``), fit it, move the pose by ``fit(real) - fit(virtual)``
+    (``pose_correction``, on shared pixels when ``real_cloud`` is given); until the pose moves
+    by less than ``CONVERGED_MM``. A step is the largest move of a ball centre (or origin):
+    a ball bar is rigid at its nominal length, so the part of the two balls' corrections
+    that would change its length (the real and virtual length biases differ) is not a pose
+    error and never stops the iteration. A step that does not shrink (the fit jumps as limb
+    pixels come and go) is halved from the best pose so far, as often as needed. Returns the
+    pose with the smallest step and the twin's scan there."""
     pose, steps = start, []
     best: tuple[float, Pose, S, np.ndarray] | None = None
     damping = 1.0
     for _ in range(max_steps):
         last = scan_at(pose)
         virt = fit_near(last.cloud, artefact, pose, name, mesh)
-        delta = pose_correction(real, virt)
-        size = float(np.max(np.linalg.norm(delta, axis=1)))
+        delta = pose_correction(real, virt, artefact, real_cloud, last.cloud)
+        size = pose_offset_um(corrected_pose(artefact, pose, delta), pose, artefact) * 1e-3
         steps.append(size * 1e3)
         if best is None or size < best[0]:
             if best is not None and size > 0.5 * best[0]:

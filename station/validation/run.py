@@ -193,7 +193,7 @@ def validate_position(scan: RealScan, pos: RealPosition, twins: dict[str, tuple]
     names = list(twins)
     primary = names[0]
     ref = refine_pose(art, real_fit, real_fit.pose, scan_at(twins[primary], primary), pos.name,
-                      mesh)
+                      mesh, real_cloud=real)
     pose = ref.pose
     scans = {primary: ref.last}
     offsets = {primary: 0.0}
@@ -202,7 +202,8 @@ def validate_position(scan: RealScan, pos: RealPosition, twins: dict[str, tuple]
         own = fit_near(scans[n].cloud, art, pose, pos.name, mesh)
         from station.validation.locate import corrected_pose, pose_correction
 
-        one_step = corrected_pose(art, pose, pose_correction(real_fit, own))
+        one_step = corrected_pose(art, pose, pose_correction(real_fit, own, art, real,
+                                                             scans[n].cloud))
         offsets[n] = pose_offset_um(one_step, pose, art)
     t_twins = time.perf_counter() - t0 - t_real - t_locate
     bits = resp.bit_depth or (16 if stacks[0].dtype.itemsize >= 2 else 8) \
@@ -247,7 +248,8 @@ def validate_position(scan: RealScan, pos: RealPosition, twins: dict[str, tuple]
             from station.validation.locate import corrected_pose, pose_correction
 
             true[f"refined_{n}"] = pose_offset_um(
-                corrected_pose(art, pose, pose_correction(real_fit, s_fit)),
+                corrected_pose(art, pose, pose_correction(real_fit, s_fit, art, real,
+                                                          scans[n].cloud)),
                 pos.spec.true_pose, art)
     total = time.perf_counter() - t0
     res = PositionResult(
