@@ -26,6 +26,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from station.errors import StationError
+
 PARENT_POLL_S = 0.5  # how often a worker's watchdog looks for the main process
 
 
@@ -35,6 +37,17 @@ class Terminated(KeyboardInterrupt):
 
     def __str__(self) -> str:
         return "terminated (SIGTERM)"
+
+
+class WorkersDied(StationError):
+    """A worker process of the local pool died while it computed (killed, out of memory, or
+    a script that starts workers importing itself again); the message says what to do."""
+
+
+WORKERS_DIED = ("a worker process died while it computed: out of memory, killed, or a Python "
+                "script without `if __name__ == \"__main__\":` around its top level (every "
+                "worker imports the script); guard the script, free memory, or run in this "
+                "process (workers=1, --workers 1)")
 
 
 def _raise_terminated(signum: int, frame: object) -> None:
@@ -155,7 +168,8 @@ class Engine:
 def run_ordered(engine: Engine, tasks, on_result: Callable[[Any, Any], None]) -> None:
     """Submit ``(key, fn, args)`` from the iterable ``tasks`` keeping at most
     ``engine.max_in_flight`` in flight; call ``on_result(key, value)`` for each as it
-    finishes (in completion order). An exception in a task is raised here."""
+    finishes (in completion order). An exception in a task is raised here; a worker process
+    that dies raises ``WorkersDied``."""
     pending: dict = {}
 
     def harvest(block_until_one: bool) -> None:
@@ -164,7 +178,11 @@ def run_ordered(engine: Engine, tasks, on_result: Callable[[Any, Any], None]) ->
         done, _ = engine.wait_some(set(pending)) if block_until_one else (set(), set())
         for fut in done:
             key = pending.pop(fut)
-            on_result(key, fut.result())
+            try:
+                value = fut.result()
+            except cf.process.BrokenProcessPool as exc:
+                raise WorkersDied(WORKERS_DIED) from exc
+            on_result(key, value)
 
     for key, fn, args in tasks:
         while len(pending) >= engine.max_in_flight:

@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from station.compute import _alive
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -75,3 +77,34 @@ def test_sigterm_ends_like_ctrl_c_with_one_line_and_the_resume_hint(tmp_path):
                                 f"reconstruct {tmp_path / 'r.zarr'} --out "
                                 f"{tmp_path / 'ltc.zarr'} --resume"], err
     assert gone_within(workers, 5.0)
+
+
+UNGUARDED = """
+import math
+from station.compute import Engine, run_ordered
+out = []
+with Engine(2) as engine:
+    run_ordered(engine, ((i, math.sqrt, (float(i),)) for i in range(8)),
+                lambda key, value: out.append(value))
+print(len(out))
+"""
+
+
+@pytest.mark.slow
+def test_a_script_without_a_main_guard_is_told_why_its_workers_died(tmp_path):
+    # the workers import the script again: without the guard each would start an engine of
+    # its own, and the pool breaks; the error says why and what to do
+    script = tmp_path / "unguarded.py"
+    script.write_text(UNGUARDED)
+    run = subprocess.run([sys.executable, str(script)], env={**os.environ,
+                         "PYTHONPATH": str(ROOT)}, cwd=tmp_path, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode != 0
+    assert "WorkersDied" in run.stderr and 'if __name__ == "__main__":' in run.stderr
+    guarded = tmp_path / "guarded.py"
+    guarded.write_text("if __name__ == '__main__':\n" + "".join(
+        f"    {line}\n" for line in UNGUARDED.strip().splitlines()))
+    run = subprocess.run([sys.executable, str(guarded)], env={**os.environ,
+                         "PYTHONPATH": str(ROOT)}, cwd=tmp_path, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == "8", run.stderr[-2000:]
