@@ -14,8 +14,10 @@ cameras, each camera in turn the reference and the other the search camera:
    reference phase, on the reference pixel's own epipolar line (its exact rectified row, mapped
    into the search image through the distortion): the model is the least-squares quadratic
    over the 3 x 3 original pixels around the nearest search pixel (``local_phase_model``),
-   solved by Newton steps that re-centre on the nearest pixel. The coarse step only picks the
-   run; the result does not depend on the interpolation order.
+   solved by Newton steps that re-centre on the nearest pixel; where the phase falls in the
+   step between two neighbouring pixels' models at their common cell edge, the match is that
+   edge. The coarse step only picks the run; the result does not depend on the interpolation
+   order.
 5. Triangulation in the rectified frame (``triangulate``, linear least squares as
    ``cv2.triangulatePoints``), then to the world frame.
 
