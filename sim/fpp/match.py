@@ -248,7 +248,13 @@ def _match_direction(ref: _Side, srch: _Side, rows: tuple[int, int], order: int,
 def _lr_consistent(uv_match: np.ndarray, ref_pix: np.ndarray, back: np.ndarray, tol_px: float
                    ) -> np.ndarray:
     """Left-right check: the other direction's matches ``back`` (H_s, W_s, 2) (NaN where none),
-    bilinearly interpolated at ``uv_match`` (n, 2), must land within ``tol_px`` of ``ref_pix``."""
+    interpolated at ``uv_match`` (n, 2), must land within ``tol_px`` of ``ref_pix``.
+
+    Bilinear over the 4 pixels around the match where all have a match; where some lack one
+    (the edge of what the other direction matched), the affine least-squares fit to the
+    matches among the 4 x 4 pixels around it, if at least one of the 4 and three not on one
+    line have one: requiring all 4 dropped a ring of points along every edge of the other
+    camera's matches, and the continuity check then a second ring."""
     h, w = back.shape[:2]
     u0, v0 = np.floor(uv_match[:, 0]), np.floor(uv_match[:, 1])
     inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 <= w - 1) & (v0 + 1 <= h - 1)
@@ -257,8 +263,38 @@ def _lr_consistent(uv_match: np.ndarray, ref_pix: np.ndarray, back: np.ndarray, 
     fu, fv = (uv_match[:, 0] - u0)[:, None], (uv_match[:, 1] - v0)[:, None]
     pred = ((1 - fv) * ((1 - fu) * back[iv, iu] + fu * back[iv, iu + 1])
             + fv * ((1 - fu) * back[iv + 1, iu] + fu * back[iv + 1, iu + 1]))
+    near = np.isfinite(back[..., 0])
+    some = (near[iv, iu] | near[iv, iu + 1] | near[iv + 1, iu] | near[iv + 1, iu + 1]) & inside
+    partial = some & ~np.isfinite(pred[:, 0])
+    if partial.any():
+        pred[partial] = _affine_at(back, uv_match[partial], iu[partial], iv[partial])
     err = np.linalg.norm(pred - ref_pix, axis=1)
-    return inside & (err <= tol_px)
+    return inside & (err <= tol_px)  # NaN (no fit) fails
+
+
+def _affine_at(back: np.ndarray, uv: np.ndarray, iu: np.ndarray, iv: np.ndarray) -> np.ndarray:
+    """The affine least-squares fit (n, 2) to the finite values of ``back`` (H, W, 2) on the
+    4 x 4 pixels ``iu - 1 .. iu + 2``, ``iv - 1 .. iv + 2`` (n,), evaluated at ``uv`` (n, 2);
+    NaN where fewer than three of them, or only ones on one line, are finite."""
+    h, w = back.shape[:2]
+    d = np.arange(-1, 3)
+    cu = iu[:, None, None] + d[None, None, :]  # (n, 1, 4)
+    cv = iv[:, None, None] + d[None, :, None]  # (n, 4, 1)
+    cu, cv = np.broadcast_to(cu, (len(iu), 4, 4)), np.broadcast_to(cv, (len(iu), 4, 4))
+    inside = (cu >= 0) & (cu < w) & (cv >= 0) & (cv < h)
+    vals = back[np.clip(cv, 0, h - 1), np.clip(cu, 0, w - 1)].reshape(len(iu), 16, 2)
+    use = (inside.reshape(len(iu), 16) & np.isfinite(vals[..., 0]))[..., None]
+    # design in offsets from the query point: the fit's constant is the value there
+    a = np.stack([np.ones(cu.shape), cu - uv[:, 0, None, None], cv - uv[:, 1, None, None]],
+                 axis=-1).reshape(len(iu), 16, 3) * use
+    ata = np.einsum("nki,nkj->nij", a, a)
+    atb = np.einsum("nki,nkj->nij", a, np.where(use, vals, 0.0))
+    # three non-collinear cells of the unit grid give det >= 1; collinear ones give 0
+    good = np.linalg.det(ata) > 0.5
+    out = np.full((len(iu), 2), np.nan)
+    if good.any():
+        out[good] = np.linalg.solve(ata[good], atb[good])[:, 0, :]
+    return out
 
 
 def usable_pixels(residual: np.ndarray, max_model_residual: float) -> np.ndarray:

@@ -36,8 +36,9 @@ slope along the row non-zero at the converged match, inside the centre pixel's c
 row holds the phase more than once, the candidate whose point projects into the projector
 closest to ``u_p`` wins (without a projector calibration such pixels are dropped), and points
 further than ``max_projector_error_px`` are dropped; left-right: a match must be confirmed
-by the other direction's matches (interpolated at the matched position) within
-``max_lr_error_px``; continuity: a point whose 8 neighbours are not all reconstructed, or
+by the other direction's matches (interpolated at the matched position: bilinear, or an
+affine fit to the 4 x 4 around it at the edge of those matches) within ``max_lr_error_px``;
+continuity: a point whose 8 neighbours are not all reconstructed, or
 whose range differs from one of theirs by more than ``max_range_step`` pixel footprints, is
 dropped (silhouettes and the points a blurred silhouette leaves between two surfaces). A point
 that cannot be made right is dropped, not kept wrong.
