@@ -253,8 +253,7 @@ def _lr_consistent(uv_match: np.ndarray, ref_pix: np.ndarray, back: np.ndarray, 
     Bilinear over the 4 pixels around the match where all have a match; where some lack one
     (the edge of what the other direction matched), the affine least-squares fit to the
     matches among the 4 x 4 pixels around it, if at least one of the 4 and three not on one
-    line have one: requiring all 4 dropped a ring of points along every edge of the other
-    camera's matches, and the continuity check then a second ring."""
+    line have one (docs/decisions/0056-stereo-matcher-keeps-edges.md)."""
     h, w = back.shape[:2]
     u0, v0 = np.floor(uv_match[:, 0]), np.floor(uv_match[:, 1])
     inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 <= w - 1) & (v0 + 1 <= h - 1)

@@ -38,10 +38,10 @@ closest to ``u_p`` wins (without a projector calibration such pixels are dropped
 further than ``max_projector_error_px`` are dropped; left-right: a match must be confirmed
 by the other direction's matches (interpolated at the matched position: bilinear, or an
 affine fit to the 4 x 4 around it at the edge of those matches) within ``max_lr_error_px``;
-continuity: a point whose 8 neighbours are not all reconstructed, or
-whose range differs from one of theirs by more than ``max_range_step`` pixel footprints, is
-dropped (silhouettes and the points a blurred silhouette leaves between two surfaces). A point
-that cannot be made right is dropped, not kept wrong.
+continuity: a point whose 8 neighbours are not all reconstructed, or whose range differs from
+one of theirs by more than ``max_range_step`` pixel footprints, is dropped (silhouettes and
+the points a blurred silhouette leaves between two surfaces). A point that cannot be made
+right is dropped, not kept wrong.
 
 ``camera_projector_cloud`` triangulates one camera against the projector (ray and the
 projector's plane of constant coordinate, refined through the projector's distortion).
