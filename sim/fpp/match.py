@@ -132,36 +132,83 @@ class _Side:
     residual: np.ndarray
 
 
+def _model_at(side: _Side, uv: np.ndarray, node: np.ndarray, duv: np.ndarray, q: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The local phase model of the pixels ``node`` (n, 2) of ``side`` at the original pixel
+    positions ``uv`` (n, 2), minus ``q`` (n,); its slope along the row (n,) (projector px per
+    rectified px, the row running ``duv`` (n, 2) original px per rectified px); whether the
+    node is inside the image (n,)."""
+    h, w = side.coord.shape
+    inside = (node[:, 0] >= 0) & (node[:, 0] < w) & (node[:, 1] >= 0) & (node[:, 1] < h)
+    nu = np.clip(node[:, 0], 0, w - 1).astype(np.int64)
+    nv = np.clip(node[:, 1], 0, h - 1).astype(np.int64)
+    c = side.coef[nv, nu]
+    d = uv - node
+    f = np.sum(c * _basis(d[:, 0], d[:, 1]), axis=1) - q
+    gx, gy = _basis_grad(d[:, 0], d[:, 1])
+    df = np.sum(c * gx, axis=1) * duv[:, 0] + np.sum(c * gy, axis=1) * duv[:, 1]
+    return f, df, inside
+
+
 def _refine(side: _Side, x: np.ndarray, y: np.ndarray, q: np.ndarray, iterations: int = 5
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Newton search along the rectified rows ``y`` (n,) of ``side`` for the rectified column
     where its local phase model equals ``q`` (n,), from ``x`` (n,): the column, the original
     pixel there (n, 2), whether it converged inside the stencil of a valid model with a
-    non-zero slope along the row, and that slope (n,) (projector px per rectified px)."""
-    h, w = side.coord.shape
+    non-zero slope along the row, and that slope (n,) (projector px per rectified px).
+
+    Each step uses the model of the pixel nearest the current position. Neighbouring pixels'
+    models differ at their common cell edge by what a quadratic cannot follow, so the
+    piecewise model can step over ``q`` there: Newton then alternates between the two pixels
+    with no root in either cell, and the match is the cell edge (``_cell_edge_root``)."""
     ok = np.ones(len(x), dtype=bool)
     step = 1e-3  # rectified px, finite difference of the row's mapping into the image
     uv = _rectified_to_pixel(np.stack([x, y], axis=1), side.cam, side.r, side.p)
     duv = (_rectified_to_pixel(np.stack([x + step, y], axis=1), side.cam, side.r, side.p) - uv) / step
+    x_prev, node_prev = x, np.round(uv)
     for it in range(iterations + 1):
         if it:
             uv = _rectified_to_pixel(np.stack([x, y], axis=1), side.cam, side.r, side.p)
         node = np.round(uv)
-        inside = (node[:, 0] >= 0) & (node[:, 0] < w) & (node[:, 1] >= 0) & (node[:, 1] < h)
-        nu = np.clip(node[:, 0], 0, w - 1).astype(np.int64)
-        nv = np.clip(node[:, 1], 0, h - 1).astype(np.int64)
-        c = side.coef[nv, nu]
-        d = uv - node
-        f = np.sum(c * _basis(d[:, 0], d[:, 1]), axis=1) - q
-        gx, gy = _basis_grad(d[:, 0], d[:, 1])
-        df = np.sum(c * gx, axis=1) * duv[:, 0] + np.sum(c * gy, axis=1) * duv[:, 1]
+        f, df, inside = _model_at(side, uv, node, duv, q)
         ok &= inside & np.isfinite(f) & np.isfinite(df) & (df != 0)
         if it == iterations:
             break
+        x_prev, node_prev = x, node
         x = np.where(ok, x - np.clip(f / np.where(ok, df, 1.0), -1.0, 1.0), x)
     # converged: the phase matches to a millionth of a pixel's worth of slope
-    ok &= np.abs(f) <= 1e-6 * np.abs(df) + 1e-12 * np.maximum(1.0, np.abs(q))
-    return x, uv, ok, df
+    converged = np.abs(f) <= 1e-6 * np.abs(df) + 1e-12 * np.maximum(1.0, np.abs(q))
+    edge = ok & ~converged & np.any(node != node_prev, axis=1)
+    if edge.any():
+        xe, uve, oke, dfe = _cell_edge_root(side, x_prev[edge], node_prev[edge], x[edge],
+                                            node[edge], y[edge], duv[edge], q[edge])
+        sel = np.flatnonzero(edge)[oke]
+        x, uv, df = x.copy(), uv.copy(), df.copy()
+        x[sel], uv[sel], df[sel] = xe[oke], uve[oke], dfe[oke]
+        converged[sel] = True
+    return x, uv, ok & converged, df
+
+
+def _cell_edge_root(side: _Side, xa: np.ndarray, node_a: np.ndarray, xb: np.ndarray,
+                    node_b: np.ndarray, y: np.ndarray, duv: np.ndarray, q: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where the rectified rows ``y`` (n,) leave the cell of pixels ``node_a`` (n, 2) (column
+    ``xa``) for the neighbouring cell of ``node_b`` (column ``xb``), found by bisection: the
+    column (n,), the original pixel there (n, 2), whether the two pixels' models there lie on
+    either side of ``q`` with slopes of one sign (the piecewise model crosses ``q`` at the
+    edge), and their mean slope (n,)."""
+    lo, hi = xa.copy(), xb.copy()
+    for _ in range(48):  # to below 1e-12 of the (at most 1 px) step
+        mid = (lo + hi) / 2
+        uv = _rectified_to_pixel(np.stack([mid, y], axis=1), side.cam, side.r, side.p)
+        in_a = np.all(np.round(uv) == node_a, axis=1)
+        lo, hi = np.where(in_a, mid, lo), np.where(in_a, hi, mid)
+    uv = _rectified_to_pixel(np.stack([hi, y], axis=1), side.cam, side.r, side.p)
+    fa, dfa, _ = _model_at(side, uv, node_a, duv, q)
+    fb, dfb, _ = _model_at(side, uv, node_b, duv, q)
+    ok = (np.all(np.round(uv) == node_b, axis=1) & (fa * fb <= 0) & (dfa * dfb > 0)
+          & np.isfinite(fa * fb))
+    return hi, uv, ok, (dfa + dfb) / 2
 
 
 def _match_direction(ref: _Side, srch: _Side, rows: tuple[int, int], order: int,
@@ -201,7 +248,12 @@ def _match_direction(ref: _Side, srch: _Side, rows: tuple[int, int], order: int,
 def _lr_consistent(uv_match: np.ndarray, ref_pix: np.ndarray, back: np.ndarray, tol_px: float
                    ) -> np.ndarray:
     """Left-right check: the other direction's matches ``back`` (H_s, W_s, 2) (NaN where none),
-    bilinearly interpolated at ``uv_match`` (n, 2), must land within ``tol_px`` of ``ref_pix``."""
+    interpolated at ``uv_match`` (n, 2), must land within ``tol_px`` of ``ref_pix``.
+
+    Bilinear over the 4 pixels around the match where all have a match; where some lack one
+    (the edge of what the other direction matched), the affine least-squares fit to the
+    matches among the 4 x 4 pixels around it, if at least one of the 4 and three not on one
+    line have one (docs/decisions/0056-stereo-matcher-keeps-edges.md)."""
     h, w = back.shape[:2]
     u0, v0 = np.floor(uv_match[:, 0]), np.floor(uv_match[:, 1])
     inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 <= w - 1) & (v0 + 1 <= h - 1)
@@ -210,8 +262,38 @@ def _lr_consistent(uv_match: np.ndarray, ref_pix: np.ndarray, back: np.ndarray, 
     fu, fv = (uv_match[:, 0] - u0)[:, None], (uv_match[:, 1] - v0)[:, None]
     pred = ((1 - fv) * ((1 - fu) * back[iv, iu] + fu * back[iv, iu + 1])
             + fv * ((1 - fu) * back[iv + 1, iu] + fu * back[iv + 1, iu + 1]))
+    near = np.isfinite(back[..., 0])
+    some = (near[iv, iu] | near[iv, iu + 1] | near[iv + 1, iu] | near[iv + 1, iu + 1]) & inside
+    partial = some & ~np.isfinite(pred[:, 0])
+    if partial.any():
+        pred[partial] = _affine_at(back, uv_match[partial], iu[partial], iv[partial])
     err = np.linalg.norm(pred - ref_pix, axis=1)
-    return inside & (err <= tol_px)
+    return inside & (err <= tol_px)  # NaN (no fit) fails
+
+
+def _affine_at(back: np.ndarray, uv: np.ndarray, iu: np.ndarray, iv: np.ndarray) -> np.ndarray:
+    """The affine least-squares fit (n, 2) to the finite values of ``back`` (H, W, 2) on the
+    4 x 4 pixels ``iu - 1 .. iu + 2``, ``iv - 1 .. iv + 2`` (n,), evaluated at ``uv`` (n, 2);
+    NaN where fewer than three of them, or only ones on one line, are finite."""
+    h, w = back.shape[:2]
+    d = np.arange(-1, 3)
+    cu = iu[:, None, None] + d[None, None, :]  # (n, 1, 4)
+    cv = iv[:, None, None] + d[None, :, None]  # (n, 4, 1)
+    cu, cv = np.broadcast_to(cu, (len(iu), 4, 4)), np.broadcast_to(cv, (len(iu), 4, 4))
+    inside = (cu >= 0) & (cu < w) & (cv >= 0) & (cv < h)
+    vals = back[np.clip(cv, 0, h - 1), np.clip(cu, 0, w - 1)].reshape(len(iu), 16, 2)
+    use = (inside.reshape(len(iu), 16) & np.isfinite(vals[..., 0]))[..., None]
+    # design in offsets from the query point: the fit's constant is the value there
+    a = np.stack([np.ones(cu.shape), cu - uv[:, 0, None, None], cv - uv[:, 1, None, None]],
+                 axis=-1).reshape(len(iu), 16, 3) * use
+    ata = np.einsum("nki,nkj->nij", a, a)
+    atb = np.einsum("nki,nkj->nij", a, np.where(use, vals, 0.0))
+    # three non-collinear cells of the unit grid give det >= 1; collinear ones give 0
+    good = np.linalg.det(ata) > 0.5
+    out = np.full((len(iu), 2), np.nan)
+    if good.any():
+        out[good] = np.linalg.solve(ata[good], atb[good])[:, 0, :]
+    return out
 
 
 def usable_pixels(residual: np.ndarray, max_model_residual: float) -> np.ndarray:

@@ -14,8 +14,10 @@ cameras, each camera in turn the reference and the other the search camera:
    reference phase, on the reference pixel's own epipolar line (its exact rectified row, mapped
    into the search image through the distortion): the model is the least-squares quadratic
    over the 3 x 3 original pixels around the nearest search pixel (``local_phase_model``),
-   solved by Newton steps that re-centre on the nearest pixel. The coarse step only picks the
-   run; the result does not depend on the interpolation order.
+   solved by Newton steps that re-centre on the nearest pixel; where the phase falls in the
+   step between two neighbouring pixels' models at their common cell edge, the match is that
+   edge. The coarse step only picks the run; the result does not depend on the interpolation
+   order.
 5. Triangulation in the rectified frame (``triangulate``, linear least squares as
    ``cv2.triangulatePoints``), then to the world frame.
 
@@ -34,11 +36,12 @@ slope along the row non-zero at the converged match, inside the centre pixel's c
 row holds the phase more than once, the candidate whose point projects into the projector
 closest to ``u_p`` wins (without a projector calibration such pixels are dropped), and points
 further than ``max_projector_error_px`` are dropped; left-right: a match must be confirmed
-by the other direction's matches (interpolated at the matched position) within
-``max_lr_error_px``; continuity: a point whose 8 neighbours are not all reconstructed, or
-whose range differs from one of theirs by more than ``max_range_step`` pixel footprints, is
-dropped (silhouettes and the points a blurred silhouette leaves between two surfaces). A point
-that cannot be made right is dropped, not kept wrong.
+by the other direction's matches (interpolated at the matched position: bilinear, or an
+affine fit to the 4 x 4 around it at the edge of those matches) within ``max_lr_error_px``;
+continuity: a point whose 8 neighbours are not all reconstructed, or whose range differs from
+one of theirs by more than ``max_range_step`` pixel footprints, is dropped (silhouettes and
+the points a blurred silhouette leaves between two surfaces). A point that cannot be made
+right is dropped, not kept wrong.
 
 ``camera_projector_cloud`` triangulates one camera against the projector (ray and the
 projector's plane of constant coordinate, refined through the projector's distortion).
