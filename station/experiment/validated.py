@@ -109,9 +109,8 @@ def scan_position_validated(pos: Position, cfg: ExperimentConfig, rig: Rig,
     result, _ = validate_position(scan, scan.positions[0], {n: lenses[n] for n in TWINS},
                                   pixel_samples=1, keep=keep)
     scans = {"real": Scan(keep["real"], keep["real_images"][0], real_s)}
-    per = result.seconds
-    for n in TWINS:
-        scans[n] = Scan(keep[n].cloud, keep[f"images.{n}"], per.get(f"render_and_scan_{n}", 0.0))
+    for n in TWINS:  # one render's time (the primary's refinement rendered it more often)
+        scans[n] = Scan(keep[n].cloud, keep[f"images.{n}"], keep[n].render_s)
     figures = PoseValidation(
         true_offsets_um=result.true_offsets_um, refine_steps_um=result.refine_steps_um,
         refine_converged=result.refine_converged,
