@@ -41,6 +41,9 @@ from sim.tolerances import EDGE_MARGIN_PX
 
 SENSITIVITY_PX = 1e-3
 """Projector px: step of the finite difference giving a point's sensitivity to phase error."""
+MAX_FOOTPRINT_SHIFT = 0.01
+"""The largest pixel-footprint correction applied, as a fraction of the finest fringe period
+(the correction is a second-order shift: 99.9 % of a sphere's are below 3e-4 of it)."""
 
 
 
@@ -310,7 +313,13 @@ def decode_view(
             # dropping it here took a ring of pixels off every region, twice (here and in the
             # stereo's own local models), 64 % of a 31 px sphere's points
             # (docs/decisions/0052-pixel-footprint-keeps-points.md)
-            coord[axis] = np.where(np.isfinite(corrected), corrected, coord[axis])
+            # a shift beyond a small part of the finest period is not the second-order
+            # footprint effect but a 3 x 3 model across a step that it fits exactly (a jump
+            # between rows): there too the pixel keeps its measured value
+            finest = min(d.period_px for d in descs if d.kind == "phase"
+                         and d.direction == axis and d.period_px)
+            small = np.abs(corrected - coord[axis]) <= MAX_FOOTPRINT_SHIFT * finest
+            coord[axis] = np.where(np.isfinite(corrected) & small, corrected, coord[axis])
             residuals[axis] = residual
     return DecodedView(coord, mod, residuals, rejected)
 
