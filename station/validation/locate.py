@@ -219,8 +219,9 @@ def pose_correction(real: ArtefactFit, virtual: ArtefactFit, artefact: AnyArtefa
         shared = np.intersect1d(kr, kv)
         if len(shared) < MIN_BALL_POINTS:
             continue
-        c = [fixed_radius_centre(p[np.isin(key, shared)], f.pose_centres[k], r)
-             for p, key, f in zip(pts, keys, (real, virtual), strict=True)]
+        starts = (real.pose_centres[k], virtual.pose_centres[k])
+        c = [fixed_radius_centre(p[np.isin(key, shared)], start, r)
+             for p, key, start in zip(pts, keys, starts, strict=True)]
         delta[k] = c[0] - c[1]
     return delta
 
