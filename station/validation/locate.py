@@ -266,9 +266,9 @@ def refine_pose(artefact: AnyArtefact, real: ArtefactFit, start: Pose,
     by less than ``CONVERGED_MM``. A step is the largest move of a ball centre (or origin):
     a ball bar is rigid at its nominal length, so the part of the two balls' corrections
     that would change its length (the real and virtual length biases differ) is not a pose
-    error and never stops the iteration. A step that does not shrink (the fit jumps as limb
-    pixels come and go) is halved from the best pose so far, as often as needed. Returns the
-    pose with the smallest step and the twin's scan there."""
+    error and does not keep the iteration going. A step that does not shrink (the fit jumps
+    as limb pixels come and go) is halved from the best pose so far, as often as needed.
+    Returns the pose with the smallest step and the twin's scan there."""
     pose, steps = start, []
     best: tuple[float, Pose, S, np.ndarray] | None = None
     damping = 1.0
