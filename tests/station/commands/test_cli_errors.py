@@ -20,15 +20,7 @@ from station.acquisition.config import ConfigError
 from station.cli import EXIT_BUG, main
 from station.errors import StationError, StationInputError, UsageError
 from station.ltc.store import LtcStoreError
-
-
-def call(args: list[str], capsys) -> tuple[int, str, str]:
-    try:
-        code = main(args)
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
+from tests.support.cli import call
 
 
 def shape_bug(*_args, **_kwargs):

@@ -10,16 +10,7 @@ from pathlib import Path
 import pytest
 
 from station.cli import COMMAND_MODULES, main, version
-
-
-def call(args: list[str], capsys) -> tuple[int, str, str]:
-    """Run ``ltc ARGS`` in-process: (exit code, stdout, stderr)."""
-    try:
-        code = main(args)
-    except SystemExit as exc:  # argparse's own usage errors
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
+from tests.support.cli import call
 
 
 def test_version_is_the_installed_package_version(capsys):

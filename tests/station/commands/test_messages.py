@@ -10,18 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
-from station.cli import main
+from tests.support.cli import call
 
 ROOT = Path(__file__).resolve().parents[3]
 
 
-def call(args: list[str], capsys) -> tuple[int, str, str]:
-    try:
-        code = main(args)
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 @pytest.mark.parametrize("value", ["2", "-0.1", "1"])
