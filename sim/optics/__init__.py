@@ -9,7 +9,7 @@ from sim._lazy import lazy_exports
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "lens": "RayBundle LensModel PinholeLens AberratedLens GaussianLens sunflower_disk hit_plane",
     "measured_lens": "MeasuredLens LensFileError",
-    "lens_file": "save_lens load_lens LensFileWriter read_lens_nodes",
+    "lens_file": "save_lens load_lens load_lens_for LensFileWriter read_lens_nodes",
     "lens_moments": "centre_moments gaussian_equivalent smoothed_lens sample_moments sym_sqrtm "
                     "match_moments",
     "plane_ltc": "subpixel_offsets",

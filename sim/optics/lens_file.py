@@ -51,6 +51,7 @@ from sim.optics.measured_lens import (
     MeasuredLens,
     _check_aim_offset,
     _finite,
+    lens_camera_mismatch,
 )
 from sim.storage.durable import durable_file
 from sim.tolerances import WEIGHT_SUM_TOL
@@ -336,3 +337,13 @@ def load_lens(path: str | Path) -> MeasuredLens:
         )
     except LensFileError as exc:
         raise LensFileError(f"{path}: {exc}") from exc
+
+
+def load_lens_for(path: str | Path, camera) -> MeasuredLens:
+    """``load_lens``, refused (``LensFileError`` naming the file) where the lens is not the rig
+    ``camera``'s (a ``DeviceCalibration``: ``lens_camera_mismatch``)."""
+    lens = load_lens(path)
+    why = lens_camera_mismatch(lens, camera)
+    if why is not None:
+        raise LensFileError(f"lens file {path}: {why}")
+    return lens

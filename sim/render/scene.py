@@ -324,18 +324,12 @@ def _build_lens(spec, base: Path, source: Path, index: int, camera: DeviceCalibr
         path = _resolve(base, spec.path)
         if not path.is_file():
             raise FileNotFoundError(f"{where}: lens file {path} not found")
-        from sim.optics.lens_file import load_lens  # imported only when a scene uses it
+        from sim.optics.lens_file import load_lens_for  # imported only when a scene uses it
 
         try:
-            lens = load_lens(path)
+            return load_lens_for(path, camera)
         except SimInputError as exc:
             raise SimInputError(f"{where}: {exc}") from exc
-        from sim.optics.measured_lens import lens_camera_mismatch
-
-        why = lens_camera_mismatch(lens, camera)
-        if why is not None:
-            raise SimInputError(f"{where}: lens file {path}: {why}")
-        return lens
     return spec
 
 

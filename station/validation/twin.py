@@ -44,8 +44,8 @@ LIT_FRACTION = 0.2  # pixels whose rendered B exceeds this fraction of its 99th 
 def load_lens_arg(path: str | Path, camera: DeviceCalibration, index: int) -> LensModel:
     """One camera's lens from ``--lenses``: a measured lens ``.npz`` (checked against the rig
     camera: ``lens_camera_mismatch``) or a TOML / JSON lens spec."""
-    from sim.optics.lens_file import load_lens
-    from sim.optics.measured_lens import LensFileError, lens_camera_mismatch
+    from sim.optics.lens_file import load_lens_for
+    from sim.optics.measured_lens import LensFileError
     from sim.render.scene import LENS_KINDS, ThinLensSpec
 
     path = Path(path)
@@ -54,13 +54,9 @@ def load_lens_arg(path: str | Path, camera: DeviceCalibration, index: int) -> Le
         raise RealScanError(f"{where}: not found")
     if path.suffix == ".npz":
         try:
-            lens = load_lens(path)
+            return load_lens_for(path, camera)
         except LensFileError as exc:
             raise RealScanError(f"{where}: {exc}") from exc
-        why = lens_camera_mismatch(lens, camera)
-        if why is not None:
-            raise RealScanError(f"{where}: {why}")
-        return lens
     try:
         text = path.read_text(encoding="utf-8")
         raw = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
